@@ -1,0 +1,123 @@
+"""Crop geometry: how a depth image becomes the network's 32 x 32 input.
+
+One definition, used by datagen's crop stage (training data) and by the service
+(uploaded images), so training and serving cannot disagree.
+
+Conventions (image pixels, pixel centres on integer coordinates, u = column, v = row):
+
+* A crop window is ``window`` x ``window`` source pixels whose top-left pixel is the
+  integer ``origin`` (ou, ov). Its centre is ``origin + window / 2 - 0.5``.
+* The window is resized to ``out`` x ``out`` with Pillow's bilinear filter; ``scale =
+  window / out`` must be an integer (96 / 32 = 3).
+* A grasp at image pixel (u, v) enters the network as the offset from the window centre
+  in *crop* pixels: ``((u, v) - centre) / scale``.
+* Parts of the window outside the image are filled by edge replication.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from PIL import Image
+
+
+@dataclass(frozen=True)
+class CropGeometry:
+    """Window size (source px), network input size (px) and the training offset range.
+
+    ``kappa_px`` is the largest |offset| of a grasp from the window centre, in *source*
+    pixels, that the network was trained on (Fast-VGQ-CNN); 0 means centred crops.
+    """
+
+    window: int = 96
+    out: int = 32
+    kappa_px: float = 36.0
+
+    def __post_init__(self) -> None:
+        if self.window <= 0 or self.out <= 0:
+            raise ValueError(f"window and out must be > 0, got {self.window}, {self.out}")
+        if self.window % self.out != 0:
+            raise ValueError(f"window ({self.window}) must be a multiple of out ({self.out})")
+        if not (0 <= self.kappa_px <= self.window / 2):
+            raise ValueError(f"kappa_px must be in [0, window/2], got {self.kappa_px}")
+
+    @property
+    def scale(self) -> int:
+        return self.window // self.out
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "CropGeometry":
+        return cls(window=int(d["window"]), out=int(d["out"]), kappa_px=float(d["kappa_px"]))
+
+
+def window_origin(center_uv, geom: CropGeometry) -> np.ndarray:
+    """Integer top-left pixel (n, 2) of windows whose centres are nearest to ``center_uv`` (n, 2)."""
+    c = np.asarray(center_uv, dtype=np.float64)
+    return np.floor(c - geom.window / 2 + 0.5 + 0.5).astype(np.int64)
+
+
+def window_center(origin_uv, geom: CropGeometry) -> np.ndarray:
+    """Centre (image px) of windows with top-left pixel ``origin_uv``."""
+    return np.asarray(origin_uv, dtype=np.float64) + geom.window / 2 - 0.5
+
+
+def crop_window(depth: np.ndarray, origin_uv, geom: CropGeometry) -> np.ndarray:
+    """The ``window`` x ``window`` block of ``depth`` (H, W) at integer ``origin_uv`` (u, v),
+    edge-replicated where it leaves the image."""
+    h, w = depth.shape
+    ou, ov = int(origin_uv[0]), int(origin_uv[1])
+    rows = np.clip(np.arange(ov, ov + geom.window), 0, h - 1)
+    cols = np.clip(np.arange(ou, ou + geom.window), 0, w - 1)
+    if rows[0] == ov and rows[-1] == ov + geom.window - 1 and cols[0] == ou and cols[-1] == ou + geom.window - 1:
+        return np.ascontiguousarray(depth[ov : ov + geom.window, ou : ou + geom.window], dtype=np.float32)
+    return np.ascontiguousarray(depth[np.ix_(rows, cols)], dtype=np.float32)
+
+
+def resize(window_img: np.ndarray, out: int) -> np.ndarray:
+    """Bilinear resize (Pillow, mode F) of a square float image to ``out`` x ``out``."""
+    img = Image.fromarray(np.ascontiguousarray(window_img, dtype=np.float32))
+    return np.asarray(img.resize((out, out), Image.Resampling.BILINEAR), dtype=np.float32)
+
+
+def crop(depth: np.ndarray, center_uv, geom: CropGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """Crop the window nearest to ``center_uv`` and resize it.
+
+    Returns ``(image (out, out) float32, actual window centre (2,) in image px)``.
+    """
+    origin = window_origin(center_uv, geom)
+    return resize(crop_window(depth, origin, geom), geom.out), window_center(origin, geom)
+
+
+def pose_uv(grasp_uv, window_centre_uv, geom: CropGeometry) -> np.ndarray:
+    """Network (u, v) inputs: grasp offsets (n, 2) from the window centre in crop pixels."""
+    return (np.asarray(grasp_uv, dtype=np.float64) - np.asarray(window_centre_uv, dtype=np.float64)) / geom.scale
+
+
+def in_training_range(grasp_uv, window_centre_uv, geom: CropGeometry) -> np.ndarray:
+    """Boolean (n,): grasps within +/- kappa_px (source px, per axis) of the window centre."""
+    off = np.abs(np.asarray(grasp_uv, dtype=np.float64) - np.asarray(window_centre_uv, dtype=np.float64))
+    return np.all(off <= geom.kappa_px + 1e-9, axis=-1)
+
+
+def rotated_crop(depth: np.ndarray, center_uv, angle_rad: float, geom: CropGeometry) -> np.ndarray:
+    """GQ-CNN crop: the window centred on ``center_uv`` after rotating the image by
+    ``angle_rad`` about that point, so that an in-image grasp axis at ``angle_rad``
+    (from the +u axis towards +v) becomes horizontal. Returns (out, out) float32."""
+    big = int(np.ceil(geom.window * np.sqrt(2))) + 2
+    big += (big - geom.window) % 2  # keep the inner window centred
+    c = np.asarray(center_uv, dtype=np.float64)
+    origin = np.floor(c - big / 2 + 0.5 + 0.5).astype(np.int64)
+    patch = crop_window(depth, origin, CropGeometry(window=big, out=big, kappa_px=0))
+    local = c - origin  # centre within the patch
+    img = Image.fromarray(patch)
+    # PIL rotates counter-clockwise (as displayed) for positive angles; in image coordinates
+    # (v down) a grasp axis at +angle (towards +v) is clockwise, so rotate by +angle.
+    rot = img.rotate(np.degrees(angle_rad), resample=Image.Resampling.BILINEAR, center=(local[0] + 0.5, local[1] + 0.5))
+    rot = np.asarray(rot, dtype=np.float32)
+    o = window_origin(local, geom)
+    inner = crop_window(rot, o, geom)
+    return resize(inner, geom.out)

@@ -1,0 +1,85 @@
+"""Model card: the JSON that travels with exported ONNX graphs (``model_card.json``).
+
+It states everything a consumer needs to feed the graphs correctly: architecture, crop
+geometry and intrinsics it was trained for, normalisation (already inside the graphs;
+recorded for reference), graph file names and I/O names, dataset and metrics.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from . import atomic
+from .camera import Intrinsics
+from .crop import CropGeometry
+from .normalization import Normalization
+
+CARD_NAME = "model_card.json"
+CARD_FORMAT = "vgq-model-card"
+CARD_VERSION = 1
+
+#: ONNX graph I/O names (export writes them, the service reads them).
+ENCODER_INPUT = "depth_crop"  # (n, 1, out, out) float32 metres
+ENCODER_OUTPUT = "image_term"  # (n, 1024) float32
+HEAD_INPUTS = ("image_term", "poses")  # (1, 1024), (k, 7) raw pose rows
+HEAD_OUTPUT = "p_success"  # (k,) float32
+VGQ_INPUTS = ("depth_crops", "poses")  # (k, 1, out, out), (k, n_pose)
+VGQ_OUTPUT = "p_success"
+
+
+@dataclass
+class ModelCard:
+    model_version: str
+    architecture: str  # fast_vgqcnn | vgqcnn | gqcnn
+    geometry: CropGeometry
+    intrinsics: Intrinsics
+    normalization: Normalization
+    files: dict[str, str]  # role -> file name in the model folder: encoder/head or model
+    dataset: dict = field(default_factory=dict)
+    training: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+    export: dict = field(default_factory=dict)
+    label_threshold: float = 0.002
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["geometry"] = self.geometry.to_dict()
+        d["intrinsics"] = self.intrinsics.to_dict()
+        d["normalization"] = self.normalization.to_dict()
+        d["format"] = CARD_FORMAT
+        d["format_version"] = CARD_VERSION
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ModelCard":
+        if d.get("format") != CARD_FORMAT:
+            raise ValueError(f"not a model card (format {d.get('format')!r}, expected {CARD_FORMAT!r})")
+        return cls(
+            model_version=str(d["model_version"]),
+            architecture=str(d["architecture"]),
+            geometry=CropGeometry.from_dict(d["geometry"]),
+            intrinsics=Intrinsics.from_dict(d["intrinsics"]),
+            normalization=Normalization.from_dict(d["normalization"]),
+            files=dict(d["files"]),
+            dataset=dict(d.get("dataset", {})),
+            training=dict(d.get("training", {})),
+            metrics=dict(d.get("metrics", {})),
+            export=dict(d.get("export", {})),
+            label_threshold=float(d.get("label_threshold", 0.002)),
+        )
+
+    def save(self, model_dir: str | Path) -> None:
+        atomic.write_json(Path(model_dir) / CARD_NAME, self.to_dict())
+
+    @classmethod
+    def load(cls, model_dir: str | Path) -> "ModelCard":
+        p = Path(model_dir) / CARD_NAME
+        if not p.is_file():
+            raise FileNotFoundError(f"no {CARD_NAME} in model folder {model_dir}")
+        try:
+            d = json.loads(p.read_text())
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{p}: not valid JSON ({e})") from e
+        return cls.from_dict(d)

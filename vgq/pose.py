@@ -1,0 +1,88 @@
+"""Grasp pose vector layouts and the quaternion convention.
+
+Quaternions are unit (w, x, y, z) and canonical: w >= 0 (q and -q are the same
+rotation; for w == 0 the first non-zero of x, y, z is made positive). A grasp's
+rotation maps gripper-frame vectors to camera-frame vectors; the gripper frame has
+x along the jaw axis (contact to contact) and z along the approach direction.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Pose columns each architecture consumes, in order. (u, v) are crop-pixel offsets of
+#: the grasp centre from the crop window centre (see ``vgq.crop``); z is the TCP depth in
+#: the camera frame in metres; (qw, qx, qy, qz) the canonical unit quaternion.
+POSE_COLUMNS: dict[str, tuple[str, ...]] = {
+    "fast_vgqcnn": ("u", "v", "z", "qw", "qx", "qy", "qz"),
+    "vgqcnn": ("z", "qw", "qx", "qy", "qz"),
+    "gqcnn": ("z",),
+}
+#: The full per-grasp pose row stored in crop datasets; the architectures select from it.
+FULL_POSE_COLUMNS: tuple[str, ...] = POSE_COLUMNS["fast_vgqcnn"]
+QUATERNION_COLUMNS: frozenset[str] = frozenset({"qw", "qx", "qy", "qz"})
+
+
+def pose_column_indices(arch: str) -> list[int]:
+    """Indices into a ``FULL_POSE_COLUMNS`` row of the columns ``arch`` consumes."""
+    if arch not in POSE_COLUMNS:
+        raise ValueError(f"unknown architecture {arch!r}; expected one of {sorted(POSE_COLUMNS)}")
+    return [FULL_POSE_COLUMNS.index(c) for c in POSE_COLUMNS[arch]]
+
+
+def canonical_quaternion(q: np.ndarray, eps: float = 1e-12) -> np.ndarray:
+    """Normalise (..., 4) quaternions (w, x, y, z) and flip their sign so w >= 0.
+
+    Raises ValueError for zero-norm or non-finite quaternions.
+    """
+    q = np.asarray(q, dtype=np.float64)
+    if q.shape[-1] != 4:
+        raise ValueError(f"quaternions must have 4 components (w, x, y, z), got shape {q.shape}")
+    if not np.all(np.isfinite(q)):
+        raise ValueError("quaternion has non-finite components")
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    if np.any(n < eps):
+        raise ValueError("quaternion has zero norm")
+    q = q / n
+    # sign: first non-zero component among (w, x, y, z) positive
+    tol = 1e-12
+    nz = np.abs(q) > tol
+    first = np.argmax(nz, axis=-1)
+    lead = np.take_along_axis(q, first[..., None], axis=-1)
+    return q * np.where(lead < 0, -1.0, 1.0)
+
+
+def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) to canonical quaternions (..., 4) in (w, x, y, z)."""
+    R = np.asarray(R, dtype=np.float64)
+    shape = R.shape[:-2]
+    R = R.reshape(-1, 3, 3)
+    m = [[R[:, i, j] for j in range(3)] for i in range(3)]
+    tr = m[0][0] + m[1][1] + m[2][2]
+    # Shepperd's method, vectorised: four candidate formulas, keep the best conditioned.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s0 = np.sqrt(np.maximum(1.0 + tr, 0)) * 2
+        s1 = np.sqrt(np.maximum(1.0 + m[0][0] - m[1][1] - m[2][2], 0)) * 2
+        s2 = np.sqrt(np.maximum(1.0 + m[1][1] - m[0][0] - m[2][2], 0)) * 2
+        s3 = np.sqrt(np.maximum(1.0 + m[2][2] - m[0][0] - m[1][1], 0)) * 2
+        c0 = np.stack([0.25 * s0, (m[2][1] - m[1][2]) / s0, (m[0][2] - m[2][0]) / s0, (m[1][0] - m[0][1]) / s0], -1)
+        c1 = np.stack([(m[2][1] - m[1][2]) / s1, 0.25 * s1, (m[0][1] + m[1][0]) / s1, (m[0][2] + m[2][0]) / s1], -1)
+        c2 = np.stack([(m[0][2] - m[2][0]) / s2, (m[0][1] + m[1][0]) / s2, 0.25 * s2, (m[1][2] + m[2][1]) / s2], -1)
+        c3 = np.stack([(m[1][0] - m[0][1]) / s3, (m[0][2] + m[2][0]) / s3, (m[1][2] + m[2][1]) / s3, 0.25 * s3], -1)
+    k = np.argmax(np.stack([tr, m[0][0], m[1][1], m[2][2]], axis=1), axis=1)
+    q = np.choose(k[:, None], [c0, c1, c2, c3])
+    return canonical_quaternion(q).reshape(*shape, 4)
+
+
+def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """Quaternions (..., 4) in (w, x, y, z) to rotation matrices (..., 3, 3)."""
+    q = canonical_quaternion(q)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )

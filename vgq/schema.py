@@ -1,0 +1,87 @@
+"""Dataset schema: field names, dtypes, shapes and units, shared by datagen and training.
+
+Two on-disk datasets exist (both folders with a ``manifest.json``, written atomically):
+
+**Grasp dataset** (``datagen generate``), format ``vgq-grasps`` v1::
+
+    manifest.json          config, seed, library versions, counts, list of shards
+    shards/obj_<id>.npz    one shard per object: IMAGE_FIELDS (one row per rendered
+                           depth image) + GRASP_FIELDS (one row per grasp and camera pose);
+                           grasps point at their image by ``image_index`` (row in the shard)
+
+**Crop dataset** (``datagen crops``), format ``vgq-crops`` v1, training-ready::
+
+    manifest.json          source dataset, crop geometry, architecture, counts per split
+    <split>/<field>.npy    split in train / val / test; CROP_FIELDS, one row per grasp,
+                           plain .npy so training can memory-map them
+
+A shard listed in the manifest is complete; files not listed are ignored.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .pose import FULL_POSE_COLUMNS
+
+GRASP_FORMAT = "vgq-grasps"
+CROP_FORMAT = "vgq-crops"
+FORMAT_VERSION = 1
+SPLITS = ("train", "val", "test")
+
+#: name -> (dtype, per-row shape, meaning and unit)
+IMAGE_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
+    "depth": ("float32", (300, 300), "rendered depth, metres, camera frame z; 0 where no surface"),
+    "object_id": ("int32", (), "object index in the manifest's object list"),
+    "stable_pose_id": ("int32", (), "stable pose index of the object"),
+    "camera_d": ("float32", (), "camera distance from world origin, metres"),
+    "camera_phi": ("float32", (), "camera elevation from the table normal, radians"),
+    "camera_theta": ("float32", (), "camera azimuth, radians"),
+    "T_world_camera": ("float64", (4, 4), "camera pose in the world frame (OpenCV camera)"),
+}
+
+GRASP_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
+    "image_index": ("int32", (), "row of the grasp's image in the same shard"),
+    "grasp_id": ("int32", (), "grasp index within its object"),
+    "u": ("float32", (), "projected TCP column, image px"),
+    "v": ("float32", (), "projected TCP row, image px"),
+    "z": ("float32", (), "TCP depth in the camera frame, metres"),
+    "q": ("float32", (4,), "grasp orientation in the camera frame, canonical (w, x, y, z)"),
+    "beta": ("float32", (), "angle approach axis vs downward table normal, radians"),
+    "psi": ("float32", (), "angle approach axis vs camera principal ray, radians"),
+    "omega": ("float32", (), "rotation about the grasp x-axis, radians"),
+    "jaw_angle": ("float32", (), "in-image angle of the grasp x-axis from +u towards +v, radians"),
+    "quality": ("float32", (), "robust Ferrari-Canny; 0 if the gripper collides"),
+    "collision_free": ("bool", (), "gripper approach free of object and table collisions"),
+}
+
+CROP_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
+    "images": ("float32", (32, 32), "network input crop, depth in metres"),
+    "poses": ("float32", (len(FULL_POSE_COLUMNS),), f"pose row {FULL_POSE_COLUMNS}; u, v in crop px"),
+    "labels": ("uint8", (), "1 if quality > the dataset's label threshold"),
+    "quality": ("float32", (), "robust Ferrari-Canny"),
+    "object_id": ("int32", (), "object index in the grasp dataset"),
+    "camera_d": ("float32", (), "camera distance, metres"),
+    "camera_phi": ("float32", (), "camera elevation, radians"),
+    "beta": ("float32", (), "radians"),
+    "psi": ("float32", (), "radians"),
+}
+
+
+def check_fields(fields: dict, arrays: dict[str, np.ndarray], where: str) -> int:
+    """Check that ``arrays`` holds every field with the right dtype and row shape and the
+    same row count; return that count. Raises ValueError naming ``where`` and the field."""
+    n = None
+    for name, (dtype, shape, _) in fields.items():
+        if name not in arrays:
+            raise ValueError(f"{where}: missing field {name!r}")
+        a = arrays[name]
+        if a.dtype != np.dtype(dtype) or tuple(a.shape[1:]) != tuple(shape):
+            raise ValueError(
+                f"{where}: field {name!r} has dtype {a.dtype} shape {a.shape}, expected {dtype} (n, *{shape})"
+            )
+        if n is None:
+            n = a.shape[0]
+        elif a.shape[0] != n:
+            raise ValueError(f"{where}: field {name!r} has {a.shape[0]} rows, expected {n}")
+    return int(n or 0)
