@@ -1,0 +1,78 @@
+"""The torch modules that are traced into ONNX graphs.
+
+They compute exactly what ``training.networks.GraspQualityNet`` computes, arranged so
+onnxruntime runs them fast:
+
+* LRN is already a band-matrix Conv + Pow in the network (no ONNX LRN node);
+* the pose normalisation is folded into pc1 (``W' = W / std``, ``b' = b - W' mean``);
+* softmax(fc6)[:, 1] becomes ``sigmoid((w1 - w0) x + b1 - b0)``: one dot product per
+  grasp instead of a 2-wide Gemm, a Softmax and a Gather.
+
+Inputs are raw (metres, crop pixels); outputs are success probabilities.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from training.networks import GraspQualityNet
+
+
+class _FoldedHead(nn.Module):
+    """pc1 (with pose normalisation folded in) -> fc4 merge -> [fc5] -> P(success)."""
+
+    def __init__(self, net: GraspQualityNet):
+        super().__init__()
+        with torch.no_grad():
+            w = net.pc1.weight / net.pose_std[None, :]
+            b = net.pc1.bias - w @ net.pose_mean
+            self.pc1 = nn.Linear(w.shape[1], w.shape[0])
+            self.pc1.weight.copy_(w)
+            self.pc1.bias.copy_(b)
+            self.fc4_pose = net.fc4_pose
+            self.fc5 = net.fc5
+            self.out = nn.Linear(1024, 1)
+            self.out.weight.copy_((net.fc6.weight[1] - net.fc6.weight[0])[None, :])
+            self.out.bias.copy_((net.fc6.bias[1] - net.fc6.bias[0]).reshape(1))
+
+    def forward(self, image_term: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        x = F.relu(image_term + self.fc4_pose(F.relu(self.pc1(poses))))
+        if self.fc5 is not None:
+            x = F.relu(self.fc5(x))
+        return torch.sigmoid(self.out(x)).reshape(-1)
+
+
+class EncoderGraph(nn.Module):
+    """(n, 1, S, S) raw depth crops in metres -> (n, 1024) image term of fc4."""
+
+    def __init__(self, net: GraspQualityNet):
+        super().__init__()
+        self.net = net
+
+    def forward(self, depth_crop: torch.Tensor) -> torch.Tensor:
+        return self.net.encode(depth_crop)
+
+
+class HeadGraph(nn.Module):
+    """(1 or k, 1024) image term + (k, n_pose) raw poses -> (k,) P(success)."""
+
+    def __init__(self, net: GraspQualityNet):
+        super().__init__()
+        self.head = _FoldedHead(net)
+
+    def forward(self, image_term: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        return self.head(image_term, poses)
+
+
+class OnePieceGraph(nn.Module):
+    """VGQ-CNN / GQ-CNN: (k, 1, S, S) crops + (k, n_pose) raw poses -> (k,) P(success)."""
+
+    def __init__(self, net: GraspQualityNet):
+        super().__init__()
+        self.net = net
+        self.head = _FoldedHead(net)
+
+    def forward(self, depth_crops: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        return self.head(self.net.encode(depth_crops), poses)

@@ -1,0 +1,1 @@
+"""CPU scoring service: FastAPI + uvicorn + onnxruntime (no torch)."""

@@ -1,0 +1,88 @@
+"""Service configuration: one dataclass, filled from defaults < environment (VGQ_*) < CLI flags."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+DEFAULT_MODEL_DIR = Path(__file__).resolve().parent.parent / "models" / "fast-vgqcnn-default"
+
+
+@dataclass
+class Settings:
+    model_dir: str = str(DEFAULT_MODEL_DIR)
+    host: str = "127.0.0.1"
+    port: int = 8000
+    workers: int = 1
+    threads: int = 0  # onnxruntime intra-op threads per session; 0 = cores / workers
+    max_grasps: int = 2048  # grasps per request
+    max_body_bytes: int = 32 * 1024 * 1024  # request body limit
+    max_image_side: int = 4096  # pixels, either dimension of an uploaded depth image
+    cache_entries: int = 4096
+    cache_bytes: int = 64 * 1024 * 1024
+    cache_backend: str = "memory"  # memory | redis
+    redis_url: str = "redis://127.0.0.1:6379/0"
+    request_timeout_s: float = 10.0
+    api_key: str = ""  # when set, upload and score need header X-API-Key
+    log_level: str = "info"
+    access_log: bool = False  # one structured line per request
+
+    def __post_init__(self) -> None:
+        for name, lo in (("port", 0), ("workers", 1), ("threads", 0), ("max_grasps", 1), ("max_body_bytes", 1024),
+                         ("max_image_side", 32), ("cache_entries", 1), ("cache_bytes", 4096)):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < lo:
+                raise ValueError(f"setting {name} must be an integer >= {lo}, got {v!r}")
+        if self.cache_backend not in ("memory", "redis"):
+            raise ValueError(f"setting cache_backend must be 'memory' or 'redis', got {self.cache_backend!r}")
+        if not self.request_timeout_s > 0:
+            raise ValueError(f"setting request_timeout_s must be > 0, got {self.request_timeout_s!r}")
+
+    @property
+    def ort_threads(self) -> int:
+        if self.threads:
+            return self.threads
+        return max(1, (os.cpu_count() or 1) // self.workers)
+
+
+def _convert(typ, raw: str, name: str):
+    try:
+        if typ in (bool, "bool"):
+            if raw.lower() in ("1", "true", "yes", "on"):
+                return True
+            if raw.lower() in ("0", "false", "no", "off", ""):
+                return False
+            raise ValueError(raw)
+        return {"int": int, "float": float, "str": str}.get(typ if isinstance(typ, str) else typ.__name__, str)(raw)
+    except ValueError:
+        raise ValueError(f"setting {name}: cannot parse {raw!r} as {typ}") from None
+
+
+def from_env(environ=os.environ, **overrides) -> Settings:
+    """Settings from VGQ_<NAME> environment variables, then keyword overrides."""
+    kw = {}
+    for f in fields(Settings):
+        key = f"VGQ_{f.name.upper()}"
+        if key in environ:
+            kw[f.name] = _convert(f.type, environ[key], key)
+    kw.update({k: v for k, v in overrides.items() if v is not None})
+    return Settings(**kw)
+
+
+def parse_args(argv=None) -> Settings:
+    """CLI flags (``--model-dir``, ``--port``, ...) over environment over defaults."""
+    p = argparse.ArgumentParser(prog="vgq-serve", description="Serve grasp-quality scores over HTTP (Fast-VGQ-CNN on onnxruntime).")
+    for f in fields(Settings):
+        flag = "--" + f.name.replace("_", "-")
+        if f.type in (bool, "bool"):
+            p.add_argument(flag, dest=f.name, default=None, action=argparse.BooleanOptionalAction)
+        else:
+            typ = {"int": int, "float": float}.get(f.type if isinstance(f.type, str) else f.type.__name__, str)
+            p.add_argument(flag, dest=f.name, type=typ, default=None, help=f"env VGQ_{f.name.upper()} (default {f.default!r})")
+    args = p.parse_args(argv)
+    try:
+        return from_env(**vars(args))
+    except ValueError as e:
+        p.error(str(e))

@@ -1,0 +1,171 @@
+"""Decode uploaded depth images into float32 metres, (H, W), checked for sanity.
+
+Accepted bodies (by Content-Type):
+
+* ``application/x-npy``: a NumPy ``.npy`` of float32 or float64 metres, shape (H, W) or
+  (H, W, 1); parsed from its header without pickle; truncated data is rejected.
+* ``image/png``: 16-bit grayscale PNG in millimetres (0 = no reading).
+* ``application/octet-stream``: raw little-endian float32 metres, row-major, with the
+  ``width`` and ``height`` given alongside.
+
+Depth must be finite and >= 0 (0 means no reading). Image sides must lie in
+[min_side, max_side]; sizes are checked before any pixel buffer is allocated.
+"""
+
+from __future__ import annotations
+
+import io
+import warnings
+
+import numpy as np
+from PIL import Image
+
+from .errors import ApiError
+
+NPY_TYPES = ("application/x-npy", "application/npy")
+PNG_TYPES = ("image/png",)
+RAW_TYPES = ("application/octet-stream",)
+DEPTH_TYPES = NPY_TYPES + PNG_TYPES + RAW_TYPES
+
+
+def _check_size(h: int, w: int, min_side: int, max_side: int) -> None:
+    if not (min_side <= h <= max_side and min_side <= w <= max_side):
+        raise ApiError(422, f"depth image is {h}x{w} (HxW); each side must be in [{min_side}, {max_side}] px")
+
+
+def _decode_npy(body: bytes, min_side: int, max_side: int) -> np.ndarray:
+    f = io.BytesIO(body)
+    try:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+        elif version in ((2, 0), (3, 0)):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+        else:
+            raise ValueError(f"unsupported .npy version {version}")
+    except Exception as e:
+        raise ApiError(422, f"depth body is not a valid .npy file: {e}") from None
+    if dtype.hasobject or dtype.kind != "f" or dtype.itemsize not in (4, 8):
+        raise ApiError(422, f"depth .npy has dtype {dtype}; expected float32 (or float64) metres")
+    if len(shape) == 3 and shape[2] == 1:
+        shape = shape[:2]
+    if len(shape) != 2:
+        raise ApiError(422, f"depth .npy has shape {shape}; expected (H, W) or (H, W, 1)")
+    _check_size(shape[0], shape[1], min_side, max_side)
+    start = f.tell()
+    need = shape[0] * shape[1] * dtype.itemsize
+    if len(body) - start != need:
+        raise ApiError(422, f"depth .npy holds {len(body) - start} data bytes, header promises {need} (truncated or padded)")
+    a = np.frombuffer(body, dtype=dtype, count=shape[0] * shape[1], offset=start)
+    a = a.reshape(shape[::-1]).T if fortran else a.reshape(shape)
+    return np.ascontiguousarray(a, dtype=np.float32)
+
+
+def _decode_png(body: bytes, min_side: int, max_side: int) -> np.ndarray:
+    if not body.startswith(b"\x89PNG\r\n\x1a\n"):
+        raise ApiError(422, "depth body is not a PNG file (bad signature)")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            img = Image.open(io.BytesIO(body), formats=["PNG"])
+            w, h = img.size
+            _check_size(h, w, min_side, max_side)
+            if img.mode not in ("I;16", "I;16B", "I;16L", "I"):
+                raise ApiError(422, f"depth PNG has mode {img.mode}; expected 16-bit grayscale in millimetres")
+            img.load()
+    except ApiError:
+        raise
+    except Exception as e:
+        raise ApiError(422, f"depth PNG cannot be decoded: {e}") from None
+    a = np.asarray(img)
+    if a.dtype.kind not in "ui" or a.min(initial=0) < 0 or a.max(initial=0) > 65535:
+        raise ApiError(422, "depth PNG must hold 16-bit unsigned millimetres")
+    return a.astype(np.float32) * np.float32(0.001)
+
+
+def _decode_raw(body: bytes, width: int | None, height: int | None, min_side: int, max_side: int) -> np.ndarray:
+    if width is None or height is None:
+        raise ApiError(422, "raw float32 depth needs the width and height parameters")
+    _check_size(height, width, min_side, max_side)
+    if len(body) != width * height * 4:
+        raise ApiError(422, f"raw depth has {len(body)} bytes; {height}x{width} float32 needs {width * height * 4}")
+    return np.frombuffer(body, dtype="<f4").reshape(height, width).astype(np.float32)
+
+
+def validate_depth(a: np.ndarray) -> np.ndarray:
+    """Reject non-finite or negative depth (422); return ``a``."""
+    if not np.isfinite(a).all():
+        n = int((~np.isfinite(a)).sum())
+        raise ApiError(422, f"depth image has {n} non-finite pixels (NaN or inf); use 0 for missing readings")
+    if (a < 0).any():
+        raise ApiError(422, f"depth image has {int((a < 0).sum())} negative pixels; depth is in metres, >= 0")
+    if not (a > 0).any():
+        raise ApiError(422, "depth image has no valid (> 0) pixel")
+    return a
+
+
+def decode_depth(body: bytes, content_type: str, *, width: int | None = None, height: int | None = None,
+                 min_side: int = 32, max_side: int = 4096) -> np.ndarray:
+    """Decode and validate a depth upload. Raises ApiError (415 or 422) naming the problem."""
+    ct = (content_type or "").split(";")[0].strip().lower()
+    if not body:
+        raise ApiError(422, "depth body is empty")
+    if ct in NPY_TYPES:
+        a = _decode_npy(body, min_side, max_side)
+    elif ct in PNG_TYPES:
+        a = _decode_png(body, min_side, max_side)
+    elif ct in RAW_TYPES:
+        a = _decode_raw(body, width, height, min_side, max_side)
+    else:
+        raise ApiError(415, f"unsupported depth content type {ct!r}; use one of {', '.join(DEPTH_TYPES)}")
+    return validate_depth(a)
+
+
+def encode_npy(depth: np.ndarray) -> bytes:
+    """The .npy bytes of a depth image (what clients upload)."""
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(depth, dtype=np.float32), allow_pickle=False)
+    return buf.getvalue()
+
+
+def parse_npy(body: bytes, what: str, max_elements: int) -> np.ndarray:
+    """A float .npy of any shape (<= max_elements values), parsed without pickle."""
+    f = io.BytesIO(body)
+    try:
+        version = np.lib.format.read_magic(f)
+        reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = reader(f)
+    except Exception as e:
+        raise ApiError(422, f"{what} is not a valid .npy array: {e}") from None
+    if dtype.hasobject or dtype.kind != "f" or dtype.itemsize not in (4, 8):
+        raise ApiError(422, f"{what} has dtype {dtype}; expected float32 or float64")
+    n = int(np.prod(shape)) if shape else 1
+    if n > max_elements:
+        raise ApiError(422, f"{what} has {n} values; at most {max_elements}")
+    start = f.tell()
+    if len(body) - start != n * dtype.itemsize:
+        raise ApiError(422, f"{what} holds {len(body) - start} data bytes, header promises {n * dtype.itemsize}")
+    a = np.frombuffer(body, dtype=dtype, count=n, offset=start)
+    return a.reshape(shape[::-1]).T if fortran else a.reshape(shape)
+
+
+def read_npz(body: bytes, max_member_bytes: int) -> dict[str, bytes]:
+    """Members of an .npz (zip of .npy) as raw .npy bytes, refusing members whose
+    uncompressed size exceeds ``max_member_bytes`` (zip bombs)."""
+    import zipfile
+
+    try:
+        zf = zipfile.ZipFile(io.BytesIO(body))
+        infos = zf.infolist()
+    except Exception as e:
+        raise ApiError(422, f"body is not a valid .npz archive: {e}") from None
+    out = {}
+    for info in infos:
+        name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+        if info.file_size > max_member_bytes:
+            raise ApiError(413, f".npz member {name!r} unpacks to {info.file_size} bytes; limit {max_member_bytes}")
+        try:
+            out[name] = zf.read(info)
+        except Exception as e:
+            raise ApiError(422, f".npz member {name!r} cannot be read: {e}") from None
+    return out
