@@ -1,0 +1,106 @@
+"""ONNX export: graphs reproduce torch, LRN is exported without ORT's slow LRN kernel."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+
+from conftest import synthetic_crops
+from export.graphs import HeadGraph
+from export.onnx_export import ExportError, export_model
+from training.networks import GraspQualityNet, LocalResponseNorm
+from vgq.camera import DEFAULT_INTRINSICS
+from vgq.crop import CropGeometry
+from vgq.model_card import ModelCard
+
+GEOM = CropGeometry(96, 32, 36.0)
+
+
+def tf_lrn(x: torch.Tensor, radius=2, alpha=2e-5, beta=0.75, bias=1.0) -> torch.Tensor:
+    """TensorFlow's tf.nn.local_response_normalization, written out channel by channel."""
+    c = x.shape[1]
+    out = torch.empty_like(x)
+    for i in range(c):
+        lo, hi = max(0, i - radius), min(c, i + radius + 1)
+        s = (x[:, lo:hi] ** 2).sum(dim=1)
+        out[:, i] = x[:, i] / (bias + alpha * s) ** beta
+    return out
+
+
+def test_lrn_matches_tensorflow_semantics():
+    x = torch.randn(2, 64, 8, 8) * 30  # large activations so the normaliser matters
+    assert torch.allclose(LocalResponseNorm(64)(x), tf_lrn(x), rtol=1e-5, atol=1e-5)
+
+
+def test_lrn_differs_from_torch_builtin_alpha_convention():
+    x = torch.randn(2, 64, 8, 8) * 30
+    builtin = torch.nn.LocalResponseNorm(5, alpha=2e-5, beta=0.75, k=1.0)(x)
+    assert not torch.allclose(LocalResponseNorm(64)(x), builtin, rtol=1e-4)
+
+
+def test_exported_encoder_has_no_onnx_lrn_node(model_dir):
+    ops = {n.op_type for n in onnx.load(str(model_dir / "encoder.onnx")).graph.node}
+    assert "LRN" not in ops and "Conv" in ops
+
+
+def test_model_card_records_geometry_normalisation_and_verification(model_dir):
+    card = ModelCard.load(model_dir)
+    assert card.architecture == "fast_vgqcnn" and card.geometry == GEOM
+    assert card.intrinsics == DEFAULT_INTRINSICS
+    assert card.export["verification"]["max_abs_diff_probability"] <= 1e-4
+    assert card.model_version.startswith("fast_vgqcnn-")
+    assert json.loads((model_dir / "model_card.json").read_text())["format"] == "vgq-model-card"
+
+
+def test_encoder_plus_head_graphs_equal_torch_on_fresh_inputs(model_dir):
+    from conftest import train_briefly
+
+    net, _, _ = train_briefly()  # same seed -> same weights as the fixture's model
+    imgs, poses, _ = synthetic_crops(16, np.random.default_rng(7))
+    enc = ort.InferenceSession(str(model_dir / "encoder.onnx"), providers=["CPUExecutionProvider"])
+    head = ort.InferenceSession(str(model_dir / "head.onnx"), providers=["CPUExecutionProvider"])
+    term = enc.run(None, {"depth_crop": imgs[:1, None]})[0]
+    got = head.run(None, {"image_term": term, "poses": poses})[0]
+    with torch.no_grad():
+        ref = net.head(net.encode(torch.from_numpy(imgs[:1, None])), torch.from_numpy(poses)).numpy()
+    assert got.shape == (16,) and np.abs(got - ref).max() < 1e-4
+
+
+def test_folded_head_equals_network_head():
+    net = GraspQualityNet("fast_vgqcnn").eval()
+    imgs, poses, _ = synthetic_crops(32, np.random.default_rng(1))
+    from vgq.normalization import Normalization
+
+    net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns))
+    with torch.no_grad():
+        t = net.encode(torch.from_numpy(imgs[:1, None]))
+        assert torch.allclose(HeadGraph(net)(t, torch.from_numpy(poses)), net.head(t, torch.from_numpy(poses)), atol=1e-6)
+
+
+@pytest.mark.parametrize("arch", ["vgqcnn", "gqcnn"])
+def test_one_piece_export_for_vgqcnn_and_gqcnn(tmp_path, arch):
+    net = GraspQualityNet(arch).eval()
+    imgs, poses7, _ = synthetic_crops(8, np.random.default_rng(2))
+    cols = {"vgqcnn": [2, 3, 4, 5, 6], "gqcnn": [2]}[arch]
+    card = export_model(net, tmp_path / arch, imgs, poses7[:, cols], CropGeometry(96, 32, 0.0), DEFAULT_INTRINSICS)
+    assert card.files == {"model": f"{arch}.onnx"} and (tmp_path / arch / f"{arch}.onnx").is_file()
+
+
+def test_export_refuses_wrong_inputs_and_writes_nothing(tmp_path):
+    net = GraspQualityNet("fast_vgqcnn").eval()
+    with pytest.raises(ExportError, match="poses"):
+        export_model(net, tmp_path / "m", np.zeros((4, 32, 32), np.float32), np.zeros((4, 5), np.float32), GEOM, DEFAULT_INTRINSICS)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_export_fails_verification_above_tolerance(tmp_path):
+    net = GraspQualityNet("fast_vgqcnn").eval()
+    imgs, poses, _ = synthetic_crops(4, np.random.default_rng(3))
+    with pytest.raises(ExportError, match="does not reproduce"):
+        export_model(net, tmp_path / "m", imgs, poses, GEOM, DEFAULT_INTRINSICS, tolerance=-1.0)
+    assert list(tmp_path.iterdir()) == []
