@@ -1,0 +1,67 @@
+"""``vgq-export`` / ``python -m export``: trained run -> verified ONNX model folder.
+
+    python -m export --run runs/fast --data data/crops_fast --out models/fast-vgqcnn-default
+
+Verification inputs are real crops and poses from the dataset's test split (else val, else
+train). Nothing is written unless onnxruntime matches torch within the tolerance.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+
+import numpy as np
+
+from vgq.camera import Intrinsics
+from vgq.crop import CropGeometry
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(prog="vgq-export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", required=True, help="training run folder (or a checkpoint file)")
+    p.add_argument("--data", required=True, help="crop dataset the run was trained on (verification inputs)")
+    p.add_argument("--out", required=True, help="model folder to write (replaced atomically)")
+    p.add_argument("--verify-n", type=int, default=64, help="number of real inputs to verify on (default 64)")
+    p.add_argument("--tolerance", type=float, default=1e-4, help="max abs probability difference (default 1e-4)")
+    p.add_argument("--seed", type=int, default=0)
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="[export] %(message)s")
+    if a.verify_n < 1:
+        p.error("--verify-n must be >= 1")
+
+    from training.checkpoint import CheckpointError, load_trained
+    from training.data import DatasetError, open_crop_dataset
+
+    from .onnx_export import ExportError, export_model
+
+    t0 = time.perf_counter()
+    try:
+        logging.info("loading %s", a.run)
+        net, meta = load_trained(a.run)
+        ds = open_crop_dataset(a.data)
+        split = next((ds.splits[s] for s in ("test", "val", "train") if s in ds.splits and len(ds.splits[s])), None)
+        if split is None:
+            raise DatasetError(f"{a.data}: no non-empty split to take verification inputs from")
+        idx = np.sort(np.random.default_rng(a.seed).choice(len(split), min(a.verify_n, len(split)), replace=False))
+        crops, poses, _ = split.batch(idx, meta["arch"])
+        logging.info("exporting %s, verifying on %d %s crops", meta["arch"], len(idx), split.name)
+        card = export_model(
+            net, a.out, crops.numpy(), poses.numpy(),
+            geometry=CropGeometry.from_dict(meta["geometry"]),
+            intrinsics=Intrinsics.from_dict(meta["intrinsics"]),
+            dataset=meta["dataset"], training=meta["training"], metrics=meta["metrics"],
+            label_threshold=float(meta.get("label_threshold", 0.002)), tolerance=a.tolerance,
+        )
+    except (CheckpointError, DatasetError, ExportError, FileNotFoundError, ValueError) as e:
+        print(f"vgq-export: {e}", file=sys.stderr)
+        sys.exit(2)
+    v = card.export["verification"]
+    logging.info("wrote %s (%s) in %.1f s; max |p_onnx - p_torch| = %.2e", a.out, card.model_version,
+                 time.perf_counter() - t0, v["max_abs_diff_probability"])
+
+
+if __name__ == "__main__":
+    main()
