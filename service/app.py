@@ -188,7 +188,7 @@ def make_cache(settings: Settings, log: logging.Logger):
     if settings.cache_backend == "redis":
         from .redis_cache import RedisCache
 
-        return RedisCache(settings.redis_url, settings.cache_entries, settings.cache_bytes, log)
+        return RedisCache(settings.redis_url, settings.cache_entries, settings.cache_bytes, log, ttl_s=settings.cache_ttl_s)
     return MemoryCache(settings.cache_entries, settings.cache_bytes)
 
 

@@ -24,6 +24,7 @@ class Settings:
     cache_bytes: int = 64 * 1024 * 1024
     cache_backend: str = "memory"  # memory | redis
     redis_url: str = "redis://127.0.0.1:6379/0"
+    cache_ttl_s: float = 86400.0  # redis backend: an image unused this long expires (each hit renews it)
     request_timeout_s: float = 10.0
     api_key: str = ""  # when set, upload and score need header X-API-Key
     log_level: str = "info"
@@ -37,8 +38,9 @@ class Settings:
                 raise ValueError(f"setting {name} must be an integer >= {lo}, got {v!r}")
         if self.cache_backend not in ("memory", "redis"):
             raise ValueError(f"setting cache_backend must be 'memory' or 'redis', got {self.cache_backend!r}")
-        if not self.request_timeout_s > 0:
-            raise ValueError(f"setting request_timeout_s must be > 0, got {self.request_timeout_s!r}")
+        for name in ("request_timeout_s", "cache_ttl_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"setting {name} must be > 0, got {getattr(self, name)!r}")
 
     @property
     def ort_threads(self) -> int:

@@ -15,7 +15,9 @@ Depth must be finite and >= 0 (0 means no reading). Image sides must lie in
 from __future__ import annotations
 
 import io
+import struct
 import warnings
+import zipfile
 
 import numpy as np
 from PIL import Image
@@ -61,22 +63,39 @@ def _decode_npy(body: bytes, min_side: int, max_side: int) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float32)
 
 
-def _decode_png(body: bytes, min_side: int, max_side: int) -> np.ndarray:
-    if not body.startswith(b"\x89PNG\r\n\x1a\n"):
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_COLOUR = {0: "grayscale", 2: "RGB", 3: "palette", 4: "grayscale + alpha", 6: "RGBA"}
+
+
+def png_header(body: bytes) -> tuple[int, int, int, int]:
+    """(height, width, bit depth, colour type) from a PNG's IHDR chunk, read without decoding.
+    Raises ApiError 422 if the body is not a PNG."""
+    if not body.startswith(PNG_SIGNATURE):
         raise ApiError(422, "depth body is not a PNG file (bad signature)")
+    if len(body) < 33 or body[12:16] != b"IHDR" or struct.unpack(">I", body[8:12])[0] != 13:
+        raise ApiError(422, "depth PNG is truncated or corrupt: no IHDR header chunk")
+    w, h, bits, colour = struct.unpack(">IIBB", body[16:26])
+    return h, w, bits, colour
+
+
+def _decode_png(body: bytes, min_side: int, max_side: int) -> np.ndarray:
+    # size and format from the header before any pixel is decompressed (decompression bombs)
+    h, w, bits, colour = png_header(body)
+    _check_size(h, w, min_side, max_side)
+    if bits != 16 or colour != 0:
+        raise ApiError(422, f"depth PNG is {bits}-bit {_PNG_COLOUR.get(colour, f'colour type {colour}')}; "
+                            "expected 16-bit grayscale in millimetres")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
             img = Image.open(io.BytesIO(body), formats=["PNG"])
-            w, h = img.size
-            _check_size(h, w, min_side, max_side)
-            if img.mode not in ("I;16", "I;16B", "I;16L", "I"):
+            if img.size != (w, h) or img.mode not in ("I;16", "I;16B", "I;16L", "I"):
                 raise ApiError(422, f"depth PNG has mode {img.mode}; expected 16-bit grayscale in millimetres")
             img.load()
     except ApiError:
         raise
     except Exception as e:
-        raise ApiError(422, f"depth PNG cannot be decoded: {e}") from None
+        raise ApiError(422, f"depth PNG cannot be decoded (truncated or corrupt): {e}") from None
     a = np.asarray(img)
     if a.dtype.kind not in "ui" or a.min(initial=0) < 0 or a.max(initial=0) > 65535:
         raise ApiError(422, "depth PNG must hold 16-bit unsigned millimetres")
@@ -149,23 +168,39 @@ def parse_npy(body: bytes, what: str, max_elements: int) -> np.ndarray:
     return a.reshape(shape[::-1]).T if fortran else a.reshape(shape)
 
 
-def read_npz(body: bytes, max_member_bytes: int) -> dict[str, bytes]:
-    """Members of an .npz (zip of .npy) as raw .npy bytes, refusing members whose
-    uncompressed size exceeds ``max_member_bytes`` (zip bombs)."""
-    import zipfile
+NPZ_MAX_MEMBERS = 8
 
+
+def read_npz(body: bytes, max_total_bytes: int, names: tuple[str, ...] | None = None,
+             max_members: int = NPZ_MAX_MEMBERS) -> dict[str, bytes]:
+    """Members of an .npz (zip of .npy) as raw .npy bytes (only ``names`` if given).
+
+    Zip bombs are refused before anything is decompressed: at most ``max_members`` members,
+    and their declared uncompressed sizes must add up to at most ``max_total_bytes`` (413).
+    A member whose data does not match its declared size fails its CRC check (422)."""
     try:
         zf = zipfile.ZipFile(io.BytesIO(body))
         infos = zf.infolist()
     except Exception as e:
         raise ApiError(422, f"body is not a valid .npz archive: {e}") from None
+    if len(infos) > max_members:
+        raise ApiError(422, f".npz archive has {len(infos)} members; at most {max_members}")
+    wanted = [i for i in infos if names is None or _npz_name(i) in names]
+    total = 0
+    for info in wanted:
+        total += info.file_size
+        if info.file_size > max_total_bytes or total > max_total_bytes:
+            raise ApiError(413, f".npz member {_npz_name(info)!r} unpacks to {info.file_size} bytes "
+                                f"({total} in all); limit {max_total_bytes}")
     out = {}
-    for info in infos:
-        name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
-        if info.file_size > max_member_bytes:
-            raise ApiError(413, f".npz member {name!r} unpacks to {info.file_size} bytes; limit {max_member_bytes}")
+    for info in wanted:
+        name = _npz_name(info)
         try:
             out[name] = zf.read(info)
         except Exception as e:
-            raise ApiError(422, f".npz member {name!r} cannot be read: {e}") from None
+            raise ApiError(422, f".npz member {name!r} cannot be read (corrupt archive): {e}") from None
     return out
+
+
+def _npz_name(info) -> str:
+    return info.filename[:-4] if info.filename.endswith(".npy") else info.filename

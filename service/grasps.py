@@ -17,6 +17,7 @@ from vgq.pose import canonical_quaternion
 from .errors import ApiError
 
 GRASP_WIDTH = 7
+MAX_Z_M = 10.0  # TCP depth bound (metres): beyond it the float32 network input is meaningless or inf
 _MAX_LISTED = 20
 
 
@@ -67,15 +68,16 @@ def to_network_poses(grasps: np.ndarray, window_center: np.ndarray, geom: CropGe
     bad = ~np.isfinite(grasps).all(axis=1)
     if bad.any():
         raise ApiError(422, f"{int(bad.sum())} grasps have non-finite values", {"grasps": _indices(bad)})
-    bad = grasps[:, 2] <= 0
+    bad = ~((grasps[:, 2] > 0) & (grasps[:, 2] <= MAX_Z_M))
     if bad.any():
-        raise ApiError(422, f"{int(bad.sum())} grasps have depth z <= 0 (metres, camera frame)", {"grasps": _indices(bad)})
+        raise ApiError(422, f"{int(bad.sum())} grasps have depth z outside (0, {MAX_Z_M:g}] (metres, camera frame)",
+                       {"grasps": _indices(bad)})
     q = grasps[:, 3:7]
     norm = np.sqrt((q * q).sum(axis=1))
     bad = norm < 1e-6
     if bad.any():
         raise ApiError(422, f"{int(bad.sum())} grasps have a zero quaternion", {"grasps": _indices(bad)})
-    q = canonical_quaternion(q)  # unit, w >= 0
+    q = canonical_quaternion(q / np.abs(q).max(axis=1, keepdims=True))  # unit, w >= 0 (pre-scaled: no overflow)
     off = grasps[:, :2] - window_center
     bad = (np.abs(off) > geom.kappa_px + 1e-6).any(axis=1)
     if bad.any():

@@ -101,3 +101,10 @@ def test_sample_dataset_writes_object_wise_split(tmp_path):
     assert stats["steps"]["psi"]["grasps"] < stats["steps"]["native"]["grasps"]
     assert any("beta bin" in line for line in logs)
     assert (tmp_path / "s" / "plots" / "positivity_by_beta.png").stat().st_size > 1000
+
+
+def test_dataset_without_positives_is_refused(tmp_path):
+    fake_dataset(tmp_path / "raw", n_objects=2, n_grasps=20, positive_rate=0.0)
+    with pytest.raises(ValueError, match="no positive grasp"):
+        sample_dataset(tmp_path / "raw", tmp_path / "s", log=lambda s: None)
+    assert not (tmp_path / "s").exists()

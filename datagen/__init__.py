@@ -1,0 +1,1 @@
+"""Dataset generation: VG-dset style 6-DOF grasp datasets from real meshes."""

@@ -1,0 +1,249 @@
+"""Command line: ``python -m datagen {generate,sample,crops,bench,recipe,config} ...``.
+
+Bad input (missing folders, unreadable meshes, nonsense config values) exits with code 2
+and one line naming the problem; an interrupted ``generate`` resumes when rerun.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+# The dataset the shipped model is trained on (``datagen recipe``): generate -> sample -> crops.
+RECIPE = {
+    "objects": 300,  # first 300 of pybullet_data's random_urdfs (sorted by name)
+    "cameras": 10,  # camera poses per stable pose
+    "seed": 0,
+    "arch": "fast_vgqcnn",
+    "kappa": 36.0,  # px in the 96 px window (the authors' default)
+    "sampling": {"uniform_quantile": 0.1},  # small dataset: cap bins at the 10% quantile, not the minimum
+}
+
+
+class CliError(Exception):
+    """A usage problem detected after argument parsing (exit code 2)."""
+
+
+def _positive_int(name):
+    def parse(s):
+        try:
+            v = int(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be an integer, got {s!r}") from None
+        if v < 1:
+            raise argparse.ArgumentTypeError(f"{name} must be >= 1, got {v}")
+        return v
+
+    return parse
+
+
+def _nonneg_int(s):
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"seed must be an integer, got {s!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"seed must be >= 0, got {v}")
+    return v
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="FILE", help="JSON config file (see `datagen config`)")
+    p.add_argument(
+        "--set", metavar="KEY=VALUE", action="append", default=[],
+        help="override one config field, e.g. --set quality.num_samples=10 --set camera.d_range=[0.5,0.9]",
+    )
+
+
+def _build_config(args, base=None, **fields):
+    from .config import DatagenConfig, load_config, parse_override
+
+    cfg = base if base is not None else (load_config(args.config) if args.config else DatagenConfig())
+    overrides = dict(parse_override(s) for s in args.set)
+    overrides.update({k: v for k, v in fields.items() if v is not None})
+    return cfg.with_overrides(overrides) if overrides else cfg
+
+
+def cmd_generate(args) -> int:
+    from .config import DatagenConfig
+    from .parallel import default_workers
+    from .pipeline import run_generate
+    from .storage import GRASP_FORMAT, MANIFEST, read_manifest
+
+    out = Path(args.out)
+    base = None
+    if args.resume:
+        if not (out / MANIFEST).is_file():
+            raise CliError(f"--resume: no {MANIFEST} in {out}")
+        base = DatagenConfig.from_dict(read_manifest(out, GRASP_FORMAT)["config"])
+    cfg = _build_config(
+        args, base, source=str(Path(args.source).resolve()) if args.source else None, num_objects=args.objects,
+        cameras_per_pose=args.cameras, seed=args.seed,
+    )
+    if args.source and not Path(args.source).exists():
+        raise CliError(f"--source {args.source} does not exist")
+    workers = args.workers or default_workers()
+    m = run_generate(out, cfg, workers=workers, use_ray=args.ray, progress=not args.quiet)
+    c = m["counts"]
+    print(
+        f"{out}: {c['objects_done']} objects done, {c['objects_skipped']} skipped, {c['images']} images, "
+        f"{c['grasps']} grasps, positivity {100 * c['positivity_rate']:.1f}%"
+    )
+    skipped = [o for o in m["objects"] if o["status"] == "skipped"]
+    for o in skipped:
+        print(f"warning: skipped object {o['name']} ({o['source']}): {o.get('reason')}", file=sys.stderr)
+    if c["objects_done"] == 0 and skipped:
+        raise CliError(f"no object produced data; first problem: {skipped[0]['source']}: {skipped[0].get('reason')}")
+    return 0
+
+
+def cmd_sample(args) -> int:
+    from .sampling import sample_dataset
+
+    cfg = _build_config(args)
+    params = cfg.sampling
+    if args.seed is not None:
+        import dataclasses
+
+        params = dataclasses.replace(params, seed=args.seed)
+    sample_dataset(args.inp, args.out, params, plot=not args.no_plots)
+    return 0
+
+
+def cmd_crops(args) -> int:
+    from .crops import make_crops
+
+    make_crops(args.inp, args.out, args.arch, args.kappa, seed=args.seed, progress=not args.quiet)
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from .bench import run_bench
+
+    cfg = _build_config(
+        args, source=str(Path(args.source).resolve()) if args.source else None, num_objects=args.objects,
+        cameras_per_pose=args.cameras, seed=args.seed,
+    )
+    res = run_bench(cfg, workers=args.workers)
+    if args.json:
+        print(json.dumps(res, indent=2))
+    return 0
+
+
+def cmd_recipe(args) -> int:
+    from .parallel import default_workers
+
+    out = Path(args.out)
+    objects = args.objects or RECIPE["objects"]
+    workers = args.workers or default_workers()
+    sets = [f"--set sampling.{k}={json.dumps(v)}" for k, v in RECIPE["sampling"].items()]
+    steps = [
+        f"python -m datagen generate --out {out / 'grasps'} --objects {objects} --cameras {RECIPE['cameras']} "
+        f"--seed {RECIPE['seed']} --workers {workers}",
+        f"python -m datagen sample --in {out / 'grasps'} --out {out / 'sampled'} --seed {RECIPE['seed']} " + " ".join(sets),
+        f"python -m datagen crops --in {out / 'sampled'} --out {out / 'crops'} --arch {RECIPE['arch']} "
+        f"--kappa {RECIPE['kappa']:g} --seed {RECIPE['seed']}",
+    ]
+    for s in steps:
+        print(s)
+    if args.dry_run:
+        return 0
+    import shlex
+
+    outputs = [None, out / "sampled", out / "crops"]  # generate always runs (it resumes)
+    for s, o in zip(steps, outputs):
+        if o is not None and (o / "manifest.json").is_file():
+            if json.loads((o / "manifest.json").read_text()).get("complete", True):
+                print(f"\n{o} exists: skipping `{' '.join(shlex.split(s)[3:5])}`", flush=True)
+                continue
+            raise CliError(f"{o} holds an unfinished dataset (an interrupted run); delete it and rerun the recipe")
+        print(f"\n$ {s}", flush=True)
+        rc = main(shlex.split(s)[3:])
+        if rc:
+            return rc
+    return 0
+
+
+def cmd_config(args) -> int:
+    cfg = _build_config(args)
+    print(json.dumps(cfg.to_dict(), indent=2, sort_keys=True))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="datagen", description="VG-dset style grasp dataset generation")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    g = sub.add_parser("generate", help="render a grasp dataset (vgq-grasps) from meshes; rerun to resume")
+    g.add_argument("--out", required=True, help="output folder")
+    g.add_argument("--source", help="mesh folder or file (default: pybullet_data random_urdfs)")
+    g.add_argument("--objects", type=_positive_int("--objects"), help="use the first N objects (sorted by name)")
+    g.add_argument("--cameras", type=_positive_int("--cameras"), help="camera poses per stable pose (default 10)")
+    g.add_argument("--workers", type=_positive_int("--workers"), help="worker processes (default: CPU cores)")
+    g.add_argument("--ray", action="store_true", help="run the per-object tasks on Ray (pip install vgq-cnn[ray])")
+    g.add_argument("--seed", type=_nonneg_int, help="run seed (default 0)")
+    g.add_argument("--resume", action="store_true", help="continue the run in --out with its recorded config")
+    g.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_config_args(g)
+    g.set_defaults(func=cmd_generate)
+
+    s = sub.add_parser("sample", help="psi filter, positivity equalisation, uniform undersampling, object-wise split")
+    s.add_argument("--in", dest="inp", required=True, help="grasp dataset folder")
+    s.add_argument("--out", required=True, help="output folder (sampled vgq-grasps dataset + plots/)")
+    s.add_argument("--seed", type=_nonneg_int, help="sampling and split seed (default: sampling.seed)")
+    s.add_argument("--no-plots", action="store_true")
+    _add_config_args(s)
+    s.set_defaults(func=cmd_sample)
+
+    c = sub.add_parser("crops", help="training crops (vgq-crops) for one architecture")
+    c.add_argument("--in", dest="inp", required=True, help="grasp dataset folder (normally `datagen sample` output)")
+    c.add_argument("--out", required=True, help="output folder")
+    c.add_argument("--arch", required=True, choices=("fast_vgqcnn", "vgqcnn", "gqcnn"))
+    c.add_argument("--kappa", type=float, help="Fast-VGQ-CNN offset range, source px (default 36)")
+    c.add_argument("--seed", type=_nonneg_int, default=0)
+    c.add_argument("--quiet", action="store_true")
+    c.set_defaults(func=cmd_crops)
+
+    b = sub.add_parser("bench", help="labelled datapoints per minute and native positivity of a small run")
+    b.add_argument("--objects", type=_positive_int("--objects"), default=3)
+    b.add_argument("--cameras", type=_positive_int("--cameras"), default=10)
+    b.add_argument("--workers", type=_positive_int("--workers"), default=1)
+    b.add_argument("--source")
+    b.add_argument("--seed", type=_nonneg_int)
+    b.add_argument("--json", action="store_true", help="also print the result as JSON")
+    _add_config_args(b)
+    b.set_defaults(func=cmd_bench)
+
+    r = sub.add_parser("recipe", help="build the shipped model's dataset (generate -> sample -> crops)")
+    r.add_argument("--out", required=True)
+    r.add_argument("--objects", type=_positive_int("--objects"), help=f"default {RECIPE['objects']}")
+    r.add_argument("--workers", type=_positive_int("--workers"))
+    r.add_argument("--dry-run", action="store_true", help="only print the commands")
+    r.set_defaults(func=cmd_recipe)
+
+    k = sub.add_parser("config", help="print the (default or given) config as JSON")
+    _add_config_args(k)
+    k.set_defaults(func=cmd_config)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .config import ConfigError
+    from .parallel import RayNotInstalled
+    from .storage import DatasetError
+
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (CliError, ConfigError, DatasetError, RayNotInstalled, OSError, ValueError) as e:
+        print(f"datagen {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"datagen {args.command}: interrupted (rerun the same command to resume)", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,273 @@
+"""The one configuration of dataset generation and sampling: :class:`DatagenConfig`.
+
+It composes the parameter dataclasses of the stages (mesh, antipodal sampler, quality
+metric, camera sampler, gripper geometry, sampling) with the run settings. It loads from
+a plain JSON file (nested objects per section, unknown keys rejected), takes overrides
+of the form ``section.field=value`` (value parsed as JSON, else as a string) and
+validates values with errors that name the bad field. Units: metres and radians.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
+from vgq.schema import IMAGE_FIELDS
+
+from .camera import CameraParams
+from .grasps import AntipodalParams
+from .gripper import GripperGeometry
+from .mesh import MeshParams
+from .quality import QualityParams
+from .sampling import SamplingParams
+
+
+class ConfigError(ValueError):
+    """A configuration value or file is invalid; the message names the field or file."""
+
+
+@dataclass(frozen=True)
+class DatagenConfig:
+    """Everything that determines a generated dataset (besides the meshes themselves)."""
+
+    mesh: MeshParams = field(default_factory=MeshParams)
+    antipodal: AntipodalParams = field(default_factory=AntipodalParams)
+    quality: QualityParams = field(default_factory=QualityParams)
+    camera: CameraParams = field(default_factory=CameraParams)
+    gripper: GripperGeometry = field(default_factory=GripperGeometry)
+    intrinsics: Intrinsics = DEFAULT_INTRINSICS
+    sampling: SamplingParams = field(default_factory=SamplingParams)
+    cameras_per_pose: int = 10  # camera poses per stable pose (VG-dset: 100, Dex-Net 2.0: 50)
+    stable_pose_min_probability: float = 0.01  # keep stable poses with p >= this
+    max_stable_poses: int | None = None  # keep at most this many (most probable first)
+    seed: int = 0  # run seed; per-object seeds derive from (seed, object name)
+    source: str | None = None  # mesh folder; None -> pybullet_data random_urdfs
+    num_objects: int | None = None  # first N mesh sources (sorted); None -> all
+
+    def to_dict(self) -> dict:
+        return _to_jsonable(dataclasses.asdict(self))
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "DatagenConfig":
+        cfg = _build(cls, d, "")
+        validate(cfg)
+        return cfg
+
+    def with_overrides(self, overrides: dict) -> "DatagenConfig":
+        """A copy with ``{"section.field": value}`` overrides applied (and validated)."""
+        d = self.to_dict()
+        for key, value in overrides.items():
+            _set_path(d, key, value)
+        return DatagenConfig.from_dict(d)
+
+    @property
+    def label_threshold(self) -> float:
+        return float(self.quality.label_threshold)
+
+
+def load_config(path: str | Path) -> DatagenConfig:
+    """Load a config from a JSON file; missing keys keep their defaults."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file {p} does not exist")
+    try:
+        d = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"config file {p} is not valid JSON ({e})") from e
+    if not isinstance(d, dict):
+        raise ConfigError(f"config file {p} must hold a JSON object, got {type(d).__name__}")
+    try:
+        return DatagenConfig.from_dict(d)
+    except ConfigError as e:
+        raise ConfigError(f"config file {p}: {e}") from e
+
+
+def parse_override(text: str) -> tuple[str, object]:
+    """``"camera.d_range=[0.5, 0.9]"`` -> ``("camera.d_range", [0.5, 0.9])``."""
+    if "=" not in text:
+        raise ConfigError(f"override {text!r} must look like section.field=value")
+    key, raw = text.split("=", 1)
+    key = key.strip()
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    return key, value
+
+
+# ----------------------------------------------------------------------------- building
+
+
+def _to_jsonable(x):
+    if isinstance(x, dict):
+        return {k: _to_jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_to_jsonable(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return str(x)
+    return x
+
+
+def _set_path(d: dict, key: str, value) -> None:
+    parts = key.split(".")
+    cur = d
+    for i, part in enumerate(parts[:-1]):
+        if not isinstance(cur.get(part), dict):
+            raise ConfigError(f"unknown config section {'.'.join(parts[: i + 1])!r}")
+        cur = cur[part]
+    if parts[-1] not in cur:
+        raise ConfigError(f"unknown config field {key!r}")
+    cur[parts[-1]] = value
+
+
+def _is_dataclass_type(tp) -> bool:
+    return isinstance(tp, type) and dataclasses.is_dataclass(tp)
+
+
+def _build(cls, d, prefix: str):
+    """Instantiate dataclass ``cls`` from dict ``d``, recursing into nested dataclasses."""
+    where = prefix.rstrip(".") or "config"
+    if not isinstance(d, dict):
+        raise ConfigError(f"{where} must be a JSON object, got {type(d).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(d) - names)
+    if unknown:
+        raise ConfigError(f"unknown config field {prefix}{unknown[0]!r} (known: {', '.join(sorted(names))})")
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if not f.init or f.name not in d:
+            continue
+        kwargs[f.name] = _coerce(hints.get(f.name), d[f.name], f"{prefix}{f.name}")
+        if not _is_dataclass_type(hints.get(f.name)):
+            _check_leaf(f"{prefix}{f.name}", f.name, kwargs[f.name])
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"{where}: {e}") from e
+
+
+def _coerce(tp, value, name: str):
+    """Convert a JSON value to the annotated type ``tp`` (dataclass, tuple, int, float, ...)."""
+    if tp is None:
+        return value
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        last = None
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(a, value, name)
+            except ConfigError as e:
+                last = e
+        raise last or ConfigError(f"{name}: bad value {value!r}")
+    if _is_dataclass_type(tp):
+        return _build(tp, value, name + ".")
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{name} must be true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not (isinstance(value, int) or (isinstance(value, float) and value.is_integer())):
+            raise ConfigError(f"{name} must be an integer, got {value!r}")
+        return int(value)
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{name} must be a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{name} must be a string, got {value!r}")
+        return value
+    if origin is tuple or tp is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{name} must be a list, got {value!r}")
+        if args and args[-1] is not Ellipsis:
+            if len(value) != len(args):
+                raise ConfigError(f"{name} must have {len(args)} entries, got {len(value)}")
+            return tuple(_coerce(a, v, f"{name}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+        inner = args[0] if args else None
+        return tuple(_coerce(inner, v, f"{name}[{i}]") for i, v in enumerate(value))
+    return value
+
+
+# ----------------------------------------------------------------------------- validation
+
+_NONNEG_WORDS = ("width", "length", "depth", "thickness", "distance", "radius", "extent", "coef", "sigma", "threshold")
+
+
+def _leaves(d: dict, prefix: str = ""):
+    for k, v in d.items():
+        if isinstance(v, dict):
+            yield from _leaves(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}", k, v
+
+
+def _check_leaf(path: str, name: str, v) -> None:
+    """Generic checks by field name: finite numbers; counts (num_*, max_*, *_factor) >= 1;
+    sizes and sigmas >= 0; ranges (*_range) as (low, high) with low <= high."""
+    vals = v if isinstance(v, (list, tuple)) else [v]
+    for x in vals:
+        if isinstance(x, float) and not math.isfinite(x):
+            raise ConfigError(f"{path} must be finite, got {x}")
+    if isinstance(v, bool) or v is None:
+        return
+    if isinstance(v, int) and (name.startswith(("num_", "max_")) or name.endswith("_factor")) and v < 1:
+        raise ConfigError(f"{path} must be >= 1, got {v}")
+    if isinstance(v, (int, float)) and any(w in name for w in _NONNEG_WORDS) and v < 0:
+        raise ConfigError(f"{path} must be >= 0, got {v}")
+    if name.endswith("_range"):
+        if len(vals) != 2:
+            raise ConfigError(f"{path} must be (low, high), got {v}")
+        if vals[0] > vals[1]:
+            raise ConfigError(f"{path} is reversed: low {vals[0]} > high {vals[1]}")
+
+
+def validate(cfg: DatagenConfig) -> None:
+    """Raise :class:`ConfigError` naming the first bad field."""
+    for path, name, v in _leaves(dataclasses.asdict(cfg)):
+        _check_leaf(path, name, v)
+    if cfg.cameras_per_pose < 1:
+        raise ConfigError(f"cameras_per_pose must be >= 1, got {cfg.cameras_per_pose}")
+    if not 0.0 <= cfg.stable_pose_min_probability <= 1.0:
+        raise ConfigError(f"stable_pose_min_probability must be in [0, 1], got {cfg.stable_pose_min_probability}")
+    if cfg.max_stable_poses is not None and cfg.max_stable_poses < 1:
+        raise ConfigError(f"max_stable_poses must be >= 1 or null, got {cfg.max_stable_poses}")
+    if cfg.num_objects is not None and cfg.num_objects < 1:
+        raise ConfigError(f"num_objects must be >= 1 or null, got {cfg.num_objects}")
+    if cfg.seed < 0:
+        raise ConfigError(f"seed must be >= 0, got {cfg.seed}")
+    d_lo, _ = cfg.camera.d_range
+    if d_lo <= 0:
+        raise ConfigError(f"camera.d_range must be > 0 m, got {cfg.camera.d_range}")
+    phi_lo, phi_hi = cfg.camera.phi_range
+    if phi_lo < 0 or phi_hi >= math.pi / 2:
+        raise ConfigError(f"camera.phi_range must lie in [0, pi/2) radians, got {cfg.camera.phi_range}")
+    if cfg.antipodal.max_width > cfg.gripper.max_width:
+        raise ConfigError(
+            f"antipodal.max_width ({cfg.antipodal.max_width}) exceeds gripper.max_width ({cfg.gripper.max_width})"
+        )
+    if cfg.quality.max_width != cfg.antipodal.max_width:
+        raise ConfigError(
+            f"quality.max_width ({cfg.quality.max_width}) must equal antipodal.max_width ({cfg.antipodal.max_width}): "
+            "perturbed grasps re-find their contacts within the sampler's opening"
+        )
+    shape = IMAGE_FIELDS["depth"][1]
+    if (cfg.intrinsics.height, cfg.intrinsics.width) != tuple(shape):
+        raise ConfigError(
+            f"intrinsics image size {cfg.intrinsics.width}x{cfg.intrinsics.height} must match the dataset "
+            f"schema's depth shape {shape[1]}x{shape[0]}"
+        )

@@ -1,0 +1,191 @@
+"""Crop stage (SPEC section 5): turn a grasp dataset into the training-ready ``vgq-crops``
+dataset for one architecture. All crop arithmetic is :mod:`vgq.crop` (shared with the
+service); this module only chooses the windows.
+
+* ``fast_vgqcnn``: per grasp, a window whose centre lies within +/- kappa source px (per
+  axis, uniformly over the integer window positions) of the grasp; pose (u, v) = the grasp's
+  offset from the window centre in crop px (``vgq.crop.pose_uv``).
+* ``vgqcnn``: window centred on the grasp (nearest integer window), pose u = v = 0.
+* ``gqcnn``: ``vgq.crop.rotated_crop`` about the grasp by its ``jaw_angle``, u = v = 0.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from vgq import atomic
+from vgq import crop as vcrop
+from vgq.pose import FULL_POSE_COLUMNS
+from vgq.schema import CROP_FORMAT, FORMAT_VERSION, SPLITS
+
+from . import storage
+from .sampling import SamplingParams, split_objects
+
+ARCHS = ("fast_vgqcnn", "vgqcnn", "gqcnn")
+DEFAULT_KAPPA_PX = 36.0  # the authors' default for the 96 px window (12 px at 32 x 32)
+
+
+def geometry_for(arch: str, kappa_px: float | None = None, window: int = 96, out: int = 32) -> vcrop.CropGeometry:
+    """Crop geometry of ``arch``: Fast-VGQ-CNN uses ``kappa_px`` (default 36), the centred
+    architectures kappa 0 (a non-zero kappa for them is an error)."""
+    if arch not in ARCHS:
+        raise ValueError(f"unknown architecture {arch!r}; expected one of {', '.join(ARCHS)}")
+    if arch == "fast_vgqcnn":
+        k = DEFAULT_KAPPA_PX if kappa_px is None else float(kappa_px)
+    else:
+        if kappa_px not in (None, 0, 0.0):
+            raise ValueError(f"kappa applies to fast_vgqcnn only; {arch} crops are centred (got kappa {kappa_px})")
+        k = 0.0
+    if not np.isfinite(k):
+        raise ValueError(f"kappa must be finite, got {k}")
+    return vcrop.CropGeometry(window=window, out=out, kappa_px=k)
+
+
+def fast_window_origins(grasp_uv: np.ndarray, geom: vcrop.CropGeometry, rng: np.random.Generator) -> np.ndarray:
+    """Integer window origins (n, 2) whose centres lie within +/- ``geom.kappa_px`` (per axis)
+    of ``grasp_uv`` (n, 2), drawn uniformly among the valid positions. Where none is valid
+    (kappa < 0.5 px and a fractional grasp pixel) the nearest window is used."""
+    g = np.asarray(grasp_uv, dtype=np.float64).reshape(-1, 2)
+    half = geom.window / 2 - 0.5  # centre = origin + half
+    lo = np.ceil(g - half - geom.kappa_px - 1e-9)
+    hi = np.floor(g - half + geom.kappa_px + 1e-9)
+    span = hi - lo + 1
+    draw = lo + np.floor(rng.random(g.shape) * np.maximum(span, 1))
+    nearest = vcrop.window_origin(g, geom).astype(np.float64)
+    return np.where(span >= 1, draw, nearest).astype(np.int64)
+
+
+def crop_grasps(
+    depth: np.ndarray, uv: np.ndarray, jaw_angle: np.ndarray, arch: str, geom: vcrop.CropGeometry, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Crops of one depth image (H, W) for k grasps at ``uv`` (k, 2) image px.
+
+    Returns (images (k, out, out) float32, pose (u, v) (k, 2) in crop px)."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    k = len(uv)
+    images = np.empty((k, geom.out, geom.out), dtype=np.float32)
+    pose_uv = np.zeros((k, 2), dtype=np.float64)
+    if arch == "fast_vgqcnn":
+        centres = vcrop.window_center(fast_window_origins(uv, geom, rng), geom)
+        for i in range(k):
+            images[i], c = vcrop.crop(depth, centres[i], geom)
+            pose_uv[i] = vcrop.pose_uv(uv[i], c, geom)
+    elif arch == "vgqcnn":
+        for i in range(k):
+            images[i], _ = vcrop.crop(depth, uv[i], geom)
+    elif arch == "gqcnn":
+        for i in range(k):
+            images[i] = vcrop.rotated_crop(depth, uv[i], float(jaw_angle[i]), geom)
+    else:
+        raise ValueError(f"unknown architecture {arch!r}")
+    return images, pose_uv
+
+
+def make_crops(
+    src: str | Path, out: str | Path, arch: str, kappa_px: float | None = None, seed: int = 0,
+    log: Callable[[str], None] = print, progress: bool = False,
+) -> dict:
+    """Crop every grasp of the grasp dataset ``src`` into the ``vgq-crops`` dataset ``out``.
+
+    The split comes from ``src``'s manifest (``datagen sample``); a dataset without one is
+    split object-wise here (80/10/10, by ``seed``). Returns the written manifest."""
+    geom = geometry_for(arch, kappa_px)
+    out = Path(out)
+    if (out / storage.MANIFEST).exists():
+        raise FileExistsError(f"output folder {out} already holds a dataset; choose a new --out")
+    ds = storage.open_dataset(src)
+    m_src = ds.manifest
+    if "splits" in m_src:
+        split_of = {int(i): s for s in SPLITS for i in m_src["splits"].get(s, [])}
+        split_note = "from the source dataset"
+    else:
+        split_of = split_objects(ds.object_ids, SamplingParams().split_fractions, seed)
+        split_note = f"object-wise 80/10/10 computed by datagen crops (seed {seed})"
+    missing = [e["object_id"] for e in ds.shard_entries if e["object_id"] not in split_of]
+    if missing:
+        raise storage.DatasetError(f"{ds.root / storage.MANIFEST}: objects {missing[:5]} have no split")
+    n = {s: sum(e["num_grasps"] for e in ds.shard_entries if split_of[e["object_id"]] == s) for s in SPLITS}
+    writers = {s: storage.crop_writers(out, s, n[s]) for s in SPLITS}
+    pos = {s: 0 for s in SPLITS}
+    thr = ds.label_threshold
+    try:
+        fill = {s: 0 for s in SPLITS}
+        it = ds
+        if progress:
+            from tqdm import tqdm
+
+            it = tqdm(ds, total=len(ds), unit="obj", desc=f"crops {arch}")
+        for sh in it:
+            s = split_of[sh.object_id]
+            w = writers[s]
+            g, im = sh.grasps, sh.images
+            rng = np.random.default_rng([seed, sh.object_id])
+            order = np.argsort(g["image_index"], kind="stable")
+            bounds = np.flatnonzero(np.diff(g["image_index"][order])) + 1
+            for rows in np.split(order, bounds) if len(order) else []:
+                img_i = int(g["image_index"][rows[0]])
+                uv = np.stack([g["u"][rows], g["v"][rows]], axis=1)
+                crops, puv = crop_grasps(im["depth"][img_i], uv, g["jaw_angle"][rows], arch, geom, rng)
+                dst = slice(fill[s], fill[s] + len(rows))
+                labels = (g["quality"][rows] > thr).astype(np.uint8)
+                w["images"].array[dst] = crops
+                w["poses"].array[dst] = np.concatenate([puv, g["z"][rows, None], g["q"][rows]], axis=1)
+                w["labels"].array[dst] = labels
+                w["quality"].array[dst] = g["quality"][rows]
+                w["object_id"].array[dst] = sh.object_id
+                w["camera_d"].array[dst] = im["camera_d"][img_i]
+                w["camera_phi"].array[dst] = im["camera_phi"][img_i]
+                w["beta"].array[dst] = g["beta"][rows]
+                w["psi"].array[dst] = g["psi"][rows]
+                pos[s] += int(labels.sum())
+                fill[s] += len(rows)
+        for s in SPLITS:
+            if fill[s] != n[s]:
+                raise storage.DatasetError(f"{src}: split {s} filled {fill[s]} rows, manifest counts {n[s]}")
+            for wr in writers[s].values():
+                wr.close()
+    except BaseException:
+        for ws in writers.values():
+            for wr in ws.values():
+                wr.abort()
+        raise
+    counts = {
+        s: {
+            "grasps": n[s],
+            "positive": pos[s],
+            "positivity": pos[s] / n[s] if n[s] else 0.0,
+            "objects": sorted(i for i, v in split_of.items() if v == s),
+        }
+        for s in SPLITS
+    }
+    cfg = m_src.get("config", {})
+    m = {
+        "format": CROP_FORMAT,
+        "format_version": FORMAT_VERSION,
+        "architecture": arch,
+        "geometry": geom.to_dict(),
+        "kappa_px": geom.kappa_px,
+        "pose_columns": list(FULL_POSE_COLUMNS),
+        "label_threshold": thr,
+        "seed": int(seed),
+        "source": {
+            "dataset": str(Path(src).resolve()),
+            "seed": m_src.get("seed"),
+            "config": cfg,
+            "sampling": m_src.get("sampling", {}).get("params"),
+            "split": split_note,
+            "objects": [{"object_id": o["object_id"], "name": o.get("name")} for o in m_src["objects"]],
+        },
+        "counts": counts,
+        "versions": storage.library_versions(),
+    }
+    intr = m_src.get("intrinsics") or cfg.get("intrinsics")
+    if intr:
+        m["intrinsics"] = intr
+    atomic.write_json(out / storage.MANIFEST, m)
+    for s in SPLITS:
+        log(f"{s}: {n[s]} crops, positivity {100 * counts[s]['positivity']:.1f}%")
+    return m

@@ -1,0 +1,259 @@
+"""The per-object job of dataset generation (SPEC section 2, steps 1-6) and the run driver.
+
+:func:`generate_object` turns one mesh into the rows of one shard: load the mesh, its
+stable poses, antipodal grasps, the robust Ferrari-Canny quality (once per grasp), then for
+each stable pose and each of n cameras: a random omega per grasp with the beta flip, the
+collision check (a colliding grasp gets quality 0, ``collision_free`` False), the depth
+render, the projection; grasps whose TCP projects outside the image are dropped.
+
+Randomness: the per-object seed derives from (run seed, object name) only
+(:func:`object_seed`), and each stage draws from its own child stream of it, so the data
+of an object does not depend on which worker ran it, in which order, or on other objects.
+
+:func:`run_generate` runs the objects of a config into a ``vgq-grasps`` folder, resuming
+a killed run (objects whose shard is listed in the manifest are skipped).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from vgq import atomic
+from vgq.schema import GRASP_FIELDS, IMAGE_FIELDS
+
+from . import storage
+from .config import ConfigError, DatagenConfig
+
+
+class SkipObject(Exception):
+    """The object yields no data for a deterministic reason (no stable pose, no grasp)."""
+
+
+def object_seed(run_seed: int, name: str) -> int:
+    """A 63-bit seed from the run seed and the object name (independent of scheduling)."""
+    h = hashlib.sha256(f"vgq-datagen:{int(run_seed)}:{name}".encode()).digest()
+    return int.from_bytes(h[:8], "little") >> 1
+
+
+def _concat(parts: list[dict], fields: dict) -> dict[str, np.ndarray]:
+    if not parts:
+        return storage.empty_arrays(fields)
+    return {k: np.concatenate([p[k] for p in parts]).astype(dtype, copy=False) for k, (dtype, _, _) in fields.items()}
+
+
+def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: int) -> tuple[dict, dict, dict]:
+    """:func:`generate_object` plus a dict of facts about the object for the manifest
+    (stable pose probabilities, grasp count, torque scaling used, mesh scale and repairs)."""
+    from .camera import sample_cameras
+    from .collision import CollisionChecker
+    from .grasps import sample_antipodal_grasps
+    from .gripper import align_to_table, grasp_frames
+    from .mesh import load_object, stable_poses
+    from .project import project_grasps
+    from .quality import resolve_torque_scaling, robust_ferrari_canny
+    from .render import render_depth
+
+    intr = config.intrinsics
+    ss_grasps, ss_quality, ss_poses = np.random.SeedSequence(seed).spawn(3)
+    obj = load_object(src, config.mesh)
+    T_poses, probs = stable_poses(obj, config.stable_pose_min_probability, config.max_stable_poses)
+    info = {
+        "mesh_scale": float(getattr(obj, "scale", src.scale)),
+        "repairs": list(getattr(obj, "repairs", [])),
+        "stable_pose_probabilities": [float(p) for p in probs],
+    }
+    if len(T_poses) == 0:
+        raise SkipObject(f"no stable pose with probability >= {config.stable_pose_min_probability}")
+    grasps = sample_antipodal_grasps(obj.mesh, config.antipodal, np.random.default_rng(ss_grasps))
+    info["num_grasps"] = len(grasps)
+    if len(grasps) == 0:
+        raise SkipObject("the antipodal sampler found no grasp")
+    qparams = dataclasses.replace(config.quality, torque_scaling=resolve_torque_scaling(obj.mesh, config.quality))
+    info["torque_scaling"] = float(qparams.torque_scaling)
+    quality = np.asarray(robust_ferrari_canny(obj.mesh, grasps, qparams, np.random.default_rng(ss_quality)), np.float64)
+    T_object_grasp0 = grasp_frames(grasps.centers, grasps.axes, 0.0)  # omega = 0 base frames
+    grasp_ids = np.arange(len(grasps), dtype=np.int32)
+
+    image_parts: list[dict] = []
+    grasp_parts: list[dict] = []
+    n_img = 0
+    for pose_id, ss_pose in enumerate(ss_poses.spawn(len(T_poses))):
+        rng = np.random.default_rng(ss_pose)
+        T_wo = T_poses[pose_id]
+        mesh_world = obj.mesh.copy()
+        mesh_world.apply_transform(T_wo)
+        checker = CollisionChecker(mesh_world, config.gripper)
+        cams = sample_cameras(config.cameras_per_pose, config.camera, rng)
+        for j in range(len(cams)):
+            T_wc = cams.T_world_camera[j]
+            T_wg, omega, beta = align_to_table(T_wo @ T_object_grasp0, rng)
+            collides = np.asarray(checker.collides(T_wg), dtype=bool)
+            depth = render_depth(mesh_world, T_wc, intr)
+            pr = project_grasps(T_wg, T_wc, intr)
+            u, v, z = (np.asarray(pr[k], np.float64) for k in ("u", "v", "z"))
+            inside = np.asarray(pr["in_image"], bool) & np.isfinite(u) & np.isfinite(v)  # TCP within the image
+            image_parts.append(
+                {
+                    "depth": np.asarray(depth, np.float32)[None],
+                    "object_id": np.array([object_id], np.int32),
+                    "stable_pose_id": np.array([pose_id], np.int32),
+                    "camera_d": np.array([cams.d[j]], np.float32),
+                    "camera_phi": np.array([cams.phi[j]], np.float32),
+                    "camera_theta": np.array([cams.theta[j]], np.float32),
+                    "T_world_camera": np.asarray(T_wc, np.float64)[None],
+                }
+            )
+            k = inside
+            grasp_parts.append(
+                {
+                    "image_index": np.full(int(k.sum()), n_img, np.int32),
+                    "grasp_id": grasp_ids[k],
+                    "u": u[k],
+                    "v": v[k],
+                    "z": z[k],
+                    "q": np.asarray(pr["q"])[k],
+                    "beta": np.asarray(pr["beta"])[k],
+                    "psi": np.asarray(pr["psi"])[k],
+                    "omega": np.asarray(omega)[k],
+                    "jaw_angle": np.asarray(pr["jaw_angle"])[k],
+                    "quality": np.where(collides, 0.0, quality)[k],
+                    "collision_free": ~collides[k],
+                }
+            )
+            n_img += 1
+    return _concat(image_parts, IMAGE_FIELDS), _concat(grasp_parts, GRASP_FIELDS), info
+
+
+def generate_object(src, config: DatagenConfig, object_id: int, seed: int) -> tuple[dict, dict]:
+    """One object's shard arrays: (IMAGE_FIELDS arrays, GRASP_FIELDS arrays).
+
+    ``src``: a :class:`datagen.mesh.MeshSource`; ``seed``: the per-object seed
+    (:func:`object_seed`). Raises :class:`datagen.mesh.MeshError` for an unusable mesh and
+    :class:`SkipObject` when the object yields nothing."""
+    images, grasps, _ = generate_object_with_info(src, config, object_id, seed)
+    return images, grasps
+
+
+# ----------------------------------------------------------------------------- run driver
+
+
+def object_task(src, config: DatagenConfig, object_id: int, seed: int) -> dict:
+    """Worker task: generate one object and encode its shard (bytes); never raises for a
+    bad object (the result says why it was skipped)."""
+    from .mesh import MeshError
+
+    t0 = time.perf_counter()
+    try:
+        images, grasps, info = generate_object_with_info(src, config, object_id, seed)
+    except (MeshError, SkipObject) as e:
+        return {"object_id": object_id, "status": "skipped", "reason": str(e), "info": {}}
+    except Exception as e:  # keep the run going; the object is retried on resume
+        return {"object_id": object_id, "status": "skipped", "reason": f"error: {type(e).__name__}: {e}", "retry": True, "info": {}}
+    data = storage.encode_shard(images, grasps, where=storage.shard_relpath(object_id))
+    return {
+        "object_id": object_id,
+        "status": "done",
+        "data": data,
+        "counts": storage.shard_counts(images, grasps, config.label_threshold),
+        "info": info,
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def _normalised(d: dict) -> dict:
+    return json.loads(json.dumps(d))
+
+
+def _config_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
+    out = []
+    for k in sorted(set(a) | set(b)):
+        va, vb = a.get(k), b.get(k)
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += _config_diff(va, vb, f"{prefix}{k}.")
+        elif va != vb:
+            out.append(f"{prefix}{k}")
+    return out
+
+
+def prepare_run(out: str | Path, config: DatagenConfig) -> tuple[dict, list]:
+    """The run's manifest (new, or the existing one to resume) and its mesh sources.
+
+    Raises ConfigError when ``out`` holds a dataset made with a different config or
+    object list."""
+    from .mesh import mesh_sources
+
+    out = Path(out)
+    sources = mesh_sources(config.source)
+    if config.num_objects is not None:
+        sources = sources[: config.num_objects]
+    names = [s.name for s in sources]
+    if len(set(names)) != len(names):
+        raise ValueError(f"mesh source {config.source} has duplicate object names")
+    objects = [{"object_id": i, "name": s.name, "source": str(s.path), "source_scale": float(s.scale)} for i, s in enumerate(sources)]
+    cfg = _normalised(config.to_dict())
+    if (out / storage.MANIFEST).exists():
+        m = storage.read_manifest(out, storage.GRASP_FORMAT)
+        if m.get("config") != cfg:
+            diff = _config_diff(m.get("config", {}), cfg)
+            raise ConfigError(
+                f"{out} holds a dataset generated with a different config (differs in: {', '.join(diff[:6])}); "
+                "use a new --out, the same settings, or --resume"
+            )
+        if [o["name"] for o in m["objects"]] != names:
+            raise ConfigError(f"{out} holds a dataset of a different object list; use a new --out")
+        return m, sources
+    return storage.new_grasp_manifest(cfg, config.seed, objects, config.label_threshold, intrinsics=config.intrinsics.to_dict()), sources
+
+
+def run_generate(
+    out: str | Path, config: DatagenConfig, workers: int = 1, use_ray: bool = False, progress: bool = True,
+    log: Callable[[str], None] = print,
+) -> dict:
+    """Generate (or resume) the dataset of ``config`` into ``out``; returns the manifest."""
+    from .parallel import run_tasks
+
+    out = Path(out)
+    m, sources = prepare_run(out, config)
+    todo = [
+        i for i, o in enumerate(m["objects"])
+        if o.get("status") == "pending" or (o.get("status") == "skipped" and o.get("retry"))
+        or (o.get("status") == "done" and not any(s["object_id"] == i for s in m["shards"]))
+    ]
+    for i in todo:
+        m["objects"][i]["status"] = "pending"
+        m["objects"][i].pop("retry", None)
+    storage.update_counts(m)
+    storage.write_manifest(out, m)
+    done_before = len(m["objects"]) - len(todo)
+    if done_before:
+        log(f"resuming {out}: {done_before} objects already done or skipped, {len(todo)} to go")
+    tasks = [(sources[i], config, i, object_seed(config.seed, sources[i].name)) for i in todo]
+
+    def on_result(r: dict) -> str:
+        oid = r["object_id"]
+        if r["status"] == "done":
+            rel = storage.shard_relpath(oid)
+            atomic.write_bytes(out / rel, r["data"])
+            entry = {"object_id": oid, "file": rel, "sha256": hashlib.sha256(r["data"]).hexdigest(), **r["counts"]}
+            storage.record_shard(m, entry, **r["info"])
+        else:
+            storage.record_skip(m, oid, r["reason"], **r["info"])
+            if r.get("retry"):
+                m["objects"][oid]["retry"] = True
+        if not any(o["status"] == "pending" for o in m["objects"]):
+            m["complete"] = True
+        storage.write_manifest(out, m)
+        c = m["counts"]
+        return f"grasps={c['grasps']} pos={100 * c['positivity_rate']:.1f}% skipped={c['objects_skipped']}"
+
+    run_tasks(object_task, tasks, workers=workers, use_ray=use_ray, on_result=on_result, progress=progress)
+    m["complete"] = not any(o["status"] == "pending" for o in m["objects"])
+    storage.write_manifest(out, m)
+    return m

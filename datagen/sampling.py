@@ -1,0 +1,286 @@
+"""Dataset sampling (SPEC section 3): psi filter, positivity equalisation over beta bins,
+uniform undersampling over (phi, beta) bins, object-wise train / val / test split.
+
+Pure numpy functions on per-grasp arrays (angles in radians, positivity rates in percent),
+and :func:`sample_dataset`, which applies them to a ``vgq-grasps`` dataset and writes the
+sampled dataset (same format, with the split recorded in its manifest).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from vgq.schema import SPLITS
+
+from . import storage
+
+
+@dataclass(frozen=True)
+class SamplingParams:
+    """Sampling settings. Angles in radians, ``target_positivity`` in percent."""
+
+    max_psi: float = math.pi / 2  # drop grasps with psi >= this (approach from behind the object)
+    target_positivity: float = 19.0  # VG-dset: the rate of Dex-Net 2.0
+    beta_bin: float = math.radians(5.0)  # bin width for positivity equalisation and uniform sampling
+    phi_bin: float = math.radians(5.0)  # bin width over camera elevation for uniform sampling
+    uniform: bool = True  # undersample to a uniform count over (phi, beta) bins
+    uniform_quantile: float = 0.0  # per-bin cap = this quantile of non-empty bin counts (0: the smallest bin)
+    split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)  # train / val / test, object-wise
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.max_psi <= math.pi:
+            raise ValueError(f"max_psi must be in (0, pi] radians, got {self.max_psi}")
+        if not 0 < self.target_positivity < 100:
+            raise ValueError(f"target_positivity must be a percentage in (0, 100), got {self.target_positivity}")
+        if not self.beta_bin > 0 or not self.phi_bin > 0:
+            raise ValueError(f"beta_bin and phi_bin must be > 0 radians, got {self.beta_bin}, {self.phi_bin}")
+        if not 0 <= self.uniform_quantile <= 1:
+            raise ValueError(f"uniform_quantile must be in [0, 1], got {self.uniform_quantile}")
+        f = tuple(self.split_fractions)
+        if len(f) != 3 or any(x < 0 for x in f) or abs(sum(f) - 1) > 1e-6 or f[0] == 0:
+            raise ValueError(f"split_fractions must be 3 non-negative numbers summing to 1 with train > 0, got {f}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+
+
+# ----------------------------------------------------------------------------- pure functions
+
+
+def angle_bins(angle: np.ndarray, width: float) -> np.ndarray:
+    """Bin index floor(angle / width) (int64, >= 0) of angles in radians."""
+    return np.maximum(np.floor(np.asarray(angle, dtype=np.float64) / width + 1e-9), 0).astype(np.int64)
+
+
+def psi_mask(psi: np.ndarray, max_psi: float) -> np.ndarray:
+    """Keep grasps with psi < max_psi (SPEC 3.1)."""
+    return np.asarray(psi) < max_psi
+
+
+def positivity_by_bin(labels: np.ndarray, bins: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per bin: (count, positives, positivity rate in percent; NaN for empty bins)."""
+    labels = np.asarray(labels, dtype=bool)
+    n = np.bincount(bins, minlength=n_bins)[:n_bins]
+    pos = np.bincount(bins, weights=labels, minlength=n_bins)[:n_bins].astype(np.int64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rate = np.where(n > 0, 100.0 * pos / np.maximum(n, 1), np.nan)
+    return n, pos, rate
+
+
+def sample_rates(pos_rate: np.ndarray, target: float) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's sampling rates for a bin of positivity ``pos_rate`` (percent), target ``target``:
+    ``rate_neg = (100 / t * p - p) / (100 - p)``, ``rate_pos = 1 / rate_neg``, each capped at 1.
+
+    A bin without positives gets rate_neg = 0 (the target cannot be reached by dropping
+    negatives); an all-positive bin gets rate_pos = 0. Empty bins (NaN) get 1."""
+    p = np.asarray(pos_rate, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        neg = np.where(p >= 100.0, np.inf, (100.0 / target * p - p) / (100.0 - p))
+        pos = np.where(neg > 0, 1.0 / neg, np.inf)
+    neg = np.where(np.isnan(p), 1.0, np.minimum(neg, 1.0))
+    pos = np.where(np.isnan(p), 1.0, np.minimum(pos, 1.0))
+    return neg, pos
+
+
+def equalise_positivity(labels: np.ndarray, beta: np.ndarray, params: SamplingParams, rng: np.random.Generator) -> np.ndarray:
+    """Keep mask (SPEC 3.2): each grasp survives with its beta bin's rate for its label."""
+    labels = np.asarray(labels, dtype=bool)
+    bins = angle_bins(beta, params.beta_bin)
+    n_bins = int(bins.max()) + 1 if len(bins) else 1
+    _, _, rate = positivity_by_bin(labels, bins, n_bins)
+    r_neg, r_pos = sample_rates(rate, params.target_positivity)
+    keep_p = np.where(labels, r_pos[bins], r_neg[bins])
+    return rng.random(len(labels)) < keep_p
+
+
+def uniform_over_bins(phi: np.ndarray, beta: np.ndarray, params: SamplingParams, rng: np.random.Generator) -> np.ndarray:
+    """Keep mask (SPEC 3.3): at most ``cap`` random grasps per joint (phi, beta) bin, with
+    ``cap`` the ``uniform_quantile`` of the non-empty bin counts (0 -> the smallest bin)."""
+    n = len(phi)
+    keep = np.zeros(n, dtype=bool)
+    if n == 0:
+        return keep
+    pb = angle_bins(phi, params.phi_bin)
+    bb = angle_bins(beta, params.beta_bin)
+    key = pb * (int(bb.max()) + 1) + bb
+    counts = np.bincount(key)
+    cap = int(np.floor(np.quantile(counts[counts > 0], params.uniform_quantile)))
+    perm = rng.permutation(n)
+    k = key[perm]
+    order = np.argsort(k, kind="stable")
+    ks = k[order]
+    starts = np.searchsorted(ks, ks, side="left")
+    rank = np.arange(n) - starts
+    keep[perm[order[rank < cap]]] = True
+    return keep
+
+
+def split_objects(object_ids, fractions=(0.8, 0.1, 0.1), seed: int = 0) -> dict[int, str]:
+    """Object-wise split: object id -> "train" | "val" | "test", deterministic by ``seed``
+    (a seeded permutation of the sorted ids). With 3 or more objects, every split whose
+    fraction is > 0 gets at least one object."""
+    ids = np.array(sorted(set(int(i) for i in object_ids)), dtype=np.int64)
+    n = len(ids)
+    perm = np.random.default_rng(seed).permutation(ids)
+    n_val = int(round(fractions[1] * n))
+    n_test = int(round(fractions[2] * n))
+    if n >= 3:
+        n_val = max(n_val, 1 if fractions[1] > 0 else 0)
+        n_test = max(n_test, 1 if fractions[2] > 0 else 0)
+    n_val = min(n_val, max(n - 1, 0))
+    n_test = min(n_test, max(n - 1 - n_val, 0))
+    n_train = n - n_val - n_test
+    out = {}
+    for i, oid in enumerate(perm):
+        out[int(oid)] = "train" if i < n_train else ("val" if i < n_train + n_val else "test")
+    return out
+
+
+# ----------------------------------------------------------------------------- dataset stage
+
+
+@dataclass
+class GraspTable:
+    """Per-grasp columns of a whole grasp dataset (rows in shard order, then row order)."""
+
+    object_id: np.ndarray
+    row: np.ndarray  # row within its shard
+    beta: np.ndarray
+    psi: np.ndarray
+    phi: np.ndarray  # camera elevation of the grasp's image
+    label: np.ndarray
+
+
+def grasp_table(ds: storage.GraspDataset) -> GraspTable:
+    cols: dict[str, list] = {k: [] for k in GraspTable.__dataclass_fields__}
+    thr = ds.label_threshold
+    for sh in ds:
+        g = sh.grasps
+        n = len(g["grasp_id"])
+        cols["object_id"].append(np.full(n, sh.object_id, dtype=np.int64))
+        cols["row"].append(np.arange(n, dtype=np.int64))
+        cols["beta"].append(g["beta"].astype(np.float64))
+        cols["psi"].append(g["psi"].astype(np.float64))
+        cols["phi"].append(sh.images["camera_phi"][g["image_index"]].astype(np.float64))
+        cols["label"].append(g["quality"] > thr)
+    return GraspTable(**{k: (np.concatenate(v) if v else np.zeros(0)) for k, v in cols.items()})
+
+
+def _beta_table(label: np.ndarray, beta: np.ndarray, width: float, n_bins: int) -> dict:
+    n, pos, rate = positivity_by_bin(label, angle_bins(beta, width), n_bins)
+    return {"count": n.tolist(), "positive": pos.tolist(), "positivity": [None if np.isnan(r) else float(r) for r in rate]}
+
+
+def sample_dataset(
+    src: str | Path, out: str | Path, params: SamplingParams = SamplingParams(), log: Callable[[str], None] = print,
+    plot: bool = True,
+) -> dict:
+    """Sample the grasp dataset ``src`` into ``out`` (a ``vgq-grasps`` dataset holding only the
+    kept grasps and their images, with ``split`` per object and ``sampling`` statistics in its
+    manifest). Returns the statistics."""
+    out = Path(out)
+    if (out / storage.MANIFEST).exists():
+        raise FileExistsError(f"output folder {out} already holds a dataset; choose a new --out")
+    ds = storage.open_dataset(src)
+    t = grasp_table(ds)
+    if len(t.label) and not t.label.any():
+        raise ValueError(
+            f"{src} has no positive grasp (quality > label threshold {ds.label_threshold}); positivity "
+            "equalisation would drop every grasp"
+        )
+    rng = np.random.default_rng(params.seed)
+    n_beta = max(int(math.ceil(math.pi / 2 / params.beta_bin)), int(angle_bins(t.beta, params.beta_bin).max()) + 1 if len(t.beta) else 1)
+
+    steps = {"native": np.ones(len(t.label), dtype=bool)}
+    keep = psi_mask(t.psi, params.max_psi)
+    steps["psi"] = keep.copy()
+    idx = np.flatnonzero(keep)
+    eq = equalise_positivity(t.label[idx], t.beta[idx], params, rng)
+    keep[idx[~eq]] = False
+    steps["positivity"] = keep.copy()
+    if params.uniform:
+        idx = np.flatnonzero(keep)
+        un = uniform_over_bins(t.phi[idx], t.beta[idx], params, rng)
+        keep[idx[~un]] = False
+    steps["uniform"] = keep.copy()
+
+    stats = {"steps": {}, "beta_bins_deg": [math.degrees(i * params.beta_bin) for i in range(n_beta + 1)]}
+    for name, m in steps.items():
+        stats["steps"][name] = {
+            "grasps": int(m.sum()),
+            "positive": int(t.label[m].sum()),
+            "positivity": float(100.0 * t.label[m].mean()) if m.any() else 0.0,
+            "by_beta": _beta_table(t.label[m], t.beta[m], params.beta_bin, n_beta),
+        }
+    split = split_objects(ds.object_ids, params.split_fractions, params.seed)
+    _print_stats(stats, log)
+    psi_tab = stats["steps"]["psi"]["by_beta"]
+    empty = [i for i, (n, p) in enumerate(zip(psi_tab["count"], psi_tab["positive"])) if n > 0 and p == 0]
+    if empty:
+        log(
+            f"warning: {len(empty)} beta bins without positives lose all their grasps (rate_neg = 0): "
+            + ", ".join(f"[{stats['beta_bins_deg'][i]:.0f}, {stats['beta_bins_deg'][i + 1]:.0f})" for i in empty)
+        )
+
+    # write the sampled dataset
+    src_m = ds.manifest
+    objects = [{k: v for k, v in o.items() if k not in ("status", "shard", "reason")} for o in src_m["objects"]]
+    m = storage.new_grasp_manifest(
+        src_m["config"], src_m["seed"], objects, ds.label_threshold, source_dataset=str(Path(src).resolve()),
+        **({"intrinsics": src_m["intrinsics"]} if src_m.get("intrinsics") else {}),
+        sampling={"params": asdict(params), "stats": stats},
+    )
+    for o, so in zip(m["objects"], src_m["objects"]):
+        if so.get("status") != "done":
+            storage.record_skip(m, o["object_id"], so.get("reason", "not generated"))
+    for sh in ds:
+        sel = keep[t.object_id == sh.object_id]
+        if not sel.any():
+            storage.record_skip(m, sh.object_id, "no grasps left after sampling", split=split[sh.object_id])
+            continue
+        grasps = {k: v[sel] for k, v in sh.grasps.items()}
+        used, new_index = np.unique(grasps["image_index"], return_inverse=True)
+        grasps["image_index"] = new_index.astype(np.int32).reshape(-1)
+        images = {k: v[used] for k, v in sh.images.items()}
+        entry = storage.write_shard(out, sh.object_id, images, grasps, ds.label_threshold)
+        storage.record_shard(m, entry, split=split[sh.object_id])
+        storage.write_manifest(out, m)
+    m["splits"] = {s: sorted(i for i, v in split.items() if v == s) for s in SPLITS}
+    kept_ids = t.object_id[keep]
+    stats["splits"] = {s: int(np.isin(kept_ids, m["splits"][s]).sum()) for s in SPLITS}
+    m["sampling"]["stats"] = stats
+    m["complete"] = True
+    storage.write_manifest(out, m)
+    log("grasps per split: " + ", ".join(f"{s} {stats['splits'][s]} ({len(m['splits'][s])} objects)" for s in SPLITS))
+    if plot and len(t.label):
+        from . import plots
+
+        files = plots.sampling_plots(out / "plots", stats, t, steps, params)
+        log("plots: " + ", ".join(str(f) for f in files))
+    return stats
+
+
+def _print_stats(stats: dict, log: Callable[[str], None]) -> None:
+    log("step         grasps   positive  positivity")
+    for name, s in stats["steps"].items():
+        log(f"{name:<10} {s['grasps']:>8} {s['positive']:>10} {s['positivity']:>10.1f}%")
+    edges = stats["beta_bins_deg"]
+    before, after = stats["steps"]["psi"]["by_beta"], stats["steps"]["positivity"]["by_beta"]
+    final = stats["steps"]["uniform"]["by_beta"]
+    log("beta bin (deg)   n before  pos% before   n after  pos% after   n final")
+
+    def pct(x):
+        return "      -" if x is None else f"{x:7.1f}"
+
+    for i in range(len(edges) - 1):
+        if before["count"][i] == 0:
+            continue
+        log(
+            f"[{edges[i]:4.0f}, {edges[i + 1]:4.0f})   {before['count'][i]:>8}  {pct(before['positivity'][i]):>11}"
+            f"  {after['count'][i]:>8}  {pct(after['positivity'][i]):>10}  {final['count'][i]:>8}"
+        )

@@ -1,0 +1,98 @@
+"""Read an exported Fast-VGQ-CNN model folder back into torch ``GraspQualityNet`` modules.
+
+Used by the benchmark (a VGQ-CNN with the same image weights as the served model) and to
+re-export a model folder with the current ``export.graphs`` (e.g. a faster LRN form).
+The graphs hold the pose normalisation folded into pc1 and fc6 as one logit difference;
+both are undone exactly: pc1 gets back ``W = W' std``, ``b = b' + W' mean`` with the
+model card's statistics, and fc6 becomes ``[[0], [w]]`` (softmax(...)[1] = sigmoid(w x + b)).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+from onnx import numpy_helper
+
+from training.networks import GraspQualityNet
+from vgq.model_card import ModelCard
+
+
+def _weights(path: Path) -> dict[str, list[np.ndarray]]:
+    """Node name -> the initializer arrays among its inputs, in input order."""
+    m = onnx.load(str(path))
+    init = {i.name: numpy_helper.to_array(i) for i in m.graph.initializer}
+    for n in m.graph.node:  # constants kept as nodes by some exporters
+        if n.op_type == "Constant":
+            init[n.output[0]] = numpy_helper.to_array(n.attribute[0].t)
+    return {n.name: [init[i] for i in n.input if i in init] for n in m.graph.node}
+
+
+def _take(w: dict, name: str, count: int, path: Path) -> list[np.ndarray]:
+    got = w.get(name)
+    if got is None or len(got) < count:
+        raise ValueError(f"{path}: node {name!r} with {count} weight inputs not found; not a graph written by export.graphs")
+    return got
+
+
+def _set(param: torch.nn.Parameter | torch.Tensor, a: np.ndarray, what: str) -> None:
+    if tuple(param.shape) != tuple(a.shape):
+        raise ValueError(f"{what}: ONNX weight has shape {a.shape}, the network expects {tuple(param.shape)}")
+    with torch.no_grad():
+        param.copy_(torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)))
+
+
+def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, ModelCard]:
+    """The Fast-VGQ-CNN of an exported folder (encoder.onnx + head.onnx + model card), in eval mode."""
+    model_dir = Path(model_dir)
+    card = ModelCard.load(model_dir)
+    if card.architecture != "fast_vgqcnn":
+        raise ValueError(f"{model_dir}: architecture {card.architecture!r}, expected fast_vgqcnn")
+    enc_path, head_path = model_dir / card.files["encoder"], model_dir / card.files["head"]
+    enc, head = _weights(enc_path), _weights(head_path)
+    net = GraspQualityNet("fast_vgqcnn", image_size=card.geometry.out).eval()
+    norm = card.normalization
+    net.set_normalization(norm)
+    for layer in ("conv1_1", "conv1_2", "conv2_1", "conv2_2"):
+        w, b = _take(enc, f"/{layer}/Conv", 2, enc_path)[:2]
+        _set(getattr(net, layer).weight, w, layer)
+        _set(getattr(net, layer).bias, b, layer)
+    w, b = _take(enc, "/fc3/Gemm", 2, enc_path)[:2]
+    _set(net.fc3.weight, w, "fc3")
+    _set(net.fc3.bias, b, "fc3")
+    _set(net.fc4_image.weight, _take(enc, "/fc4_image/MatMul", 1, enc_path)[0].T, "fc4_image")
+    # pc1 with the pose normalisation folded in: W' = W / std, b' = b - W' mean
+    wf, bf = (a.astype(np.float64) for a in _take(head, "/head/pc1/Gemm", 2, head_path)[:2])
+    mean, std = np.asarray(norm.pose_mean, np.float64), np.asarray(norm.pose_std, np.float64)
+    _set(net.pc1.weight, wf * std[None, :], "pc1")
+    _set(net.pc1.bias, bf + wf @ mean, "pc1")
+    for layer in ("fc4_pose", "fc5"):
+        w, b = _take(head, f"/head/{layer}/Gemm", 2, head_path)[:2]
+        _set(getattr(net, layer).weight, w, layer)
+        _set(getattr(net, layer).bias, b, layer)
+    w, b = _take(head, "/head/out/Gemm", 2, head_path)[:2]
+    _set(net.fc6.weight, np.concatenate([np.zeros_like(w), w]), "fc6")
+    _set(net.fc6.bias, np.concatenate([np.zeros_like(b), b]), "fc6")
+    return net, card
+
+
+def vgq_net_like(fast: GraspQualityNet) -> GraspQualityNet:
+    """A VGQ-CNN (pose z, q; one centred crop per grasp) with ``fast``'s image stream, fc4,
+    fc5 and fc6, and pc1 restricted to the (z, q) columns. Same cost as the paper's VGQ-CNN;
+    its scores are not a trained VGQ-CNN's."""
+    net = GraspQualityNet("vgqcnn", image_size=fast.image_size).eval()
+    cols = [fast.pose_columns.index(c) for c in net.pose_columns]
+    src = fast.state_dict()
+    dst = net.state_dict()
+    for k, v in src.items():
+        if k.startswith("pc1.weight"):
+            dst[k] = v[:, cols].clone()
+        elif k in ("pose_mean", "pose_std"):
+            dst[k] = v[cols].clone()
+        else:
+            dst[k] = v.clone()
+    net.load_state_dict(dst)
+    return net
+

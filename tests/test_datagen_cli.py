@@ -1,0 +1,101 @@
+"""`python -m datagen`: bad input exits with code 2 and one message naming the problem."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from datagen.__main__ import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_main(capsys, *argv):
+    rc = main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    return rc, cap.out, cap.err
+
+
+def test_missing_source_folder_subprocess(tmp_path):
+    """The real entry point: exit code 2, the path in the message, no traceback."""
+    p = subprocess.run(
+        [sys.executable, "-m", "datagen", "generate", "--out", str(tmp_path / "o"), "--source", str(tmp_path / "nope")],
+        cwd=ROOT, capture_output=True, text=True, timeout=60,
+    )
+    assert p.returncode == 2
+    assert "nope" in p.stderr and "does not exist" in p.stderr
+    assert "Traceback" not in p.stderr
+
+
+def test_unreadable_mesh_is_named(tmp_path, capsys):
+    src = tmp_path / "meshes"
+    src.mkdir()
+    (src / "broken.obj").write_text("this is not a mesh\nv 1 2\nf 9 9 9\n")
+    rc, out, err = run_main(capsys, "generate", "--out", tmp_path / "o", "--source", src, "--workers", 1, "--quiet")
+    assert rc == 2
+    assert "broken.obj" in err
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--set", "camera.d_range=[1.0,0.5]"], "d_range"),
+        (["--set", "stable_pose_min_probability=-1"], "stable_pose_min_probability"),
+        (["--set", "gripper.nonsense=1"], "gripper.nonsense"),
+        (["--set", "antipodal.num_samples"], "section.field=value"),
+    ],
+)
+def test_nonsense_config_values(tmp_path, capsys, args, needle):
+    rc, out, err = run_main(capsys, "generate", "--out", tmp_path / "o", *args)
+    assert rc == 2
+    assert needle in err
+    assert not (tmp_path / "o").exists()  # nothing written for a bad config
+
+
+def test_config_file_errors(tmp_path, capsys):
+    p = tmp_path / "c.json"
+    p.write_text(json.dumps({"cameras_per_pose": -3}))
+    rc, _, err = run_main(capsys, "generate", "--out", tmp_path / "o", "--config", p)
+    assert rc == 2 and "cameras_per_pose" in err and "c.json" in err
+
+
+def test_bad_counts_are_usage_errors(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["generate", "--out", str(tmp_path), "--cameras", "0"])
+    assert e.value.code == 2
+    assert "--cameras must be >= 1" in capsys.readouterr().err
+
+
+def test_sample_and_crops_need_a_dataset(tmp_path, capsys):
+    rc, _, err = run_main(capsys, "sample", "--in", tmp_path / "missing", "--out", tmp_path / "s")
+    assert rc == 2 and "missing" in err and "does not exist" in err
+    rc, _, err = run_main(capsys, "crops", "--in", tmp_path, "--out", tmp_path / "c", "--arch", "vgqcnn")
+    assert rc == 2 and "no manifest.json" in err
+
+
+def test_kappa_with_centred_arch_is_refused(tmp_path, capsys):
+    from datagen_fakes import fake_dataset
+
+    fake_dataset(tmp_path / "g", n_objects=1, n_images=1, n_grasps=3)
+    rc, _, err = run_main(capsys, "crops", "--in", tmp_path / "g", "--out", tmp_path / "c", "--arch", "gqcnn", "--kappa", 10)
+    assert rc == 2 and "fast_vgqcnn only" in err
+
+
+def test_ray_missing_names_the_extra(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # as if Ray were not installed
+    src = tmp_path / "meshes"
+    src.mkdir()
+    (src / "a.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    rc, _, err = run_main(capsys, "generate", "--out", tmp_path / "o", "--source", src, "--ray", "--quiet")
+    assert rc == 2 and "pip install vgq-cnn[ray]" in err
+
+
+def test_recipe_dry_run_prints_the_three_stages(tmp_path, capsys):
+    rc, out, _ = run_main(capsys, "recipe", "--out", tmp_path, "--dry-run")
+    assert rc == 0
+    lines = out.strip().splitlines()
+    assert [ln.split()[3] for ln in lines] == ["generate", "sample", "crops"]

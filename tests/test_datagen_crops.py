@@ -1,0 +1,101 @@
+"""Crop stage: the crops are exactly vgq.crop's, for each architecture."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from datagen_fakes import fake_dataset
+
+from datagen import storage
+from datagen.crops import fast_window_origins, geometry_for, make_crops
+from vgq import crop as vcrop
+from vgq.schema import SPLITS
+
+
+@pytest.fixture(scope="module")
+def one_image_dataset(tmp_path_factory):
+    """One object, one depth image (a raised box on a table), 60 grasps."""
+    root = tmp_path_factory.mktemp("grasps")
+    fake_dataset(root, n_objects=1, n_images=1, n_grasps=60, seed=2)
+    return root
+
+
+def _first(root):
+    sh = next(iter(storage.open_dataset(root)))
+    return sh.images["depth"][0], sh.grasps
+
+
+def test_vgqcnn_crops_are_centred_vgq_crops(one_image_dataset, tmp_path):
+    m = make_crops(one_image_dataset, tmp_path, "vgqcnn", log=lambda s: None)
+    depth, g = _first(one_image_dataset)
+    a = storage.open_crops(tmp_path, "train")
+    geom = vcrop.CropGeometry(96, 32, 0.0)
+    for i in range(len(g["u"])):
+        expected, _ = vcrop.crop(depth, (g["u"][i], g["v"][i]), geom)
+        np.testing.assert_array_equal(a["images"][i], expected)
+    np.testing.assert_array_equal(a["poses"][:, :2], 0)
+    np.testing.assert_allclose(a["poses"][:, 2], g["z"])
+    np.testing.assert_allclose(a["poses"][:, 3:], g["q"])
+    np.testing.assert_array_equal(a["labels"], (g["quality"] > 0.002).astype(np.uint8))
+    assert m["geometry"]["kappa_px"] == 0
+    assert m["counts"]["train"]["positive"] == int(a["labels"].sum())
+
+
+def test_gqcnn_crops_are_rotated_vgq_crops(one_image_dataset, tmp_path):
+    make_crops(one_image_dataset, tmp_path, "gqcnn", log=lambda s: None)
+    depth, g = _first(one_image_dataset)
+    a = storage.open_crops(tmp_path, "train")
+    geom = vcrop.CropGeometry(96, 32, 0.0)
+    for i in range(0, len(g["u"]), 7):
+        expected = vcrop.rotated_crop(depth, (g["u"][i], g["v"][i]), float(g["jaw_angle"][i]), geom)
+        np.testing.assert_array_equal(a["images"][i], expected)
+
+
+def test_fast_vgqcnn_crops_keep_grasps_within_kappa(one_image_dataset, tmp_path):
+    m = make_crops(one_image_dataset, tmp_path, "fast_vgqcnn", kappa_px=24, log=lambda s: None)
+    depth, g = _first(one_image_dataset)
+    a = storage.open_crops(tmp_path, "train")
+    geom = vcrop.CropGeometry(96, 32, 24.0)
+    uv = np.stack([g["u"], g["v"]], 1).astype(np.float64)
+    centres = uv - a["poses"][:, :2].astype(np.float64) * geom.scale
+    assert np.all(vcrop.in_training_range(uv, centres, geom))
+    assert np.abs(a["poses"][:, :2]).max() > 4  # offsets actually spread over the range
+    for i in range(len(uv)):
+        expected, c = vcrop.crop(depth, centres[i], geom)
+        np.testing.assert_allclose(c, centres[i], atol=1e-3)  # an exact integer window
+        np.testing.assert_array_equal(a["images"][i], expected)
+    saved = json.loads((tmp_path / "manifest.json").read_text())
+    assert saved["kappa_px"] == 24 and saved["architecture"] == "fast_vgqcnn" == m["architecture"]
+
+
+def test_fast_window_offsets_are_uniform_within_kappa():
+    geom = vcrop.CropGeometry(96, 32, 12.0)
+    g = np.tile([[150.3, 80.8]], (20000, 1))
+    c = vcrop.window_center(fast_window_origins(g, geom, np.random.default_rng(0)), geom)
+    off = g - c
+    assert np.all(np.abs(off) <= 12 + 1e-9)
+    hist = np.histogram(off[:, 0], bins=6, range=(-12, 12))[0]
+    assert hist.min() > 0.8 * hist.max()
+
+
+def test_crops_split_object_wise(tmp_path):
+    fake_dataset(tmp_path / "g", n_objects=10, n_images=1, n_grasps=5)
+    m = make_crops(tmp_path / "g", tmp_path / "c", "vgqcnn", log=lambda s: None)
+    seen = {}
+    for s in SPLITS:
+        ids = set(storage.open_crops(tmp_path / "c", s)["object_id"].tolist())
+        assert ids == set(m["counts"][s]["objects"])
+        for i in ids:
+            assert seen.setdefault(i, s) == s
+    assert sorted(seen) == list(range(10))
+
+
+def test_kappa_only_for_fast_vgqcnn():
+    with pytest.raises(ValueError, match="fast_vgqcnn only"):
+        geometry_for("vgqcnn", 12)
+    with pytest.raises(ValueError, match="kappa_px"):
+        geometry_for("fast_vgqcnn", 60)
+    with pytest.raises(ValueError, match="unknown architecture"):
+        geometry_for("resnet")

@@ -1,0 +1,33 @@
+"""CLI: bad input exits 2 with a message naming the problem."""
+
+import subprocess
+import sys
+
+from training.__main__ import main
+from training.synthetic import make_synthetic_crop_dataset
+
+
+def test_cli_missing_data_folder_exits_2(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "training", "train", "--data", str(tmp_path / "missing"),
+                        "--out", str(tmp_path / "run")], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    assert "missing" in r.stderr and "does not exist" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_cli_wrong_arch_for_dataset_exits_2(tmp_path, capsys):
+    make_synthetic_crop_dataset(tmp_path / "d", 8, 4, 4, arch="gqcnn", kappa_px=0.0)
+    rc = main(["train", "--data", str(tmp_path / "d"), "--arch", "fast_vgqcnn", "--out", str(tmp_path / "r"),
+               "--no-progress"])
+    assert rc == 2 and "cannot train 'fast_vgqcnn'" in capsys.readouterr().err
+
+
+def test_cli_evaluate_without_run_exits_2(tmp_path, capsys):
+    make_synthetic_crop_dataset(tmp_path / "d", 8, 4, 4)
+    rc = main(["evaluate", "--run", str(tmp_path / "norun"), "--data", str(tmp_path / "d"), "--no-progress"])
+    assert rc == 2 and "norun" in capsys.readouterr().err
+
+
+def test_cli_bad_option_value_exits_2(tmp_path, capsys):
+    make_synthetic_crop_dataset(tmp_path / "d", 8, 4, 4)
+    rc = main(["train", "--data", str(tmp_path / "d"), "--out", str(tmp_path / "r"), "--batch-size", "0"])
+    assert rc == 2 and "batch_size" in capsys.readouterr().err

@@ -1,0 +1,64 @@
+"""Crop-dataset reading: validation errors name the problem; architecture compatibility."""
+
+import json
+
+import numpy as np
+import pytest
+
+from training.data import DatasetError, open_crop_dataset
+from training.synthetic import make_synthetic_crop_dataset
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    path = tmp_path_factory.mktemp("crops") / "data"
+    make_synthetic_crop_dataset(path, 40, 16, 16, kappa_px=36.0, seed=0)
+    return path
+
+
+def test_round_trip_memory_mapped(data):
+    ds = open_crop_dataset(data)
+    assert ds.arch == "fast_vgqcnn" and ds.geometry.kappa_px == 36.0
+    assert {k: v["n"] for k, v in ds.counts().items()} == {"train": 40, "val": 16, "test": 16}
+    assert isinstance(ds.split("train").arrays["images"], np.memmap)
+
+
+def test_batch_selects_architecture_pose_columns(data):
+    sp = open_crop_dataset(data).split("train")
+    img, pose, lab = sp.batch(np.array([5, 1, 3]), "vgqcnn")
+    assert img.shape == (3, 1, 32, 32) and pose.shape == (3, 5) and lab.tolist() == sp.labels[[5, 1, 3]].tolist()
+    np.testing.assert_array_equal(pose.numpy(), sp.arrays["poses"][[5, 1, 3]][:, 2:])  # z, qw..qz
+
+
+def test_missing_folder(tmp_path):
+    with pytest.raises(DatasetError, match="does not exist"):
+        open_crop_dataset(tmp_path / "nope")
+
+
+def test_wrong_format(tmp_path, data):
+    (tmp_path / "manifest.json").write_text(json.dumps({"format": "vgq-grasps", "format_version": 1}))
+    with pytest.raises(DatasetError, match="format is 'vgq-grasps'"):
+        open_crop_dataset(tmp_path)
+
+
+def test_wrong_dtype_names_field(tmp_path, data):
+    import shutil
+
+    bad = tmp_path / "bad"
+    shutil.copytree(data, bad)
+    np.save(bad / "train" / "labels.npy", np.zeros(40, dtype=np.int64))
+    with pytest.raises(DatasetError, match="'labels'"):
+        open_crop_dataset(bad)
+
+
+def test_architecture_compatibility(tmp_path, data):
+    ds = open_crop_dataset(data)
+    ds.check_arch("fast_vgqcnn")
+    with pytest.raises(DatasetError, match="cannot train 'vgqcnn'"):
+        ds.check_arch("vgqcnn")  # off-centre crops
+    centred = tmp_path / "centred"
+    make_synthetic_crop_dataset(centred, 4, 4, 4, arch="vgqcnn", kappa_px=0.0)
+    c = open_crop_dataset(centred)
+    c.check_arch("fast_vgqcnn")  # kappa = 0 ablation point
+    with pytest.raises(DatasetError, match="cannot train 'gqcnn'"):
+        c.check_arch("gqcnn")

@@ -1,0 +1,60 @@
+"""Metrics on hand-made cases, camera-grid binning and the heat-map figure."""
+
+import math
+
+import numpy as np
+import pytest
+
+from training import metrics as M
+from training.plots import plot_grid_heatmaps, plot_training_curves
+
+
+def test_binary_metrics_hand_made():
+    labels = np.array([1, 1, 1, 0, 0])
+    p = np.array([0.9, 0.2, 0.6, 0.1, 0.7])  # tp, fn, tp, tn, fp
+    m = M.binary_metrics(labels, p)
+    assert (m["tp"], m["fn"], m["tn"], m["fp"]) == (2, 1, 1, 1)
+    assert m["tpr"] == pytest.approx(2 / 3)
+    assert m["tnr"] == pytest.approx(1 / 2)
+    assert m["balanced_accuracy"] == pytest.approx((2 / 3 + 1 / 2) / 2)
+    assert m["accuracy"] == pytest.approx(3 / 5)
+
+
+def test_all_negative_predictor_has_half_balanced_accuracy():
+    labels = np.array([1] * 19 + [0] * 81)
+    m = M.binary_metrics(labels, np.zeros(100))
+    assert m["accuracy"] == pytest.approx(0.81) and m["balanced_accuracy"] == pytest.approx(0.5)
+
+
+def test_single_class_gives_nan_not_error():
+    m = M.binary_metrics(np.zeros(4), np.zeros(4))
+    assert math.isnan(m["tpr"]) and m["tnr"] == 1.0 and math.isnan(m["balanced_accuracy"])
+
+
+def test_grid_cells_of_005m_and_5deg():
+    labels = np.array([1, 1, 0, 0, 1])
+    p = np.array([0.9, 0.1, 0.2, 0.8, 0.7])
+    d = np.array([0.42, 0.44, 0.47, 0.52, 0.52])
+    phi = np.radians([1.0, 2.0, 3.0, 7.0, 7.0])
+    g = M.grid_metrics(labels, p, d, phi)
+    np.testing.assert_allclose(g["d_edges"], [0.40, 0.45, 0.50, 0.55])
+    np.testing.assert_allclose(g["phi_edges_deg"], [0.0, 5.0, 10.0])
+    assert g["tpr"][0, 0] == pytest.approx(0.5)  # two positives in (0.40-0.45 m, 0-5 deg), one found
+    assert g["tnr"][1, 0] == pytest.approx(1.0)
+    assert g["tpr"][2, 1] == pytest.approx(1.0) and g["tnr"][2, 1] == pytest.approx(0.0)
+    assert np.isnan(g["tpr"][1, 1]) and g["n_positive"].sum() == 3
+
+
+def test_heatmap_png_written(tmp_path):
+    rng = np.random.default_rng(0)
+    n = 400
+    g = M.grid_metrics(rng.integers(0, 2, n), rng.random(n), rng.uniform(0.4, 1.1, n), rng.uniform(0, 1.2, n))
+    out = plot_grid_heatmaps(g, tmp_path / "heat.png", title="t")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_training_curves_png_from_log(tmp_path):
+    log = tmp_path / "metrics.jsonl"
+    log.write_text('{"kind": "train", "samples": 64, "loss": 0.7}\n{"kind": "val", "samples": 64, "loss": 0.6, '
+                   '"balanced_accuracy": 0.6, "tpr": 0.5, "tnr": 0.7}\nnot json\n')
+    assert plot_training_curves(log, tmp_path / "c.png").stat().st_size > 1000

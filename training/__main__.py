@@ -1,0 +1,106 @@
+"""Command line: ``python -m training {train,evaluate,baseline,ablation} ...``.
+
+Training options are generated from ``TrainConfig`` (``--batch-size``, ``--base-lr``, ...)
+so the dataclass stays the one place where they are defined. Bad input (missing folder,
+wrong format, architecture unsuited to the dataset, bad option value) exits with status 2
+and a message naming the problem. Under ``torchrun`` ``train`` and ``ablation`` run DDP.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import MISSING, fields
+
+from .baseline import BaselineConfig
+from .config import TrainConfig
+
+
+def _add_dataclass_options(p: argparse.ArgumentParser, cls, skip=(), help_prefix: str = "") -> None:
+    for f in fields(cls):
+        if f.name in skip:
+            continue
+        default = f.default if f.default is not MISSING else None
+        flag = "--" + f.name.replace("_", "-")
+        if isinstance(default, bool):
+            p.add_argument(flag, dest=f.name, default=default, action=argparse.BooleanOptionalAction,
+                           help=f"{help_prefix}default {default}")
+        else:
+            p.add_argument(flag, dest=f.name, type=type(default), default=default, metavar=type(default).__name__.upper(),
+                           help=f"{help_prefix}default {default}")
+
+
+def _config_from(args, cls):
+    return cls(**{f.name: getattr(args, f.name) for f in fields(cls) if hasattr(args, f.name)})
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python -m training", description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    t = sub.add_parser("train", help="train a network on a crop dataset")
+    t.add_argument("--data", required=True, help="crop dataset folder (vgq-crops)")
+    t.add_argument("--out", required=True, help="run folder (checkpoints, metrics.jsonl, run.json)")
+    t.add_argument("--resume", action="store_true", help="continue from OUT/checkpoints/last.pt")
+    t.add_argument("--no-progress", action="store_true")
+    _add_dataclass_options(t, TrainConfig)
+
+    e = sub.add_parser("evaluate", help="metrics, camera-grid heat maps and curves of a run")
+    e.add_argument("--run", required=True, help="run folder (uses checkpoints/best.pt) or a checkpoint file")
+    e.add_argument("--data", required=True, help="crop dataset folder")
+    e.add_argument("--split", default="test", choices=("train", "val", "test"))
+    e.add_argument("--out", default=None, help="output folder (default RUN/eval)")
+    e.add_argument("--threshold", type=float, default=0.5)
+    e.add_argument("--batch-size", type=int, default=1024)
+    e.add_argument("--no-progress", action="store_true")
+
+    b = sub.add_parser("baseline", help="pose-only baseline (no image)")
+    b.add_argument("--data", required=True, help="crop dataset folder")
+    b.add_argument("--out", default=None, help="folder for baseline_<model>.json and its heat map")
+    b.add_argument("--no-progress", action="store_true")
+    _add_dataclass_options(b, BaselineConfig)
+
+    a = sub.add_parser("ablation", help="train + evaluate on crop datasets of several kappa values")
+    a.add_argument("--data", required=True, nargs="+", help="crop dataset folders, one per kappa")
+    a.add_argument("--out", required=True, help="ablation folder (one run folder per kappa)")
+    a.add_argument("--no-progress", action="store_true")
+    _add_dataclass_options(a, TrainConfig)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    progress = not args.no_progress
+    try:
+        if args.command == "train":
+            from .train import train
+
+            r = train(_config_from(args, TrainConfig), args.data, args.out, resume=args.resume, progress=progress)
+            print(json.dumps({"run": str(r.run_dir), "steps": r.steps, "samples_seen": r.samples_seen,
+                              "best_val_balanced_accuracy": r.best_val_balanced_accuracy,
+                              "wall_time_s": round(r.wall_time_s, 1)}))
+        elif args.command == "evaluate":
+            from .evaluate import evaluate
+
+            rec = evaluate(args.run, args.data, args.split, args.out, threshold=args.threshold,
+                           batch_size=args.batch_size, progress=progress)
+            print(json.dumps({"split": rec["split"], **rec["overall"]}))
+        elif args.command == "baseline":
+            from .baseline import run_baseline
+
+            rec = run_baseline(args.data, _config_from(args, BaselineConfig), args.out, progress=progress)
+            print(json.dumps({k: rec[k] for k in ("config", "val", "test") if k in rec}))
+        elif args.command == "ablation":
+            from .ablation import run_ablation
+
+            rec = run_ablation(args.data, args.out, _config_from(args, TrainConfig), progress=progress)
+            print(json.dumps(rec["results"]))
+    except (ValueError, FileNotFoundError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

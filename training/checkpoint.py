@@ -1,0 +1,166 @@
+"""Run folders, checkpoints and ``load_trained``.
+
+A run folder (``train --out RUN_DIR``)::
+
+    run.json                 arch, config, dataset facts, geometry, intrinsics, training info
+    metrics.jsonl            one JSON object per line: {"kind": "train" | "val", ...}
+    checkpoints/last.pt      latest state (model, optimizer, position in the data)
+    checkpoints/best.pt      the state with the best validation balanced accuracy
+    eval/metrics_<split>.json, eval/*.png   written by ``evaluate``
+
+Checkpoints hold only tensors and plain Python containers (config and normalisation as
+dicts) so they load with ``torch.load(..., weights_only=True)``; they are written
+atomically (``vgq.atomic``), so a kill never leaves a truncated checkpoint.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from vgq import atomic
+from vgq.normalization import Normalization
+
+from .networks import GraspQualityNet
+
+CHECKPOINT_FORMAT = "vgq-training-checkpoint"
+CHECKPOINT_VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A run folder or checkpoint is missing or not one of ours."""
+
+
+@dataclass(frozen=True)
+class RunPaths:
+    root: Path
+
+    @property
+    def run_json(self) -> Path:
+        return self.root / "run.json"
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / "metrics.jsonl"
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.root / "checkpoints"
+
+    @property
+    def last(self) -> Path:
+        return self.checkpoints / "last.pt"
+
+    @property
+    def best(self) -> Path:
+        return self.checkpoints / "best.pt"
+
+    @property
+    def eval_dir(self) -> Path:
+        return self.root / "eval"
+
+    def eval_metrics(self, split: str) -> Path:
+        return self.eval_dir / f"metrics_{split}.json"
+
+
+def save_checkpoint(path: str | Path, ckpt: dict) -> None:
+    """Atomically write ``ckpt`` (tensors and plain containers only)."""
+    buf = io.BytesIO()
+    torch.save(ckpt, buf)
+    atomic.write_bytes(path, buf.getvalue())
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Load a checkpoint with ``weights_only=True``; CheckpointError if it is not ours."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises several types for foreign / corrupt files
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from e
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} file")
+    if ckpt.get("version") != CHECKPOINT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {ckpt.get('version')} unsupported")
+    return ckpt
+
+
+def net_from_checkpoint(ckpt: dict) -> GraspQualityNet:
+    """A GraspQualityNet in eval mode with the checkpoint's weights and normalisation."""
+    net = GraspQualityNet(ckpt["arch"], image_size=int(ckpt["geometry"]["out"]))
+    net.load_state_dict(ckpt["model"])
+    net.set_normalization(Normalization.from_dict(ckpt["normalization"]))  # same values; validates
+    return net.eval()
+
+
+def _resolve(path: Path) -> tuple[Path, Path | None]:
+    """(checkpoint file, run folder or None) for a run folder or a checkpoint path."""
+    if path.is_dir():
+        paths = RunPaths(path)
+        for p in (paths.best, paths.last):
+            if p.is_file():
+                return p, path
+        raise CheckpointError(f"run folder {path} has no checkpoints/best.pt or checkpoints/last.pt")
+    if path.is_file():
+        root = path.parent.parent if path.parent.name == "checkpoints" else None
+        return path, root if root is not None and RunPaths(root).run_json.is_file() else None
+    raise CheckpointError(f"{path} is neither a run folder nor a checkpoint file")
+
+
+def _finite(x):
+    return None if isinstance(x, float) and not math.isfinite(x) else x
+
+
+def load_trained(path: str | Path) -> tuple[GraspQualityNet, dict]:
+    """Load a trained net from a run folder (its best checkpoint, else the last) or a
+    checkpoint file. Returns ``(net in eval mode, meta)``; meta is plain JSON-ready data::
+
+        arch, checkpoint, label_threshold,
+        geometry    vgq.crop.CropGeometry dict of the training crops
+        intrinsics  vgq.camera.Intrinsics dict (dataset manifest, else the default sensor)
+        normalization  vgq.normalization.Normalization dict (also in the net's buffers)
+        dataset     path, format, architecture, counts per split, source, recipe
+        training    config, samples_seen, steps, seed, wall_time_s, world_size, best validation
+        metrics     {split: metrics} from ``evaluate`` runs of this run folder, if any
+    """
+    ckpt_path, run_dir = _resolve(Path(path))
+    ckpt = load_checkpoint(ckpt_path)
+    net = net_from_checkpoint(ckpt)
+    st = ckpt["state"]
+    meta = {
+        "arch": ckpt["arch"],
+        "checkpoint": str(ckpt_path.resolve()),
+        "label_threshold": ckpt["dataset"].get("label_threshold", 0.002),
+        "geometry": dict(ckpt["geometry"]),
+        "intrinsics": dict(ckpt["intrinsics"]),
+        "normalization": dict(ckpt["normalization"]),
+        "dataset": dict(ckpt["dataset"]),
+        "training": {
+            "config": dict(ckpt["config"]),
+            "samples_seen": int(st["samples_seen"]),
+            "steps": int(st["step"]),
+            "seed": int(ckpt["config"]["seed"]),
+            "wall_time_s": float(st["wall_time_s"]),
+            "world_size": int(st.get("world_size", 1)),
+            "validation": {k: _finite(v) for k, v in dict(ckpt.get("val") or {}).items()},
+            "best_val_balanced_accuracy": _finite(st.get("best_val_balanced_accuracy")),
+            "torch": torch.__version__,
+        },
+        "metrics": {},
+    }
+    if run_dir is not None:
+        ev = RunPaths(run_dir).eval_dir
+        for f in sorted(ev.glob("metrics_*.json")) if ev.is_dir() else []:
+            try:
+                m = json.loads(f.read_text())
+            except json.JSONDecodeError:
+                continue
+            if Path(m.get("checkpoint", "")).resolve() == ckpt_path.resolve():
+                meta["metrics"][m.get("split", f.stem[len("metrics_"):])] = m.get("overall", {})
+    return net, meta

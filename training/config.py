@@ -1,0 +1,64 @@
+"""Training configuration: the one place where training hyper-parameters are defined.
+
+Defaults follow the authors' configuration (SPEC section 6): SGD with momentum 0.9, base
+learning rate 0.001 decayed (staircase) by 0.95 every 4 M samples, L2 weight decay 5e-4,
+two-class cross-entropy, batch 64. Counts are in *samples* (grasps), not steps, so the
+schedule does not depend on the batch size or the number of processes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+from vgq.pose import POSE_COLUMNS
+
+CLASS_BALANCE = ("none", "loss_weights")
+
+
+@dataclass
+class TrainConfig:
+    arch: str = "fast_vgqcnn"
+    samples: int = 10_000_000  # training samples to see in total (paper ablations: 10 M)
+    batch_size: int = 64  # global batch (split evenly over DDP processes)
+    base_lr: float = 0.001
+    momentum: float = 0.9
+    weight_decay: float = 5e-4  # L2 on all parameters (SGD weight_decay)
+    lr_decay: float = 0.95
+    decay_every_samples: int = 4_000_000
+    val_every_samples: int = 500_000
+    val_max_samples: int = 0  # 0: the whole validation split
+    checkpoint_every_samples: int = 100_000  # last.pt at least this often (and at each validation)
+    log_every_steps: int = 50  # train-loss lines in metrics.jsonl (mean over the interval)
+    eval_batch_size: int = 1024
+    class_balance: str = "none"  # "loss_weights": cross-entropy weights n / (2 n_class) from train
+    seed: int = 0
+    num_threads: int = 0  # torch intra-op threads per process; 0: torch default
+
+    def __post_init__(self) -> None:
+        if self.arch not in POSE_COLUMNS:
+            raise ValueError(f"unknown architecture {self.arch!r}; expected one of {sorted(POSE_COLUMNS)}")
+        for name in ("samples", "batch_size", "decay_every_samples", "val_every_samples",
+                     "checkpoint_every_samples", "log_every_steps", "eval_batch_size"):
+            if int(getattr(self, name)) <= 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.val_max_samples < 0 or self.num_threads < 0:
+            raise ValueError("val_max_samples and num_threads must be >= 0")
+        if not (self.base_lr > 0 and 0 < self.lr_decay <= 1 and 0 <= self.momentum < 1 and self.weight_decay >= 0):
+            raise ValueError("need base_lr > 0, 0 < lr_decay <= 1, 0 <= momentum < 1, weight_decay >= 0")
+        if self.class_balance not in CLASS_BALANCE:
+            raise ValueError(f"class_balance must be one of {CLASS_BALANCE}, got {self.class_balance!r}")
+
+    def lr_at(self, samples_seen: int) -> float:
+        """Learning rate after ``samples_seen`` samples (staircase exponential decay)."""
+        return self.base_lr * self.lr_decay ** (int(samples_seen) // int(self.decay_every_samples))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown training config keys {sorted(unknown)}")
+        return cls(**d)

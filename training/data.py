@@ -1,0 +1,211 @@
+"""Reading crop datasets (format ``vgq-crops`` v1, see ``vgq.schema``) for training.
+
+A crop dataset is a folder with ``manifest.json`` and one sub-folder per split
+(``train``, ``val``, ``test``), each holding one ``<field>.npy`` per ``CROP_FIELDS`` field.
+Arrays are memory-mapped; only the rows of a batch are read.
+
+Manifest keys read here (written by ``datagen crops`` and by
+``training.synthetic.write_crop_dataset``):
+
+* ``format`` == ``"vgq-crops"``, ``format_version`` == 1 (if present);
+* ``geometry``: a ``vgq.crop.CropGeometry`` dict (``window``, ``out``, ``kappa_px``);
+  a top-level ``kappa_px`` is accepted when the geometry dict lacks it;
+* ``architecture`` (or ``arch``): the architecture the crops were cut for;
+* optional: ``intrinsics`` (``vgq.camera.Intrinsics`` dict), ``label_threshold``,
+  ``counts``, ``source`` / ``recipe`` (recorded, not interpreted).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
+from vgq.crop import CropGeometry
+from vgq.pose import POSE_COLUMNS, pose_column_indices
+from vgq.schema import CROP_FIELDS, CROP_FORMAT, FORMAT_VERSION, SPLITS, check_fields
+
+
+class DatasetError(ValueError):
+    """The crop dataset is missing, malformed or unusable for the requested architecture."""
+
+
+@dataclass
+class CropSplit:
+    """One split of a crop dataset: memory-mapped arrays, one row per grasp."""
+
+    name: str
+    arrays: dict[str, np.ndarray]
+
+    def __len__(self) -> int:
+        return int(len(self.arrays["labels"]))
+
+    @property
+    def labels(self) -> np.ndarray:
+        return self.arrays["labels"]
+
+    def poses(self, arch: str) -> np.ndarray:
+        """Pose columns of ``arch`` for all rows (n, n_pose) float32 (read into memory)."""
+        return np.ascontiguousarray(self.arrays["poses"][:, pose_column_indices(arch)], dtype=np.float32)
+
+    def batch(self, index: np.ndarray, arch: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Rows ``index`` as tensors: images (b, 1, S, S) metres, poses (b, n_pose), labels (b,) int64."""
+        index = np.asarray(index, dtype=np.int64)
+        order = np.argsort(index, kind="stable")  # sorted reads from the memory map are faster
+        srt = index[order]
+        inv = np.empty_like(order)
+        inv[order] = np.arange(len(order))
+        img = np.asarray(self.arrays["images"][srt], dtype=np.float32)[inv]
+        pose = np.asarray(self.arrays["poses"][srt], dtype=np.float32)[inv][:, pose_column_indices(arch)]
+        lab = np.asarray(self.arrays["labels"][srt], dtype=np.int64)[inv]
+        return torch.from_numpy(img[:, None]), torch.from_numpy(np.ascontiguousarray(pose)), torch.from_numpy(lab)
+
+
+@dataclass
+class CropDataset:
+    """An opened crop dataset: manifest facts and its splits."""
+
+    path: Path
+    manifest: dict
+    geometry: CropGeometry
+    arch: str
+    intrinsics: Intrinsics
+    intrinsics_from_manifest: bool
+    label_threshold: float
+    splits: dict[str, CropSplit] = field(default_factory=dict)
+
+    def split(self, name: str) -> CropSplit:
+        if name not in self.splits:
+            raise DatasetError(f"crop dataset {self.path} has no {name!r} split (has {sorted(self.splits)})")
+        if len(self.splits[name]) == 0:
+            raise DatasetError(f"crop dataset {self.path}: split {name!r} is empty")
+        return self.splits[name]
+
+    def counts(self) -> dict[str, dict[str, int]]:
+        out = {}
+        for name, s in self.splits.items():
+            lab = np.asarray(s.labels)
+            out[name] = {"n": int(len(lab)), "positive": int(lab.sum())}
+        return out
+
+    def info(self) -> dict:
+        """Plain-dict facts about the dataset for run metadata and model cards."""
+        return {
+            "path": str(self.path.resolve()),
+            "format": CROP_FORMAT,
+            "architecture": self.arch,
+            "geometry": self.geometry.to_dict(),
+            "label_threshold": self.label_threshold,
+            "counts": self.counts(),
+            "source": self.manifest.get("source"),
+            "recipe": self.manifest.get("recipe"),
+        }
+
+    def check_arch(self, arch: str) -> None:
+        """Raise DatasetError unless crops of this dataset suit ``arch``.
+
+        Same architecture always fits. Centred crops (kappa 0) serve both VGQ-CNN and
+        Fast-VGQ-CNN (the paper's kappa = 0 ablation); off-centre crops only Fast-VGQ-CNN;
+        GQ-CNN's rotated crops only GQ-CNN.
+        """
+        if arch not in POSE_COLUMNS:
+            raise DatasetError(f"unknown architecture {arch!r}; expected one of {sorted(POSE_COLUMNS)}")
+        if arch == self.arch:
+            return
+        centred = self.geometry.kappa_px == 0
+        if {arch, self.arch} == {"vgqcnn", "fast_vgqcnn"} and centred:
+            return
+        raise DatasetError(
+            f"crop dataset {self.path} was cut for architecture {self.arch!r} "
+            f"(kappa_px={self.geometry.kappa_px}); it cannot train {arch!r}"
+        )
+
+
+def _read_manifest(path: Path) -> dict:
+    if not path.exists():
+        raise DatasetError(f"crop dataset folder {path} does not exist")
+    if not path.is_dir():
+        raise DatasetError(f"crop dataset {path} is not a folder")
+    mf = path / "manifest.json"
+    if not mf.is_file():
+        raise DatasetError(f"{path} is not a crop dataset: no manifest.json")
+    try:
+        m = json.loads(mf.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DatasetError(f"{mf}: not valid JSON ({e})") from e
+    if not isinstance(m, dict):
+        raise DatasetError(f"{mf}: expected a JSON object")
+    if m.get("format") != CROP_FORMAT:
+        raise DatasetError(f"{mf}: format is {m.get('format')!r}, expected {CROP_FORMAT!r}")
+    if int(m.get("format_version", FORMAT_VERSION)) != FORMAT_VERSION:
+        raise DatasetError(f"{mf}: format_version {m.get('format_version')} unsupported (expected {FORMAT_VERSION})")
+    return m
+
+
+def _open_split(path: Path, name: str) -> CropSplit | None:
+    d = path / name
+    if not d.is_dir():
+        return None
+    arrays = {}
+    for f in CROP_FIELDS:
+        p = d / f"{f}.npy"
+        if not p.is_file():
+            raise DatasetError(f"crop dataset {path}: split {name!r} lacks {f}.npy")
+        try:
+            arrays[f] = np.load(p, mmap_mode="r", allow_pickle=False)
+        except ValueError as e:
+            raise DatasetError(f"{p}: not a readable .npy array ({e})") from e
+    try:
+        check_fields(CROP_FIELDS, arrays, f"crop dataset {path} split {name!r}")
+    except ValueError as e:
+        raise DatasetError(str(e)) from e
+    return CropSplit(name, arrays)
+
+
+def open_crop_dataset(path: str | Path) -> CropDataset:
+    """Open and validate a crop dataset folder; raises DatasetError naming the problem."""
+    path = Path(path)
+    m = _read_manifest(path)
+    g = m.get("geometry") or m.get("crop_geometry")
+    if not isinstance(g, dict):
+        raise DatasetError(f"{path}/manifest.json: no crop 'geometry' entry")
+    g = dict(g)
+    if "kappa_px" not in g and "kappa_px" in m:
+        g["kappa_px"] = m["kappa_px"]
+    try:
+        geom = CropGeometry.from_dict(g)
+    except (KeyError, TypeError, ValueError) as e:
+        raise DatasetError(f"{path}/manifest.json: bad crop geometry {g} ({e})") from e
+    arch = m.get("architecture", m.get("arch"))
+    if arch not in POSE_COLUMNS:
+        raise DatasetError(f"{path}/manifest.json: architecture {arch!r} unknown; expected one of {sorted(POSE_COLUMNS)}")
+    if "intrinsics" in m:
+        try:
+            intr, from_manifest = Intrinsics.from_dict(m["intrinsics"]), True
+        except (KeyError, TypeError, ValueError) as e:
+            raise DatasetError(f"{path}/manifest.json: bad intrinsics ({e})") from e
+    else:
+        intr, from_manifest = DEFAULT_INTRINSICS, False
+    splits = {}
+    for name in SPLITS:
+        s = _open_split(path, name)
+        if s is not None:
+            if s.arrays["images"].shape[1:] != (geom.out, geom.out):
+                raise DatasetError(f"crop dataset {path}: images are {s.arrays['images'].shape[1:]}, geometry says {geom.out}")
+            splits[name] = s
+    if not splits:
+        raise DatasetError(f"crop dataset {path} has none of the split folders {SPLITS}")
+    return CropDataset(
+        path=path,
+        manifest=m,
+        geometry=geom,
+        arch=str(arch),
+        intrinsics=intr,
+        intrinsics_from_manifest=from_manifest,
+        label_threshold=float(m.get("label_threshold", 0.002)),
+        splits=splits,
+    )

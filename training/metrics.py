@@ -1,0 +1,108 @@
+"""Classification metrics (pure numpy): TPR, TNR, balanced accuracy, accuracy, overall and
+per cell of the camera grid (distance d in metres, elevation phi in radians)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def confusion(labels: np.ndarray, predicted: np.ndarray) -> dict[str, int]:
+    """Counts tp, fn, tn, fp of boolean/0-1 ``predicted`` against 0-1 ``labels``."""
+    y = np.asarray(labels).astype(bool).ravel()
+    p = np.asarray(predicted).astype(bool).ravel()
+    if y.shape != p.shape:
+        raise ValueError(f"labels ({y.shape}) and predictions ({p.shape}) differ in length")
+    return {
+        "tp": int(np.sum(y & p)),
+        "fn": int(np.sum(y & ~p)),
+        "tn": int(np.sum(~y & ~p)),
+        "fp": int(np.sum(~y & p)),
+    }
+
+
+def from_confusion(c: dict[str, int]) -> dict[str, float]:
+    """TPR, TNR, balanced accuracy, accuracy (NaN where undefined) plus the counts."""
+    pos, neg = c["tp"] + c["fn"], c["tn"] + c["fp"]
+    n = pos + neg
+    tpr = c["tp"] / pos if pos else math.nan
+    tnr = c["tn"] / neg if neg else math.nan
+    bacc = (tpr + tnr) / 2 if pos and neg else math.nan
+    acc = (c["tp"] + c["tn"]) / n if n else math.nan
+    return {"tpr": tpr, "tnr": tnr, "balanced_accuracy": bacc, "accuracy": acc,
+            "n": n, "n_positive": pos, "n_negative": neg, **{k: int(v) for k, v in c.items()}}
+
+
+def binary_metrics(labels: np.ndarray, p_success: np.ndarray, threshold: float = 0.5) -> dict[str, float]:
+    """Metrics of predicting success where ``p_success > threshold``."""
+    out = from_confusion(confusion(labels, np.asarray(p_success) > threshold))
+    out["threshold"] = threshold
+    return out
+
+
+def bin_edges(values: np.ndarray, step: float) -> np.ndarray:
+    """Edges at multiples of ``step`` covering ``values`` (at least one bin)."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.size == 0:
+        return np.array([0.0, step])
+    lo = math.floor(float(v.min()) / step + 1e-9)
+    hi = max(math.floor(float(v.max()) / step + 1e-9) + 1, lo + 1)
+    return np.arange(lo, hi + 1) * step
+
+
+def grid_metrics(
+    labels: np.ndarray,
+    p_success: np.ndarray,
+    camera_d: np.ndarray,
+    camera_phi: np.ndarray,
+    d_step: float = 0.05,
+    phi_step_deg: float = 5.0,
+    threshold: float = 0.5,
+) -> dict:
+    """TPR / TNR / balanced accuracy / counts per (d, phi) cell.
+
+    Rows index d bins (metres, ``d_edges``), columns phi bins (degrees, ``phi_edges_deg``).
+    Cells without positives (negatives) have TPR (TNR) NaN; JSON-ready lists via
+    :func:`grid_to_json`.
+    """
+    y = np.asarray(labels).astype(bool).ravel()
+    pred = np.asarray(p_success).ravel() > threshold
+    d = np.asarray(camera_d, dtype=np.float64).ravel()
+    phi = np.degrees(np.asarray(camera_phi, dtype=np.float64).ravel())
+    d_edges, phi_edges = bin_edges(d, d_step), bin_edges(phi, phi_step_deg)
+    di = np.clip(np.searchsorted(d_edges, d + 1e-9, side="right") - 1, 0, len(d_edges) - 2)
+    pj = np.clip(np.searchsorted(phi_edges, phi + 1e-9, side="right") - 1, 0, len(phi_edges) - 2)
+    shape = (len(d_edges) - 1, len(phi_edges) - 1)
+    cell = di * shape[1] + pj
+    size = shape[0] * shape[1]
+    tp = np.bincount(cell[y & pred], minlength=size).reshape(shape)
+    pos = np.bincount(cell[y], minlength=size).reshape(shape)
+    tn = np.bincount(cell[~y & ~pred], minlength=size).reshape(shape)
+    neg = np.bincount(cell[~y], minlength=size).reshape(shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tpr = np.where(pos > 0, tp / np.maximum(pos, 1), np.nan)
+        tnr = np.where(neg > 0, tn / np.maximum(neg, 1), np.nan)
+    return {
+        "d_edges": d_edges,
+        "phi_edges_deg": phi_edges,
+        "tpr": tpr,
+        "tnr": tnr,
+        "balanced_accuracy": (tpr + tnr) / 2,
+        "n_positive": pos,
+        "n_negative": neg,
+    }
+
+
+def grid_to_json(grid: dict) -> dict:
+    """Arrays to lists, NaN to None."""
+    def conv(a):
+        a = np.asarray(a, dtype=np.float64)
+        return [[None if not np.isfinite(x) else float(x) for x in row] for row in a] if a.ndim == 2 else [float(x) for x in a]
+
+    return {k: conv(v) for k, v in grid.items()}
+
+
+def nan_to_none(d: dict) -> dict:
+    """Replace NaN floats by None (strict JSON)."""
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
