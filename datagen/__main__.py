@@ -13,7 +13,7 @@ from pathlib import Path
 
 # The dataset the shipped model is trained on (``datagen recipe``): generate -> sample -> crops.
 RECIPE = {
-    "objects": 300,  # first 300 of pybullet_data's random_urdfs (sorted by name)
+    "objects": 600,  # first 600 of pybullet_data's random_urdfs (sorted by name)
     "cameras": 10,  # camera poses per stable pose
     "seed": 0,
     "arch": "fast_vgqcnn",
