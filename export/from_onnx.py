@@ -20,59 +20,55 @@ from training.networks import GraspQualityNet
 from vgq.model_card import ModelCard
 
 
-def _weights(path: Path) -> dict[str, list[np.ndarray]]:
-    """Node name -> the initializer arrays among its inputs, in input order."""
+def _load(path: Path) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
+    """Initializers by name, and node name -> input names, of an ONNX graph."""
     m = onnx.load(str(path))
     init = {i.name: numpy_helper.to_array(i) for i in m.graph.initializer}
-    for n in m.graph.node:  # constants kept as nodes by some exporters
-        if n.op_type == "Constant":
-            init[n.output[0]] = numpy_helper.to_array(n.attribute[0].t)
-    return {n.name: [init[i] for i in n.input if i in init] for n in m.graph.node}
+    return init, {n.name: list(n.input) for n in m.graph.node}
 
 
-def _take(w: dict, name: str, count: int, path: Path) -> list[np.ndarray]:
-    got = w.get(name)
-    if got is None or len(got) < count:
-        raise ValueError(f"{path}: node {name!r} with {count} weight inputs not found; not a graph written by export.graphs")
-    return got
+def _get(init: dict, name: str, path: Path) -> np.ndarray:
+    if name not in init:
+        raise ValueError(f"{path}: weight {name!r} not found; not a graph written by export.graphs")
+    return init[name]
 
 
-def _set(param: torch.nn.Parameter | torch.Tensor, a: np.ndarray, what: str) -> None:
+def _set(param: torch.Tensor, a: np.ndarray, what: str) -> None:
     if tuple(param.shape) != tuple(a.shape):
         raise ValueError(f"{what}: ONNX weight has shape {a.shape}, the network expects {tuple(param.shape)}")
     with torch.no_grad():
-        param.copy_(torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)))
+        param.copy_(torch.from_numpy(np.array(a, dtype=np.float32)))
 
 
 def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, ModelCard]:
-    """The Fast-VGQ-CNN of an exported folder (encoder.onnx + head.onnx + model card), in eval mode."""
+    """The Fast-VGQ-CNN of an exported folder (encoder.onnx + head.onnx + model card), in eval mode.
+    Weights are found by their torch names (``net.conv1_1.weight``, ``head.fc5.bias``, ...)."""
     model_dir = Path(model_dir)
     card = ModelCard.load(model_dir)
     if card.architecture != "fast_vgqcnn":
         raise ValueError(f"{model_dir}: architecture {card.architecture!r}, expected fast_vgqcnn")
     enc_path, head_path = model_dir / card.files["encoder"], model_dir / card.files["head"]
-    enc, head = _weights(enc_path), _weights(head_path)
+    (enc, enc_nodes), (head, _) = _load(enc_path), _load(head_path)
     net = GraspQualityNet("fast_vgqcnn", image_size=card.geometry.out).eval()
     norm = card.normalization
     net.set_normalization(norm)
-    for layer in ("conv1_1", "conv1_2", "conv2_1", "conv2_2"):
-        w, b = _take(enc, f"/{layer}/Conv", 2, enc_path)[:2]
-        _set(getattr(net, layer).weight, w, layer)
-        _set(getattr(net, layer).bias, b, layer)
-    w, b = _take(enc, "/fc3/Gemm", 2, enc_path)[:2]
-    _set(net.fc3.weight, w, "fc3")
-    _set(net.fc3.bias, b, "fc3")
-    _set(net.fc4_image.weight, _take(enc, "/fc4_image/MatMul", 1, enc_path)[0].T, "fc4_image")
+    for layer in ("conv1_1", "conv1_2", "conv2_1", "conv2_2", "fc3"):
+        for what in ("weight", "bias"):
+            _set(getattr(getattr(net, layer), what), _get(enc, f"net.{layer}.{what}", enc_path), layer)
+    mm = enc_nodes.get("/fc4_image/MatMul")
+    if mm is None or len(mm) != 2:
+        raise ValueError(f"{enc_path}: node '/fc4_image/MatMul' not found; not a graph written by export.graphs")
+    _set(net.fc4_image.weight, _get(enc, mm[1], enc_path).T, "fc4_image")  # MatMul holds W^T
     # pc1 with the pose normalisation folded in: W' = W / std, b' = b - W' mean
-    wf, bf = (a.astype(np.float64) for a in _take(head, "/head/pc1/Gemm", 2, head_path)[:2])
+    wf = _get(head, "head.pc1.weight", head_path).astype(np.float64)
+    bf = _get(head, "head.pc1.bias", head_path).astype(np.float64)
     mean, std = np.asarray(norm.pose_mean, np.float64), np.asarray(norm.pose_std, np.float64)
     _set(net.pc1.weight, wf * std[None, :], "pc1")
     _set(net.pc1.bias, bf + wf @ mean, "pc1")
     for layer in ("fc4_pose", "fc5"):
-        w, b = _take(head, f"/head/{layer}/Gemm", 2, head_path)[:2]
-        _set(getattr(net, layer).weight, w, layer)
-        _set(getattr(net, layer).bias, b, layer)
-    w, b = _take(head, "/head/out/Gemm", 2, head_path)[:2]
+        for what in ("weight", "bias"):
+            _set(getattr(getattr(net, layer), what), _get(head, f"head.{layer}.{what}", head_path), layer)
+    w, b = _get(head, "head.out.weight", head_path), _get(head, "head.out.bias", head_path)
     _set(net.fc6.weight, np.concatenate([np.zeros_like(w), w]), "fc6")
     _set(net.fc6.bias, np.concatenate([np.zeros_like(b), b]), "fc6")
     return net, card

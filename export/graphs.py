@@ -3,7 +3,10 @@
 They compute exactly what ``training.networks.GraspQualityNet`` computes, arranged so
 onnxruntime runs them fast:
 
-* LRN is already a band-matrix Conv + Pow in the network (no ONNX LRN node);
+* LRN (a band-matrix Conv + Pow in the network; no ONNX LRN node) is exported as
+  ``ExportLRN``: alpha and bias folded into the band Conv, and ``d ** -0.75`` as
+  ``1 / sqrt(d sqrt(d))`` (onnxruntime's general Pow is far slower than two Sqrt);
+* the image term and fc4's bias enter the pose Gemm as its C input (Gemm + Relu fuse);
 * the pose normalisation is folded into pc1 (``W' = W / std``, ``b' = b - W' mean``);
 * softmax(fc6)[:, 1] becomes ``sigmoid((w1 - w0) x + b1 - b0)``: one dot product per
   grasp instead of a 2-wide Gemm, a Softmax and a Gather.
@@ -13,11 +16,44 @@ Inputs are raw (metres, crop pixels); outputs are success probabilities.
 
 from __future__ import annotations
 
+import copy
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from training.networks import GraspQualityNet
+from training.networks import GraspQualityNet, LocalResponseNorm
+
+
+class ExportLRN(nn.Module):
+    """``training.networks.LocalResponseNorm`` rearranged for onnxruntime, same values:
+    ``d = Conv(x * x, alpha * band) + bias`` (one Conv with bias), then ``x / d ** beta``
+    with ``d ** 0.75 = sqrt(d * sqrt(d))`` (exp(beta log d) for other beta). On one core of
+    the reference machine this takes ~0.4 ms off a 32 x 32 encoder (Pow: 0.39 ms -> Sqrt x2:
+    0.06 ms for the first LRN)."""
+
+    def __init__(self, lrn: LocalResponseNorm):
+        super().__init__()
+        c = lrn.band.shape[0]
+        self.register_buffer("weight", lrn.band * lrn.alpha, persistent=False)
+        self.register_buffer("bias", torch.full((c,), float(lrn.bias)), persistent=False)
+        self.beta = float(lrn.beta)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        d = F.conv2d(x * x, self.weight, self.bias)
+        if self.beta == 0.75:
+            return x / torch.sqrt(d * torch.sqrt(d))
+        return x * torch.exp(-self.beta * torch.log(d))
+
+
+def with_export_lrn(net: GraspQualityNet) -> GraspQualityNet:
+    """A copy of ``net`` whose LocalResponseNorm modules are ExportLRN (``net`` is unchanged)."""
+    net = copy.deepcopy(net)
+    for name, mod in list(net.named_modules()):
+        if isinstance(mod, LocalResponseNorm):
+            parent = net.get_submodule(name.rpartition(".")[0]) if "." in name else net
+            setattr(parent, name.rpartition(".")[2], ExportLRN(mod))
+    return net
 
 
 class _FoldedHead(nn.Module):
@@ -38,7 +74,8 @@ class _FoldedHead(nn.Module):
             self.out.bias.copy_((net.fc6.bias[1] - net.fc6.bias[0]).reshape(1))
 
     def forward(self, image_term: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
-        x = F.relu(image_term + self.fc4_pose(F.relu(self.pc1(poses))))
+        # Gemm(p, W, C = image term + bias): the merge Add and Relu fuse into the Gemm
+        x = F.relu(torch.addmm(image_term + self.fc4_pose.bias, F.relu(self.pc1(poses)), self.fc4_pose.weight.t()))
         if self.fc5 is not None:
             x = F.relu(self.fc5(x))
         return torch.sigmoid(self.out(x)).reshape(-1)
@@ -49,7 +86,7 @@ class EncoderGraph(nn.Module):
 
     def __init__(self, net: GraspQualityNet):
         super().__init__()
-        self.net = net
+        self.net = with_export_lrn(net)
 
     def forward(self, depth_crop: torch.Tensor) -> torch.Tensor:
         return self.net.encode(depth_crop)
@@ -71,7 +108,7 @@ class OnePieceGraph(nn.Module):
 
     def __init__(self, net: GraspQualityNet):
         super().__init__()
-        self.net = net
+        self.net = with_export_lrn(net)
         self.head = _FoldedHead(net)
 
     def forward(self, depth_crops: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:

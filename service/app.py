@@ -43,6 +43,7 @@ from .runtime import FastModel
 JSON = "application/json"
 OCTET = "application/octet-stream"
 INTRINSICS_TOLERANCE = 0.02  # relative focal length mismatch accepted
+_timeout = getattr(asyncio, "timeout", None)
 
 
 def _json(obj, status: int = 200) -> Response:
@@ -140,7 +141,11 @@ class Service:
             return b"".join(chunks)
 
         try:
-            body = await asyncio.wait_for(read(), self.settings.request_timeout_s)
+            if _timeout is not None:  # asyncio.timeout (3.11+): no extra task per request, unlike wait_for
+                async with _timeout(self.settings.request_timeout_s):
+                    body = await read()
+            else:
+                body = await asyncio.wait_for(read(), self.settings.request_timeout_s)
         except asyncio.TimeoutError:
             raise ApiError(408, f"request body not received within {self.settings.request_timeout_s} s") from None
         request._body = body  # lets Starlette's form parser reuse what was read
@@ -269,7 +274,7 @@ def create_app(settings: Settings | None = None, model: FastModel | None = None,
     async def cache_stats():
         return _json(svc.cache.stats())
 
-    @app.get("/metrics", summary="Prometheus metrics")
+    @app.get("/metrics", summary="Prometheus metrics", responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}})
     async def metrics():
         return Response(svc.metrics.render(), media_type="text/plain; version=0.0.4")
 

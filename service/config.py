@@ -38,6 +38,8 @@ class Settings:
                 raise ValueError(f"setting {name} must be an integer >= {lo}, got {v!r}")
         if self.cache_backend not in ("memory", "redis"):
             raise ValueError(f"setting cache_backend must be 'memory' or 'redis', got {self.cache_backend!r}")
+        if self.cache_backend == "redis" and not self.redis_url.startswith(("redis://", "rediss://", "unix://")):
+            raise ValueError(f"setting redis_url must be a redis://, rediss:// or unix:// URL, got {self.redis_url!r}")
         for name in ("request_timeout_s", "cache_ttl_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"setting {name} must be > 0, got {getattr(self, name)!r}")

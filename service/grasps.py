@@ -57,6 +57,19 @@ def parse_binary(body: bytes) -> np.ndarray:
     return np.frombuffer(body, dtype="<f4").reshape(-1, GRASP_WIDTH).astype(np.float64)
 
 
+def _unit_canonical(q: np.ndarray) -> np.ndarray:
+    """``vgq.pose.canonical_quaternion`` of finite, non-zero (k, 4) rows, ~5x faster: rows
+    with |w| > 1e-12 (after normalising) take the sign of w; the rare others go through
+    canonical_quaternion (first non-zero component positive)."""
+    u = q / np.sqrt(np.einsum("ij,ij->i", q, q))[:, None]
+    w = u[:, 0]
+    u *= np.where(w < 0, -1.0, 1.0)[:, None]
+    tiny = np.abs(w) <= 1e-12
+    if tiny.any():
+        u[tiny] = canonical_quaternion(q[tiny])
+    return u
+
+
 def to_network_poses(grasps: np.ndarray, window_center: np.ndarray, geom: CropGeometry, max_grasps: int) -> np.ndarray:
     """Check (k, 7) client grasps and return (k, 7) float32 network pose rows
     ``(du, dv, z, qw, qx, qy, qz)`` with (du, dv) in crop pixels. Raises ApiError 422."""
@@ -73,11 +86,11 @@ def to_network_poses(grasps: np.ndarray, window_center: np.ndarray, geom: CropGe
         raise ApiError(422, f"{int(bad.sum())} grasps have depth z outside (0, {MAX_Z_M:g}] (metres, camera frame)",
                        {"grasps": _indices(bad)})
     q = grasps[:, 3:7]
-    norm = np.sqrt((q * q).sum(axis=1))
-    bad = norm < 1e-6
+    qmax = np.abs(q).max(axis=1, keepdims=True)  # largest |component|: scale without overflow (|q| up to 1e308)
+    bad = qmax[:, 0] < 1e-6
     if bad.any():
         raise ApiError(422, f"{int(bad.sum())} grasps have a zero quaternion", {"grasps": _indices(bad)})
-    q = canonical_quaternion(q / np.abs(q).max(axis=1, keepdims=True))  # unit, w >= 0 (pre-scaled: no overflow)
+    q = _unit_canonical(q / qmax)  # unit, w >= 0
     off = grasps[:, :2] - window_center
     bad = (np.abs(off) > geom.kappa_px + 1e-6).any(axis=1)
     if bad.any():

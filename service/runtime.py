@@ -15,7 +15,8 @@ class ModelError(RuntimeError):
     """The model folder is missing, unreadable or of an architecture this service can't serve."""
 
 
-def _options(threads: int) -> ort.SessionOptions:
+def session_options(threads: int) -> ort.SessionOptions:
+    """onnxruntime options of the service's sessions (also used by export.benchmark)."""
     so = ort.SessionOptions()
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
@@ -38,7 +39,7 @@ class FastModel:
             raise ModelError(f"cannot load model from {model_dir}: {e}") from e
         if self.card.architecture != "fast_vgqcnn":
             raise ModelError(f"{model_dir}: architecture {self.card.architecture!r}; the service serves fast_vgqcnn")
-        so = _options(threads)
+        so = session_options(threads)
         try:
             self.encoder = ort.InferenceSession(str(model_dir / self.card.files["encoder"]), so, providers=["CPUExecutionProvider"])
             self.head = ort.InferenceSession(str(model_dir / self.card.files["head"]), so, providers=["CPUExecutionProvider"])

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from conftest import synthetic_crops
-from export.graphs import HeadGraph
+from export.graphs import ExportLRN, HeadGraph
 from export.onnx_export import ExportError, export_model
 from training.networks import GraspQualityNet, LocalResponseNorm
 from vgq.camera import DEFAULT_INTRINSICS
@@ -41,6 +41,21 @@ def test_lrn_differs_from_torch_builtin_alpha_convention():
     x = torch.randn(2, 64, 8, 8) * 30
     builtin = torch.nn.LocalResponseNorm(5, alpha=2e-5, beta=0.75, k=1.0)(x)
     assert not torch.allclose(LocalResponseNorm(64)(x), builtin, rtol=1e-4)
+
+
+def test_export_lrn_form_matches_tensorflow_semantics():
+    x = torch.relu(torch.randn(2, 64, 8, 8)) * 30
+    assert torch.allclose(ExportLRN(LocalResponseNorm(64))(x), tf_lrn(x), rtol=1e-5, atol=1e-5)
+
+
+def test_export_lrn_form_matches_for_other_beta():
+    x = torch.relu(torch.randn(2, 64, 8, 8)) * 30
+    assert torch.allclose(ExportLRN(LocalResponseNorm(64, beta=0.5))(x), tf_lrn(x, beta=0.5), rtol=1e-5, atol=1e-5)
+
+
+def test_exported_encoder_uses_sqrt_not_pow(model_dir):
+    ops = {n.op_type for n in onnx.load(str(model_dir / "encoder.onnx")).graph.node}
+    assert "Pow" not in ops and "Sqrt" in ops
 
 
 def test_exported_encoder_has_no_onnx_lrn_node(model_dir):

@@ -391,3 +391,21 @@ def test_service_still_answers_after_the_matrix(url, image_id):
     assert r.status_code == 200 and len(r.json()["p_success"]) == 8
     text = httpx.get(f"{url}/metrics").text
     assert 'status="500"' not in text
+
+
+# ---- authentication ---------------------------------------------------------------------------------------------------
+def test_api_key_guards_upload_score_and_one_shot_only(model_dir):
+    with running_service(model_dir, env={"VGQ_API_KEY": "s3cret"}) as u:
+        body, octet = npy(table_scene()), {"content-type": "application/octet-stream"}
+        guarded = [("/v1/images", body, {"content-type": NPY}), ("/v1/images/" + "0" * 32 + "/scores", _bin(grasps_at()), octet),
+                   ("/v1/score", npz(depth=table_scene(), grasps=grasps_at()), {"content-type": "application/x-npz"})]
+        for path, content, headers in guarded:
+            for key in (None, "wrong", "s3cre", "s3cret" * 2):
+                h = headers if key is None else {**headers, "x-api-key": key}
+                assert_error(httpx.post(u + path, content=content, headers=h), 401, "X-API-Key")
+        ok = httpx.post(u + "/v1/images", content=body, headers={"content-type": NPY, "x-api-key": "s3cret"})
+        assert ok.status_code == 200
+        r = httpx.post(f"{u}/v1/images/{ok.json()['image_id']}/scores", content=_bin(grasps_at()), headers={**octet, "x-api-key": "s3cret"})
+        assert r.status_code == 200
+        for path in ("/healthz", "/readyz", "/metrics"):
+            assert httpx.get(u + path).status_code == 200, path

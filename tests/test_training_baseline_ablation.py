@@ -14,12 +14,12 @@ from training.synthetic import make_synthetic_crop_dataset
 @pytest.fixture(scope="module")
 def pose_data(tmp_path_factory):
     path = tmp_path_factory.mktemp("baseline") / "d"
-    make_synthetic_crop_dataset(path, 2000, 200, 400, signal="pose", positive_rate=0.2, seed=0)
+    make_synthetic_crop_dataset(path, 1000, 100, 400, signal="pose", positive_rate=0.2, seed=0)
     return path
 
 
 def test_pose_baseline_learns_pose_signal(pose_data, tmp_path):
-    rec = run_baseline(pose_data, BaselineConfig(model="logreg", epochs=30, batch_size=256), tmp_path / "out",
+    rec = run_baseline(pose_data, BaselineConfig(model="logreg", epochs=10, batch_size=128, lr=0.05), tmp_path / "out",
                        progress=False)
     assert rec["test"]["balanced_accuracy"] > 0.9  # the label is a threshold on qw
     assert (tmp_path / "out" / "baseline_logreg.json").is_file()
@@ -27,7 +27,7 @@ def test_pose_baseline_learns_pose_signal(pose_data, tmp_path):
 
 
 def test_pose_baseline_restricted_columns_see_no_signal(pose_data):
-    rec = run_baseline(pose_data, BaselineConfig(model="mlp", columns="gqcnn", epochs=5, batch_size=256),
+    rec = run_baseline(pose_data, BaselineConfig(model="mlp", columns="gqcnn", epochs=3, batch_size=256),
                        progress=False)
     assert rec["columns"] == ["z"] and rec["test"]["balanced_accuracy"] < 0.65  # z carries no signal
 

@@ -4,6 +4,7 @@ import os
 import subprocess
 import sys
 
+import pytest
 import torch
 
 from training.checkpoint import load_checkpoint
@@ -12,6 +13,7 @@ from training.synthetic import make_synthetic_crop_dataset
 from training.train import train
 
 
+@pytest.mark.slow  # three Python processes importing torch: ~10 s
 def test_torchrun_two_processes_match_single_process(tmp_path):
     data = tmp_path / "data"
     make_synthetic_crop_dataset(data, 16, 8, 8, positive_rate=0.5, seed=2)

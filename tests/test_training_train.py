@@ -121,3 +121,20 @@ def test_evaluate_writes_metrics_heatmap_and_curves(data, run):
 def test_lr_schedule_staircase():
     cfg = TrainConfig(decay_every_samples=1000)
     assert cfg.lr_at(999) == pytest.approx(0.001) and cfg.lr_at(2500) == pytest.approx(0.001 * 0.95**2)
+
+
+def test_resume_refuses_another_dataset(run, tmp_path):
+    other = tmp_path / "other"
+    make_synthetic_crop_dataset(other, 24, 16, 32, positive_rate=0.5, seed=9)
+    with pytest.raises(CheckpointError, match="different dataset: counts"):
+        train(TrainConfig(samples=16 * 8, val_every_samples=64, **FAST), other, run, resume=True, progress=False)
+
+
+def test_class_balance_weights_from_train_split(data):
+    from training.train import _class_weights
+
+    sp = open_crop_dataset(data).split("train")
+    n, pos = len(sp), int(np.asarray(sp.labels).sum())
+    w = _class_weights(sp)
+    torch.testing.assert_close(w, torch.tensor([n / (2 * (n - pos)), n / (2 * pos)]))
+    assert float(w[0] * (n - pos)) == pytest.approx(float(w[1] * pos))  # both classes weigh the same in total

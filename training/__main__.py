@@ -1,4 +1,4 @@
-"""Command line: ``python -m training {train,evaluate,baseline,ablation} ...``.
+"""Command line: ``python -m training {train,evaluate,baseline,ablation,bench} ...``.
 
 Training options are generated from ``TrainConfig`` (``--batch-size``, ``--base-lr``, ...)
 so the dataclass stays the one place where they are defined. Bad input (missing folder,
@@ -13,8 +13,13 @@ import json
 import sys
 from dataclasses import MISSING, fields
 
-from .baseline import BaselineConfig
-from .config import TrainConfig
+from vgq.pose import POSE_COLUMNS
+
+from .baseline import MODELS, BaselineConfig
+from .config import CLASS_BALANCE, TrainConfig
+
+CHOICES = {"arch": tuple(POSE_COLUMNS), "class_balance": CLASS_BALANCE, "model": MODELS,
+           "columns": ("all", *POSE_COLUMNS)}
 
 
 def _add_dataclass_options(p: argparse.ArgumentParser, cls, skip=(), help_prefix: str = "") -> None:
@@ -27,7 +32,9 @@ def _add_dataclass_options(p: argparse.ArgumentParser, cls, skip=(), help_prefix
             p.add_argument(flag, dest=f.name, default=default, action=argparse.BooleanOptionalAction,
                            help=f"{help_prefix}default {default}")
         else:
-            p.add_argument(flag, dest=f.name, type=type(default), default=default, metavar=type(default).__name__.upper(),
+            choices = CHOICES.get(f.name)
+            p.add_argument(flag, dest=f.name, type=type(default), default=default, choices=choices,
+                           metavar=None if choices else type(default).__name__.upper(),
                            help=f"{help_prefix}default {default}")
 
 
@@ -36,7 +43,8 @@ def _config_from(args, cls):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m training", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m training",
+                                 description="Train, evaluate and compare VGQ-CNN / Fast-VGQ-CNN / GQ-CNN on crop datasets.")
     sub = ap.add_subparsers(dest="command", required=True)
 
     t = sub.add_parser("train", help="train a network on a crop dataset")
@@ -66,6 +74,14 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--out", required=True, help="ablation folder (one run folder per kappa)")
     a.add_argument("--no-progress", action="store_true")
     _add_dataclass_options(a, TrainConfig)
+
+    s = sub.add_parser("bench", help="training throughput (samples/s) of full SGD steps on this CPU")
+    s.add_argument("--arch", default="fast_vgqcnn", choices=("fast_vgqcnn", "vgqcnn", "gqcnn"))
+    s.add_argument("--batch-size", type=int, default=64)
+    s.add_argument("--steps", type=int, default=20)
+    s.add_argument("--warmup", type=int, default=3)
+    s.add_argument("--threads", type=int, default=0, help="torch threads; 0: torch default")
+    s.add_argument("--no-progress", action="store_true")
     return ap
 
 
@@ -78,7 +94,8 @@ def main(argv: list[str] | None = None) -> int:
 
             r = train(_config_from(args, TrainConfig), args.data, args.out, resume=args.resume, progress=progress)
             print(json.dumps({"run": str(r.run_dir), "steps": r.steps, "samples_seen": r.samples_seen,
-                              "best_val_balanced_accuracy": r.best_val_balanced_accuracy,
+                              "best_val_balanced_accuracy": None if r.best_val_balanced_accuracy != r.best_val_balanced_accuracy
+                              else r.best_val_balanced_accuracy,
                               "wall_time_s": round(r.wall_time_s, 1)}))
         elif args.command == "evaluate":
             from .evaluate import evaluate
@@ -96,6 +113,10 @@ def main(argv: list[str] | None = None) -> int:
 
             rec = run_ablation(args.data, args.out, _config_from(args, TrainConfig), progress=progress)
             print(json.dumps(rec["results"]))
+        elif args.command == "bench":
+            from .bench import measure_train_throughput
+
+            print(json.dumps(measure_train_throughput(args.arch, args.batch_size, args.steps, args.warmup, args.threads)))
     except (ValueError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -82,6 +82,15 @@ def run_baseline(data_dir: str | Path, config: BaselineConfig | None = None, out
         raise DatasetError(f"crop dataset {data.path}: the train split has only one class")
     weight = torch.tensor([len(y) / (2.0 * (len(y) - pos)), len(y) / (2.0 * pos)]) if cfg.class_balance else None
 
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # a model this small only loses from thread synchronisation
+    try:
+        return _fit_and_score(cfg, data, cols, x, y, mean, std, weight, out, progress)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _fit_and_score(cfg, data, cols, x, y, mean, std, weight, out, progress) -> dict:
     torch.manual_seed(cfg.seed)
     d = len(cols)
     model = nn.Linear(d, 2) if cfg.model == "logreg" else nn.Sequential(

@@ -99,7 +99,7 @@ def net_from_checkpoint(ckpt: dict) -> GraspQualityNet:
     return net.eval()
 
 
-def _resolve(path: Path) -> tuple[Path, Path | None]:
+def resolve_run(path: Path) -> tuple[Path, Path | None]:
     """(checkpoint file, run folder or None) for a run folder or a checkpoint path."""
     if path.is_dir():
         paths = RunPaths(path)
@@ -127,9 +127,9 @@ def load_trained(path: str | Path) -> tuple[GraspQualityNet, dict]:
         normalization  vgq.normalization.Normalization dict (also in the net's buffers)
         dataset     path, format, architecture, counts per split, source, recipe
         training    config, samples_seen, steps, seed, wall_time_s, world_size, best validation
-        metrics     {split: metrics} from ``evaluate`` runs of this run folder, if any
+        metrics     {split: overall metrics} from ``evaluate`` of this very checkpoint, if any
     """
-    ckpt_path, run_dir = _resolve(Path(path))
+    ckpt_path, run_dir = resolve_run(Path(path))
     ckpt = load_checkpoint(ckpt_path)
     net = net_from_checkpoint(ckpt)
     st = ckpt["state"]
@@ -161,6 +161,7 @@ def load_trained(path: str | Path) -> tuple[GraspQualityNet, dict]:
                 m = json.loads(f.read_text())
             except json.JSONDecodeError:
                 continue
-            if Path(m.get("checkpoint", "")).resolve() == ckpt_path.resolve():
+            same = Path(m.get("checkpoint", "")).resolve() == ckpt_path.resolve()
+            if same and m.get("samples_seen") == int(st["samples_seen"]):  # not a stale evaluation
                 meta["metrics"][m.get("split", f.stem[len("metrics_"):])] = m.get("overall", {})
     return net, meta

@@ -100,6 +100,7 @@ class CropDataset:
             "architecture": self.arch,
             "geometry": self.geometry.to_dict(),
             "label_threshold": self.label_threshold,
+            "intrinsics_from_manifest": self.intrinsics_from_manifest,
             "counts": self.counts(),
             "source": self.manifest.get("source"),
             "recipe": self.manifest.get("recipe"),

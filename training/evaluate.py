@@ -12,7 +12,7 @@ import numpy as np
 from vgq import atomic
 
 from . import metrics as M
-from .checkpoint import CheckpointError, RunPaths, _resolve, load_trained
+from .checkpoint import RunPaths, resolve_run, load_trained
 from .data import DatasetError, open_crop_dataset
 from .plots import plot_grid_heatmaps, plot_training_curves
 from .predict import predict_split
@@ -36,7 +36,7 @@ def evaluate(
     ``curves.png`` into ``out_dir`` (default: the run's ``eval/`` folder, or ``eval/`` beside
     a bare checkpoint). Returns the metrics record (``overall``, ``grid``, provenance).
     """
-    ckpt_path, run_dir = _resolve(Path(run))
+    ckpt_path, run_dir = resolve_run(Path(run))
     net, meta = load_trained(ckpt_path)
     data = open_crop_dataset(data_dir)
     data.check_arch(meta["arch"])
@@ -79,6 +79,3 @@ def evaluate(
 
 def _pct(x) -> str:
     return "n/a" if x is None else f"{100 * x:.1f}%"
-
-
-__all__ = ["evaluate", "CheckpointError", "DatasetError"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,7 +21,7 @@ import torch
 import torch.distributed as dist
 import torch.nn.functional as F
 from torch.nn.parallel import DistributedDataParallel
-from torch.utils.data import BatchSampler, DistributedSampler
+from torch.utils.data import DistributedSampler
 from tqdm import tqdm
 
 from vgq import atomic
@@ -132,6 +133,16 @@ def _check_resume_config(saved: dict, cfg: TrainConfig) -> TrainConfig:
     return cfg
 
 
+def _check_resume_dataset(saved: dict, data: CropDataset) -> None:
+    now = data.info()
+    for k in ("geometry", "counts", "architecture"):
+        if saved.get(k) != now.get(k):
+            raise CheckpointError(
+                f"cannot resume on a different dataset: {k} is {now.get(k)!r} in {data.path}, "
+                f"{saved.get(k)!r} in the checkpoint's dataset {saved.get('path')}"
+            )
+
+
 def train(
     config: TrainConfig,
     data_dir: str | Path,
@@ -158,6 +169,10 @@ def train(
         raise DatasetError(f"training split has {len(train_split)} rows, fewer than one batch ({cfg.batch_size})")
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
+    n_pos = int(np.asarray(train_split.labels).sum())
+    if d.main and n_pos in (0, len(train_split)):
+        print(f"warning: the training split of {data.path} has only one class "
+              f"({n_pos} positive of {len(train_split)}); nothing to learn", file=sys.stderr)
 
     ckpt = None
     if paths.last.is_file():
@@ -165,6 +180,7 @@ def train(
             raise CheckpointError(f"run folder {paths.root} already holds a checkpoint; pass --resume or another --out")
         ckpt = load_checkpoint(paths.last)
         cfg = _check_resume_config(ckpt["config"], cfg)
+        _check_resume_dataset(ckpt["dataset"], data)
 
     torch.manual_seed(cfg.seed)
     net = GraspQualityNet(cfg.arch, image_size=data.geometry.out)
@@ -191,8 +207,8 @@ def train(
 
     if d.main:
         paths.root.mkdir(parents=True, exist_ok=True)
-        if ckpt is not None:
-            _trim_log(paths.metrics, int(st["samples_seen"]))
+        # drop log lines written after the checkpoint (all of them on a fresh start)
+        _trim_log(paths.metrics, int(st["samples_seen"]) if ckpt is not None else -1)
         atomic.write_json(paths.run_json, _run_info(cfg, data, norm, st, d, finished=False))
     d.barrier()
 
@@ -205,8 +221,10 @@ def train(
     def checkpoint(kind: str, val: dict) -> None:
         if not d.main:
             return
+        # best.pt is for evaluation and export, never resumed from: no optimizer state
         ck = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "arch": cfg.arch,
-              "model": net.state_dict(), "optimizer": opt.state_dict(), "config": cfg.to_dict(),
+              "model": net.state_dict(), "optimizer": opt.state_dict() if kind == "last" else None,
+              "config": cfg.to_dict(),
               "normalization": norm.to_dict(), "state": state_now(), "dataset": dinfo,
               "geometry": data.geometry.to_dict(), "intrinsics": data.intrinsics.to_dict(),
               "val": M.nan_to_none(val)}
@@ -230,12 +248,14 @@ def train(
     try:
         while st["step"] < total_steps:
             sampler.set_epoch(int(st["epoch"]))
-            batches = list(BatchSampler(sampler, local_batch, drop_last=True))
-            for b in batches[int(st["batch_in_epoch"]):]:
+            order = np.fromiter(iter(sampler), dtype=np.int64, count=len(sampler))
+            n_batches = len(order) // local_batch  # BatchSampler(sampler, local_batch, drop_last=True)
+            for bi in range(int(st["batch_in_epoch"]), n_batches):
+                b = order[bi * local_batch : (bi + 1) * local_batch]
                 lr = cfg.lr_at(st["samples_seen"])
                 for g in opt.param_groups:
                     g["lr"] = lr
-                img, pose, lab = train_split.batch(np.asarray(b), cfg.arch)
+                img, pose, lab = train_split.batch(b, cfg.arch)
                 loss = F.cross_entropy(model(img, pose), lab, weight=weights)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
@@ -270,7 +290,7 @@ def train(
                     checkpoint("last", last_val)
                 if done:
                     break
-            if st["batch_in_epoch"] >= len(batches):
+            if st["batch_in_epoch"] >= n_batches:
                 st["epoch"] += 1
                 st["batch_in_epoch"] = 0
     finally:

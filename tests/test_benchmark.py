@@ -1,0 +1,57 @@
+"""export.benchmark and export.from_onnx: FLOP counts, reading graphs back into torch, the table."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnxruntime as ort
+import torch
+
+from conftest import synthetic_crops
+from export.benchmark import graph_flops, markdown, run_benchmark
+from export.from_onnx import fast_net_from_model_dir, vgq_net_like
+
+# multiply-adds of the 32 x 32 encoder: conv1_1, conv1_2, LRN band, conv2_1, conv2_2, LRN band, fc3, fc4_image
+ENCODER_MACS = 1024 * 64 * 49 + 1024 * 64 * 64 * 25 + 1024 * 64 * 64 + 2 * 256 * 64 * 64 * 9 + 256 * 64 * 64 + 4096 * 1024 + 1024 * 1024
+HEAD_MACS_PER_GRASP = 7 * 16 + 16 * 1024 + 1024 * 1024 + 1024  # pc1, fc4 pose half, fc5, out
+
+
+def test_graph_flops_of_encoder_counts_every_multiply_add(model_dir):
+    assert graph_flops(model_dir / "encoder.onnx", {"depth_crop": (1, 1, 32, 32)}) == 2 * ENCODER_MACS
+
+
+def test_graph_flops_of_head_grow_with_k(model_dir):
+    flops = graph_flops(model_dir / "head.onnx", {"image_term": (1, 1024), "poses": (10, 7)})
+    assert flops == 2 * 10 * HEAD_MACS_PER_GRASP
+
+
+def test_net_read_back_from_onnx_reproduces_the_graphs(model_dir):
+    net, card = fast_net_from_model_dir(model_dir)
+    imgs, poses, _ = synthetic_crops(16, np.random.default_rng(11))
+    enc = ort.InferenceSession(str(model_dir / "encoder.onnx"), providers=["CPUExecutionProvider"])
+    head = ort.InferenceSession(str(model_dir / "head.onnx"), providers=["CPUExecutionProvider"])
+    p = head.run(None, {"image_term": enc.run(None, {"depth_crop": imgs[:1, None]})[0], "poses": poses})[0]
+    with torch.no_grad():
+        ref = net.head(net.encode(torch.from_numpy(imgs[:1, None])), torch.from_numpy(poses)).numpy()
+    assert card.architecture == "fast_vgqcnn" and np.abs(p - ref).max() < 1e-5
+
+
+def test_vgq_net_like_shares_the_image_stream(model_dir):
+    fast, _ = fast_net_from_model_dir(model_dir)
+    vgq = vgq_net_like(fast)
+    imgs, _, _ = synthetic_crops(2, np.random.default_rng(12))
+    x = torch.from_numpy(imgs[:, None])
+    with torch.no_grad():
+        assert vgq.arch == "vgqcnn" and torch.allclose(vgq.encode(x), fast.encode(x))
+
+
+def test_benchmark_table_has_a_column_per_k_and_every_row(model_dir):
+    report = run_benchmark(model_dir, ks=(8, 16), runs=5, threads=1, vgq_budget_s=0.01, log=lambda s: None)
+    table = markdown(report)
+    lines = table.splitlines()
+    header = next(line for line in lines if line.startswith("| k grasps"))
+    rows = [line for line in lines if line.startswith("| ") and line is not header]
+    assert header.split("|")[2:4] == [" 8 ", " 16 "]
+    assert len(rows) == 12 and all(len(r.split("|")) == 5 for r in rows)
+    r = report["rows"]["16"]
+    assert r["fast"]["runs"] == 5 and r["vgq"]["runs"] == 5 and r["speedup_prediction"] > 0
+    assert r["fast_mflop"] == (2 * ENCODER_MACS + 2 * 16 * HEAD_MACS_PER_GRASP) / 1e6

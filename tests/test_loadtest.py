@@ -1,0 +1,58 @@
+"""service.loadtest against the real service on loopback, and its guards."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+from service.loadtest import Mix, check_target, main, server_latency_totals, server_rss_bytes
+from servers import running_service
+
+
+def test_loadtest_reports_every_endpoint_with_zero_errors(model_dir, tmp_path):
+    out = tmp_path / "load.json"
+    with running_service(model_dir) as url:
+        report = main(["--url", url, "--clients", "2", "--duration", "2", "--warmup", "0.2", "--k", "32",
+                       "--mix", "upload=1,score=4,once=1", "--json", str(out)])
+    assert set(report["endpoints"]) == {"upload", "score", "score_once"}
+    assert all(e["requests"] > 0 and e["errors"] == 0 for e in report["endpoints"].values())
+    assert report["errors"] == 0 and report["grasps_per_s"] > 0
+    assert report["endpoints"]["score"]["server_mean_ms"] > 0  # read from the service's /metrics
+    assert json.loads(out.read_text())["endpoints"]["score"]["p99_ms"] is not None
+
+
+def test_loadtest_refuses_a_non_loopback_host():
+    with pytest.raises(ValueError, match="non-loopback"):
+        check_target("http://192.0.2.1:8000", allow_remote=False)
+    assert check_target("http://localhost:8000/", allow_remote=False) == "http://localhost:8000"
+
+
+def test_loadtest_cli_exits_with_a_message_for_a_remote_url(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--url", "http://example.com:8000", "--duration", "1"])
+    assert e.value.code == 2 and "--allow-remote" in capsys.readouterr().err
+
+
+def test_mix_parses_counts_and_rejects_unknown_keys():
+    assert Mix.parse("upload=2,score=5") == Mix(upload=2, score=5, once=1)
+    with pytest.raises(ValueError, match="bad --mix entry"):
+        Mix.parse("scores=5")
+
+
+def test_server_rss_reads_this_process():
+    rss = server_rss_bytes(os.getpid())
+    assert rss["rss_bytes"] > 0 and os.getpid() in rss["pids"]
+
+
+def test_server_latency_totals_sum_over_status_labels():
+    text = "\n".join([
+        "# TYPE vgq_request_seconds histogram",
+        'vgq_request_seconds_bucket{endpoint="score",le="0.001"} 3.0',
+        'vgq_request_seconds_count{endpoint="score"} 4.0',
+        'vgq_request_seconds_sum{endpoint="score"} 0.008',
+        'vgq_request_seconds_count{endpoint="upload"} 1.0',
+        'vgq_request_seconds_sum{endpoint="upload"} 0.005',
+    ])
+    assert server_latency_totals(text) == {"score": (0.008, 4.0), "upload": (0.005, 1.0)}

@@ -1,0 +1,197 @@
+"""In-process units of the service's input handling and cache backend (no server)."""
+
+from __future__ import annotations
+
+import io
+import struct
+import zipfile
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from service.cache import CachedImage
+from service.config import Settings, from_env
+from service.depth_io import decode_depth, encode_npy, parse_npy, png_header, read_npz
+from service.errors import ApiError
+from service.grasps import MAX_Z_M, to_network_poses
+from service.redis_cache import pack_entry, redacted, unpack_entry
+from vgq.crop import CropGeometry
+
+GEOM = CropGeometry(96, 32, 36.0)
+
+
+def depth(h=40, w=50) -> np.ndarray:
+    return np.full((h, w), 0.7, np.float32)
+
+
+def png16(a_mm: np.ndarray) -> bytes:
+    b = io.BytesIO()
+    Image.fromarray(a_mm).save(b, format="PNG")
+    return b.getvalue()
+
+
+def zip_of(**members: bytes) -> bytes:
+    b = io.BytesIO()
+    with zipfile.ZipFile(b, "w", zipfile.ZIP_DEFLATED) as z:
+        for k, v in members.items():
+            z.writestr(k, v)
+    return b.getvalue()
+
+
+def status_of(fn, *a, **kw) -> tuple[int, str]:
+    with pytest.raises(ApiError) as e:
+        fn(*a, **kw)
+    return e.value.status, e.value.message
+
+
+# ---- depth decoding ------------------------------------------------------------------------------------------------
+def test_npy_float64_and_big_endian_decode_to_float32_metres():
+    for a in (depth().astype(np.float64), depth().astype(">f4")):
+        out = decode_depth(encode_npy(a) if a.dtype == np.float64 else _raw_npy(a), "application/x-npy")
+        assert out.dtype == np.float32 and out.shape == (40, 50) and np.allclose(out, 0.7)
+
+
+def _raw_npy(a) -> bytes:
+    b = io.BytesIO()
+    np.save(b, a)
+    return b.getvalue()
+
+
+def test_fortran_order_npy_keeps_rows_and_columns():
+    a = np.asfortranarray(np.arange(40 * 50, dtype=np.float32).reshape(40, 50) + 1)
+    assert np.array_equal(decode_depth(_raw_npy(a), "application/x-npy"), a)
+
+
+def test_npy_h_w_1_is_accepted_as_h_w():
+    assert decode_depth(_raw_npy(depth()[..., None]), "application/x-npy").shape == (40, 50)
+
+
+def test_png_millimetres_become_metres():
+    out = decode_depth(png16(np.full((40, 50), 700, np.uint16)), "image/png")
+    assert out.shape == (40, 50) and np.allclose(out, 0.7)
+
+
+def test_png_header_is_read_without_decoding():
+    body = png16(np.full((40, 50), 700, np.uint16))
+    assert png_header(body) == (40, 50, 16, 0)
+    assert status_of(png_header, b"\x89PNG\r\n\x1a\n")[0] == 422
+
+
+def test_png_size_is_checked_before_decoding():
+    body = bytearray(png16(np.full((40, 50), 700, np.uint16)))
+    struct.pack_into(">II", body, 16, 5000, 5000)  # IHDR claims 5000 x 5000 (CRC now wrong too)
+    status, msg = status_of(decode_depth, bytes(body), "image/png", max_side=4096)
+    assert status == 422 and "5000x5000" in msg
+
+
+def test_raw_float32_with_shape():
+    assert decode_depth(depth().tobytes(), "application/octet-stream", width=50, height=40).shape == (40, 50)
+
+
+def test_content_type_parameters_and_case_are_ignored():
+    assert decode_depth(_raw_npy(depth()), "Application/X-NPY; charset=binary").shape == (40, 50)
+
+
+@pytest.mark.parametrize("value,word", [(np.nan, "non-finite"), (-np.inf, "non-finite"), (-1e-3, "negative")])
+def test_invalid_depth_values_are_named(value, word):
+    d = depth()
+    d[3, 4] = value
+    status, msg = status_of(decode_depth, _raw_npy(d), "application/x-npy")
+    assert status == 422 and word in msg
+
+
+def test_min_side_is_enforced():
+    status, msg = status_of(decode_depth, _raw_npy(depth(40, 31)), "application/x-npy")
+    assert status == 422 and "40x31" in msg
+
+
+def test_parse_npy_refuses_more_values_than_allowed():
+    status, msg = status_of(parse_npy, _raw_npy(np.zeros((100, 7))), "grasps", 70)
+    assert status == 422 and "700 values" in msg
+
+
+# ---- .npz ---------------------------------------------------------------------------------------------------------
+def test_read_npz_returns_only_named_members():
+    body = zip_of(**{"depth.npy": b"a", "grasps.npy": b"b", "extra.npy": b"c"})
+    assert read_npz(body, 1000, names=("depth", "grasps")) == {"depth": b"a", "grasps": b"b"}
+
+
+def test_read_npz_refuses_too_many_members():
+    body = zip_of(**{f"m{i}.npy": b"x" for i in range(9)})
+    status, msg = status_of(read_npz, body, 1000)
+    assert status == 422 and "9 members" in msg
+
+
+def test_read_npz_refuses_declared_total_over_the_limit():
+    body = zip_of(**{"depth.npy": b"\0" * 600, "grasps.npy": b"\0" * 600})
+    status, msg = status_of(read_npz, body, 1000)
+    assert status == 413 and "1200 in all" in msg
+
+
+# ---- grasps ---------------------------------------------------------------------------------------------------------
+def _grasps(k=4) -> np.ndarray:
+    g = np.zeros((k, 7))
+    g[:, :2] = 149.5
+    g[:, 2] = 0.6
+    g[:, 3:] = [0.5, 0.5, 0.5, 0.5]
+    return g
+
+
+@pytest.mark.parametrize("scale", [1e-5, 3.0, 1e200])
+def test_quaternion_scale_does_not_change_pose_rows(scale):
+    g = _grasps()
+    s = g.copy()
+    s[:, 3:] *= scale
+    c = np.array([149.5, 149.5])
+    assert np.allclose(to_network_poses(s, c, GEOM, 16), to_network_poses(g, c, GEOM, 16))
+
+
+def test_depth_beyond_bound_is_rejected():
+    g = _grasps()
+    g[1, 2] = MAX_Z_M * 1.5
+    status, msg = status_of(to_network_poses, g, np.array([149.5, 149.5]), GEOM, 16)
+    assert status == 422 and "depth z" in msg
+
+
+# ---- redis entry format -------------------------------------------------------------------------------------------
+def test_cache_entry_bytes_round_trip():
+    e = CachedImage(np.arange(1024, dtype=np.float32).reshape(1, 1024), np.array([140.5, 151.5]), (300, 320))
+    data = pack_entry(e)
+    assert len(data) < 4096 + 64
+    back = unpack_entry(data)
+    assert np.array_equal(back.image_term, e.image_term) and back.image_term.shape == (1, 1024)
+    assert np.array_equal(back.window_center, e.window_center) and back.image_shape == (300, 320)
+
+
+@pytest.mark.parametrize("data", [b"", b"VGQ1", b"XXXX" + b"\0" * 4200])
+def test_cache_entry_garbage_is_a_value_error(data):
+    with pytest.raises(ValueError):
+        unpack_entry(data)
+
+
+def test_cache_entry_truncated_is_a_value_error():
+    e = CachedImage(np.zeros((1, 1024), np.float32), np.array([1.0, 2.0]), (300, 300))
+    with pytest.raises(ValueError):
+        unpack_entry(pack_entry(e)[:-4])
+
+
+def test_redis_url_password_is_redacted():
+    assert redacted("redis://:hunter2@cache:6379/0") == "redis://:***@cache:6379/0"
+    assert redacted("redis://127.0.0.1:6379/0") == "redis://127.0.0.1:6379/0"
+
+
+# ---- settings -----------------------------------------------------------------------------------------------------
+def test_limits_come_from_the_environment():
+    s = from_env({"VGQ_MAX_BODY_BYTES": "4096", "VGQ_MAX_GRASPS": "7", "VGQ_CACHE_BYTES": "8192",
+                  "VGQ_REQUEST_TIMEOUT_S": "2.5", "VGQ_CACHE_TTL_S": "60", "VGQ_CACHE_BACKEND": "redis"})
+    assert (s.max_body_bytes, s.max_grasps, s.cache_bytes, s.request_timeout_s, s.cache_ttl_s, s.cache_backend) == \
+        (4096, 7, 8192, 2.5, 60.0, "redis")
+
+
+@pytest.mark.parametrize("kw,word", [({"cache_ttl_s": 0}, "cache_ttl_s"), ({"request_timeout_s": -1}, "request_timeout_s"),
+                                     ({"max_body_bytes": 10}, "max_body_bytes"), ({"cache_backend": "memcached"}, "cache_backend"),
+                                     ({"cache_backend": "redis", "redis_url": "localhost:6379"}, "redis_url")])
+def test_bad_limits_are_refused_by_name(kw, word):
+    with pytest.raises(ValueError, match=word):
+        Settings(**kw)

@@ -1,0 +1,53 @@
+"""Training throughput on this machine: samples/second of full SGD steps (forward, backward,
+update) on random inputs of the network's shape. Data loading is not included."""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+
+import torch
+import torch.nn.functional as F
+
+from .config import TrainConfig
+from .networks import GraspQualityNet
+
+
+def measure_train_throughput(arch: str = "fast_vgqcnn", batch_size: int = 64, steps: int = 20, warmup: int = 3,
+                             threads: int = 0) -> dict:
+    """Median-free simple timing: ``steps`` timed SGD steps after ``warmup`` untimed ones."""
+    if steps <= 0 or warmup < 0 or batch_size <= 0:
+        raise ValueError("steps and batch_size must be > 0, warmup >= 0")
+    if threads:
+        torch.set_num_threads(threads)
+    cfg = TrainConfig(arch=arch, batch_size=batch_size)
+    torch.manual_seed(0)
+    net = GraspQualityNet(arch)
+    opt = torch.optim.SGD(net.parameters(), lr=cfg.base_lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+    x = 0.7 + 0.01 * torch.randn(batch_size, 1, 32, 32)
+    p = torch.randn(batch_size, len(net.pose_columns))
+    y = torch.randint(0, 2, (batch_size,))
+    times = []
+    for i in range(warmup + steps):
+        t = time.perf_counter()
+        opt.zero_grad(set_to_none=True)
+        F.cross_entropy(net(x, p), y).backward()
+        opt.step()
+        if i >= warmup:
+            times.append(time.perf_counter() - t)
+    total = sum(times)
+    return {
+        "arch": arch,
+        "batch_size": batch_size,
+        "steps": steps,
+        "samples_per_s": batch_size * steps / total,
+        "mean_step_s": total / steps,
+        "min_step_s": min(times),
+        "best_samples_per_s": batch_size / min(times),
+        "torch_threads": torch.get_num_threads(),
+        "cpu_count": os.cpu_count(),
+        "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+        "processor": platform.processor() or platform.machine(),
+        "torch": torch.__version__,
+    }
