@@ -15,7 +15,6 @@ from __future__ import annotations
 import asyncio
 import gc
 import hmac
-import io
 import logging
 import threading
 import time

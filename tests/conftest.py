@@ -65,11 +65,17 @@ def train_briefly(steps: int = 8, seed: int = 0):
 
 
 @pytest.fixture(scope="session")
-def model_dir(tmp_path_factory):
+def briefly_trained():
+    """(net, crops, poses) of :func:`train_briefly`, trained once per test session."""
+    return train_briefly()
+
+
+@pytest.fixture(scope="session")
+def model_dir(tmp_path_factory, briefly_trained):
     """A real exported model folder (encoder.onnx, head.onnx, model_card.json)."""
     from export.onnx_export import export_model
 
-    net, imgs, poses = train_briefly()
+    net, imgs, poses = briefly_trained
     out = tmp_path_factory.mktemp("models") / "fast"
     export_model(net, out, imgs[:32], poses[:32], CropGeometry(96, 32, 36.0), DEFAULT_INTRINSICS,
                  dataset={"recipe": "synthetic crops (tests)"}, training={"steps": 8})

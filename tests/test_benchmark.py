@@ -51,7 +51,7 @@ def test_benchmark_table_has_a_column_per_k_and_every_row(model_dir):
     header = next(line for line in lines if line.startswith("| k grasps"))
     rows = [line for line in lines if line.startswith("| ") and line is not header]
     assert header.split("|")[2:4] == [" 8 ", " 16 "]
-    assert len(rows) == 12 and all(len(r.split("|")) == 5 for r in rows)
+    assert len(rows) == 13 and all(len(r.split("|")) == 5 for r in rows)
     r = report["rows"]["16"]
     assert r["fast"]["runs"] == 5 and r["vgq"]["runs"] == 5 and r["speedup_prediction"] > 0
     assert r["fast_mflop"] == (2 * ENCODER_MACS + 2 * 16 * HEAD_MACS_PER_GRASP) / 1e6

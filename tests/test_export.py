@@ -72,10 +72,8 @@ def test_model_card_records_geometry_normalisation_and_verification(model_dir):
     assert json.loads((model_dir / "model_card.json").read_text())["format"] == "vgq-model-card"
 
 
-def test_encoder_plus_head_graphs_equal_torch_on_fresh_inputs(model_dir):
-    from conftest import train_briefly
-
-    net, _, _ = train_briefly()  # same seed -> same weights as the fixture's model
+def test_encoder_plus_head_graphs_equal_torch_on_fresh_inputs(model_dir, briefly_trained):
+    net, _, _ = briefly_trained  # the net the fixture's model was exported from
     imgs, poses, _ = synthetic_crops(16, np.random.default_rng(7))
     enc = ort.InferenceSession(str(model_dir / "encoder.onnx"), providers=["CPUExecutionProvider"])
     head = ort.InferenceSession(str(model_dir / "head.onnx"), providers=["CPUExecutionProvider"])

@@ -11,16 +11,28 @@ from service.loadtest import Mix, check_target, main, server_latency_totals, ser
 from servers import running_service
 
 
-def test_loadtest_reports_every_endpoint_with_zero_errors(model_dir, tmp_path):
+@pytest.fixture(scope="module")
+def url(model_dir):
+    with running_service(model_dir) as u:
+        yield u
+
+
+def test_loadtest_reports_every_endpoint_with_zero_errors(url, tmp_path):
     out = tmp_path / "load.json"
-    with running_service(model_dir) as url:
-        report = main(["--url", url, "--clients", "2", "--duration", "2", "--warmup", "0.2", "--k", "32",
-                       "--mix", "upload=1,score=4,once=1", "--json", str(out)])
-    assert set(report["endpoints"]) == {"upload", "score", "score_once"}
+    report = main(["--url", url, "--clients", "2", "--duration", "2", "--warmup", "0.2", "--k", "32",
+                   "--mix", "upload=1,score=4,once=1", "--json", str(out)])
+    assert report["config"]["transport"] == "httpx" and set(report["endpoints"]) == {"upload", "score", "score_once"}
     assert all(e["requests"] > 0 and e["errors"] == 0 for e in report["endpoints"].values())
     assert report["errors"] == 0 and report["grasps_per_s"] > 0
     assert report["endpoints"]["score"]["server_mean_ms"] > 0  # read from the service's /metrics
     assert json.loads(out.read_text())["endpoints"]["score"]["p99_ms"] is not None
+
+
+def test_single_client_uses_the_raw_transport_and_scores_every_call(url):
+    report = main(["--url", url, "--clients", "1", "--duration", "1", "--warmup", "0", "--k", "16"])
+    score = report["endpoints"]["score"]
+    assert report["config"]["transport"] == "raw" and report["errors"] == 0
+    assert score["requests"] > 0 and report["grasps_per_s"] > 0
 
 
 def test_loadtest_refuses_a_non_loopback_host():

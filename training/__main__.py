@@ -16,9 +16,9 @@ from dataclasses import MISSING, fields
 from vgq.pose import POSE_COLUMNS
 
 from .baseline import MODELS, BaselineConfig
-from .config import CLASS_BALANCE, TrainConfig
+from .config import CLASS_BALANCE, OPTIMIZERS, TrainConfig
 
-CHOICES = {"arch": tuple(POSE_COLUMNS), "class_balance": CLASS_BALANCE, "model": MODELS,
+CHOICES = {"arch": tuple(POSE_COLUMNS), "class_balance": CLASS_BALANCE, "optimizer": OPTIMIZERS, "model": MODELS,
            "columns": ("all", *POSE_COLUMNS)}
 
 

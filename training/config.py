@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, fields
 from vgq.pose import POSE_COLUMNS
 
 CLASS_BALANCE = ("none", "loss_weights")
+OPTIMIZERS = ("sgd", "adamw")
 
 
 @dataclass
@@ -20,6 +21,7 @@ class TrainConfig:
     arch: str = "fast_vgqcnn"
     samples: int = 10_000_000  # training samples to see in total (paper ablations: 10 M)
     batch_size: int = 64  # global batch (split evenly over DDP processes)
+    optimizer: str = "sgd"  # "sgd" (the paper's, with momentum) | "adamw" (faster start on short CPU budgets)
     base_lr: float = 0.001
     momentum: float = 0.9
     weight_decay: float = 5e-4  # L2 on all parameters (SGD weight_decay)
@@ -45,6 +47,8 @@ class TrainConfig:
             raise ValueError("val_max_samples and num_threads must be >= 0")
         if not (self.base_lr > 0 and 0 < self.lr_decay <= 1 and 0 <= self.momentum < 1 and self.weight_decay >= 0):
             raise ValueError("need base_lr > 0, 0 < lr_decay <= 1, 0 <= momentum < 1, weight_decay >= 0")
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         if self.class_balance not in CLASS_BALANCE:
             raise ValueError(f"class_balance must be one of {CLASS_BALANCE}, got {self.class_balance!r}")
 
