@@ -9,14 +9,32 @@ train). Nothing is written unless onnxruntime matches torch within the tolerance
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from vgq.camera import Intrinsics
 from vgq.crop import CropGeometry
+
+
+def _baselines(files: list[str], data_path) -> dict:
+    """``{"baseline_<model>": {"test": metrics, "columns": [...]}}`` from baseline result files,
+    refusing one computed on another dataset (its test split would not be ours)."""
+    out = {}
+    for f in files:
+        try:
+            r = json.loads(Path(f).read_text())
+            model, test, data = r["config"]["model"], r["test"], r["data"]
+        except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+            raise ValueError(f"--baseline {f}: not a baseline result ({e})") from None
+        if Path(data).resolve() != Path(data_path).resolve():
+            raise ValueError(f"--baseline {f}: computed on {data}, not on {data_path}")
+        out[f"baseline_{model}"] = {"test": test, "columns": r.get("columns")}
+    return out
 
 
 def main(argv=None) -> None:
@@ -27,6 +45,10 @@ def main(argv=None) -> None:
     p.add_argument("--verify-n", type=int, default=64, help="number of real inputs to verify on (default 64)")
     p.add_argument("--tolerance", type=float, default=1e-4, help="max abs probability difference (default 1e-4)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--recipe", help="how the dataset was built (a command line), recorded in the model card")
+    p.add_argument("--baseline", action="append", default=[], metavar="JSON",
+                   help="a `python -m training baseline` result on the same data; its test metrics go into "
+                        "the card's metrics as baseline_<model> (repeatable)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[export] %(message)s")
     if a.verify_n < 1:
@@ -47,6 +69,9 @@ def main(argv=None) -> None:
             raise DatasetError(f"{a.data}: no non-empty split to take verification inputs from")
         idx = np.sort(np.random.default_rng(a.seed).choice(len(split), min(a.verify_n, len(split)), replace=False))
         crops, poses, _ = split.batch(idx, meta["arch"])
+        if a.recipe:
+            meta["dataset"]["recipe"] = a.recipe
+        meta["metrics"].update(_baselines(a.baseline, ds.path))
         logging.info("exporting %s, verifying on %d %s crops", meta["arch"], len(idx), split.name)
         card = export_model(
             net, a.out, crops.numpy(), poses.numpy(),

@@ -117,3 +117,46 @@ def test_export_fails_verification_above_tolerance(tmp_path):
     with pytest.raises(ExportError, match="does not reproduce"):
         export_model(net, tmp_path / "m", imgs, poses, GEOM, DEFAULT_INTRINSICS, tolerance=-1.0)
     assert list(tmp_path.iterdir()) == []
+
+
+def _tiny_run(tmp_path):
+    from training.config import TrainConfig
+    from training.synthetic import make_synthetic_crop_dataset
+    from training.train import train
+
+    make_synthetic_crop_dataset(tmp_path / "d", 16, 8, 8, positive_rate=0.5, seed=0)
+    train(TrainConfig(samples=16, batch_size=8, val_every_samples=10**6), tmp_path / "d", tmp_path / "run",
+          progress=False)
+    return tmp_path / "d", tmp_path / "run"
+
+
+def test_export_cli_records_recipe_and_pose_only_baseline(tmp_path):
+    from export.__main__ import main
+    from training.baseline import BaselineConfig, run_baseline
+
+    data, run = _tiny_run(tmp_path)
+    run_baseline(data, BaselineConfig(model="logreg", epochs=1, batch_size=8), tmp_path / "b", progress=False)
+    main(["--run", str(run), "--data", str(data), "--out", str(tmp_path / "m"), "--verify-n", "4",
+          "--recipe", "python -m datagen recipe --out data/recipe",
+          "--baseline", str(tmp_path / "b" / "baseline_logreg.json")])
+    card = ModelCard.load(tmp_path / "m")
+    assert card.dataset["recipe"] == "python -m datagen recipe --out data/recipe"
+    base = card.metrics["baseline_logreg"]
+    assert base["columns"] == ["u", "v", "z", "qw", "qx", "qy", "qz"] and 0 <= base["test"]["balanced_accuracy"] <= 1
+    assert card.training["samples_seen"] == 16
+
+
+def test_export_cli_refuses_baseline_of_another_dataset(tmp_path, capsys):
+    from export.__main__ import main
+    from training.baseline import BaselineConfig, run_baseline
+    from training.synthetic import make_synthetic_crop_dataset
+
+    data, run = _tiny_run(tmp_path)
+    make_synthetic_crop_dataset(tmp_path / "other", 16, 8, 8, positive_rate=0.5, seed=1)
+    run_baseline(tmp_path / "other", BaselineConfig(model="logreg", epochs=1, batch_size=8), tmp_path / "b",
+                 progress=False)
+    with pytest.raises(SystemExit) as e:
+        main(["--run", str(run), "--data", str(data), "--out", str(tmp_path / "m"),
+              "--baseline", str(tmp_path / "b" / "baseline_logreg.json")])
+    assert e.value.code == 2 and "not on" in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()
