@@ -54,3 +54,13 @@ def fake_dataset(root, n_objects: int = 4, seed: int = 0, **kw):
     m["complete"] = True
     storage.write_manifest(root, m)
     return m
+
+
+def grasp_frame(center, x, z) -> np.ndarray:
+    """Grasp frame (4, 4) with jaw axis ``x`` and approach ``z`` (orthonormalised), origin ``center`` (m)."""
+    x = np.asarray(x, float) / np.linalg.norm(x)
+    z = np.asarray(z, float) - np.dot(z, x) * x
+    z /= np.linalg.norm(z)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, center
+    return T

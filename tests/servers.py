@@ -11,6 +11,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -51,3 +52,15 @@ def running_service(model_dir, *args: str, env: dict | None = None, timeout: flo
             proc.wait(10)
         except subprocess.TimeoutExpired:
             proc.kill()
+
+
+def grasps_at(center=(149.5, 149.5), k=16, seed=0) -> np.ndarray:
+    """(k, 7) float32 grasps u, v, z, qw, qx, qy, qz within 30 px of ``center`` (pixels), z 0.66 m,
+    random unit quaternions."""
+    rng = np.random.default_rng(seed)
+    g = np.zeros((k, 7), np.float32)
+    g[:, :2] = np.asarray(center) + rng.uniform(-30, 30, (k, 2))
+    g[:, 2] = 0.66
+    q = rng.standard_normal((k, 4))
+    g[:, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)
+    return g

@@ -16,18 +16,10 @@ from datagen.gripper import (
     grasp_frames,
     rotation_about_x,
 )
+from datagen_fakes import grasp_frame
 
 EX, EY, EZ = np.eye(3)
 
-
-def _frame(center, x, z) -> np.ndarray:
-    """Grasp frame (4, 4) with jaw axis ``x`` and approach ``z`` (orthonormalised)."""
-    x = np.asarray(x, float) / np.linalg.norm(x)
-    z = np.asarray(z, float) - np.dot(z, x) * x
-    z /= np.linalg.norm(z)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, center
-    return T
 
 
 def _box_on_table(extents) -> trimesh.Trimesh:
@@ -60,7 +52,7 @@ def test_omega_rotates_the_frame_about_its_jaw_axis():
 
 
 def test_beta_is_zero_for_a_top_grasp_and_90_deg_for_a_side_grasp():
-    T = np.stack([_frame([0, 0, 0.02], EX, -EZ), _frame([0, 0, 0.02], EX, EY), _frame([0, 0, 0.02], EX, EZ)])
+    T = np.stack([grasp_frame([0, 0, 0.02], EX, -EZ), grasp_frame([0, 0, 0.02], EX, EY), grasp_frame([0, 0, 0.02], EX, EZ)])
     np.testing.assert_allclose(beta_angles(T), [0.0, np.pi / 2, np.pi], atol=1e-12)
 
 
@@ -87,7 +79,7 @@ def test_align_to_table_reports_the_total_omega_it_applied():
 
 
 def test_align_to_table_flips_an_approach_from_below():
-    T0 = _frame([0, 0, 0.02], EX, EZ)[None]  # approach pointing up: beta = 180 deg
+    T0 = grasp_frame([0, 0, 0.02], EX, EZ)[None]  # approach pointing up: beta = 180 deg
     T, omega, beta = align_to_table(T0, omega=0.0)
     np.testing.assert_allclose(T[0, :3, 2], -EZ, atol=1e-12)
     assert beta[0] == pytest.approx(0.0)
@@ -114,19 +106,19 @@ def test_swept_boxes_cover_the_approach_and_leave_the_jaw_gap_open():
 
 def test_gripper_closing_sideways_on_a_narrow_box_from_far_away_does_not_collide():
     checker = CollisionChecker(_box_on_table([0.04, 0.04, 0.04]), FAR)
-    T = _frame([0, 0, 0.02], EX, EY)  # jaws along x, horizontal approach along +y
+    T = grasp_frame([0, 0, 0.02], EX, EY)  # jaws along x, horizontal approach along +y
     assert not checker.collides(T[None])[0]
 
 
 def test_fingers_inside_a_wide_box_collide():
     checker = CollisionChecker(_box_on_table([0.08, 0.04, 0.04]), FAR)
-    T = _frame([0, 0, 0.02], EX, EY)
+    T = grasp_frame([0, 0, 0.02], EX, EY)
     assert checker.collides(T[None])[0]
 
 
 def test_finger_slicing_a_face_without_enclosing_a_vertex_collides_by_the_surface_test():
     checker = CollisionChecker(_box_on_table([0.04, 0.04, 0.04]), FAR)
-    T = _frame([0.02, 0, 0.02], EX, EY)[None]  # -x finger cuts through the box's middle
+    T = grasp_frame([0.02, 0, 0.02], EX, EY)[None]  # -x finger cuts through the box's middle
     assert not checker.contains_vertex(T)[0]
     assert checker.collides_object_fcl(T)[0]
     assert checker.collides(T)[0]
@@ -137,7 +129,7 @@ def test_object_wholly_inside_the_swept_palm_collides():
     crumb = trimesh.creation.box(extents=[0.004] * 3)
     crumb.apply_translation([0, 0, 0.1 - g.tip_offset - g.finger_length - g.palm_thickness / 2 - 0.03])
     checker = CollisionChecker(crumb, g, table=False)
-    T = _frame([0, 0, 0.1], EX, EZ)  # approach up along +z, palm sweeps through the crumb
+    T = grasp_frame([0, 0, 0.1], EX, EZ)  # approach up along +z, palm sweeps through the crumb
     assert checker.collides(T[None])[0]
 
 
@@ -145,7 +137,7 @@ def test_approach_through_the_table_collides():
     far_object = trimesh.creation.box(extents=[0.01] * 3)
     far_object.apply_translation([5, 5, 0.005])
     z = [0, np.cos(np.radians(30)), np.sin(np.radians(30))]  # from below the table, 30 deg up
-    T = _frame([0, 0, 0.02], EX, z)[None]
+    T = grasp_frame([0, 0, 0.02], EX, z)[None]
     assert CollisionChecker(far_object, FAR, table=True).collides(T)[0]
     assert not CollisionChecker(far_object, FAR, table=False).collides(T)[0]
 
@@ -153,8 +145,8 @@ def test_approach_through_the_table_collides():
 def test_fingertips_below_the_table_collide():
     g = GripperGeometry()
     checker = CollisionChecker(_box_on_table([0.04, 0.04, 0.04]), g)
-    low = _frame([0.2, 0, g.tip_offset - 0.001], EX, -EZ)  # top grasp, tips 1 mm under the table
-    high = _frame([0.2, 0, g.tip_offset + 0.001], EX, -EZ)
+    low = grasp_frame([0.2, 0, g.tip_offset - 0.001], EX, -EZ)  # top grasp, tips 1 mm under the table
+    high = grasp_frame([0.2, 0, g.tip_offset + 0.001], EX, -EZ)
     np.testing.assert_array_equal(checker.collides(np.stack([low, high])), [True, False])
 
 

@@ -11,19 +11,11 @@ from datagen.camera import look_at_table_origin
 from datagen.gripper import grasp_frames
 from datagen.project import project_grasps
 from datagen.render import render_depth
+from datagen_fakes import grasp_frame
 from vgq.camera import DEFAULT_INTRINSICS
 from vgq.pose import matrix_from_quaternion
 
 EX, EY, EZ = np.eye(3)
-
-
-def _frame(center, x, z) -> np.ndarray:
-    x = np.asarray(x, float) / np.linalg.norm(x)
-    z = np.asarray(z, float) - np.dot(z, x) * x
-    z /= np.linalg.norm(z)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, center
-    return T
 
 
 @pytest.mark.parametrize("phi_deg", [0.0, 35.0, 70.0])
@@ -51,7 +43,7 @@ def test_rendered_depth_at_a_visible_contact_matches_its_projected_depth(phi_deg
 
 def test_psi_and_beta_for_an_overhead_camera():
     T_wc = look_at_table_origin(0.7, 0.0, 0.0)[0]
-    T = np.stack([_frame([0, 0, 0.02], EX, -EZ), _frame([0, 0, 0.02], EX, EY)])  # top, side
+    T = np.stack([grasp_frame([0, 0, 0.02], EX, -EZ), grasp_frame([0, 0, 0.02], EX, EY)])  # top, side
     pr = project_grasps(T, T_wc)
     np.testing.assert_allclose(pr["beta"], [0.0, np.pi / 2], atol=1e-9)
     np.testing.assert_allclose(pr["psi"], [0.0, np.pi / 2], atol=1e-9)
@@ -63,9 +55,9 @@ def test_psi_and_beta_for_a_camera_at_70_deg():
     ray = T_wc[:3, 2]
     T = np.stack(
         [
-            _frame([0, 0, 0.02], EY, ray),  # approach along the principal ray
-            _frame([0, 0, 0.02], EY, EX),  # horizontal, from behind the object
-            _frame([0, 0, 0.02], EY, -EX),  # horizontal, from the camera's side
+            grasp_frame([0, 0, 0.02], EY, ray),  # approach along the principal ray
+            grasp_frame([0, 0, 0.02], EY, EX),  # horizontal, from behind the object
+            grasp_frame([0, 0, 0.02], EY, -EX),  # horizontal, from the camera's side
         ]
     )
     pr = project_grasps(T, T_wc)
@@ -75,7 +67,7 @@ def test_psi_and_beta_for_a_camera_at_70_deg():
 
 def test_projection_of_the_world_origin_is_the_image_centre():
     T_wc = look_at_table_origin(0.55, np.radians(50), 1.0)[0]
-    pr = project_grasps(_frame([0, 0, 0], EX, -EZ)[None], T_wc)
+    pr = project_grasps(grasp_frame([0, 0, 0], EX, -EZ)[None], T_wc)
     assert (pr["u"][0], pr["v"][0], pr["z"][0]) == pytest.approx((149.5, 149.5, 0.55))
 
 
@@ -91,7 +83,7 @@ def test_quaternion_is_canonical_and_is_the_camera_frame_rotation():
 
 def test_jaw_angle_is_measured_from_u_towards_v():
     T_wc = look_at_table_origin(0.7, 0.0, 0.0)[0]  # camera x = world +y, camera y = world +x
-    T = np.stack([_frame([0, 0, 0.02], EY, -EZ), _frame([0, 0, 0.02], EX, -EZ), _frame([0, 0, 0.02], -EY, -EZ)])
+    T = np.stack([grasp_frame([0, 0, 0.02], EY, -EZ), grasp_frame([0, 0, 0.02], EX, -EZ), grasp_frame([0, 0, 0.02], -EY, -EZ)])
     np.testing.assert_allclose(project_grasps(T, T_wc)["jaw_angle"], [0.0, np.pi / 2, np.pi], atol=1e-9)
 
 
@@ -108,7 +100,7 @@ def test_jaw_angle_follows_the_projected_contacts():
 
 def test_grasps_outside_the_view_are_flagged():
     T_wc = look_at_table_origin(0.5, 0.0, 0.0)[0]
-    T = np.stack([_frame([0, 0, 0.0], EX, -EZ), _frame([1.0, 0, 0.0], EX, -EZ), _frame([0, 0, 0.8], EX, -EZ)])
+    T = np.stack([grasp_frame([0, 0, 0.0], EX, -EZ), grasp_frame([1.0, 0, 0.0], EX, -EZ), grasp_frame([0, 0, 0.8], EX, -EZ)])
     np.testing.assert_array_equal(project_grasps(T, T_wc)["in_image"], [True, False, False])
 
 
@@ -121,5 +113,5 @@ def test_project_rejects_bad_shapes():
 
 def test_default_intrinsics_are_used():
     T_wc = look_at_table_origin(0.5, 0.0, 0.0)[0]
-    pr = project_grasps(_frame([0, 0.01, 0.0], EY, -EZ)[None], T_wc)  # camera x = world y
+    pr = project_grasps(grasp_frame([0, 0.01, 0.0], EY, -EZ)[None], T_wc)  # camera x = world y
     assert pr["u"][0] == pytest.approx(DEFAULT_INTRINSICS.cx + DEFAULT_INTRINSICS.fx * 0.01 / 0.5)

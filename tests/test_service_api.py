@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from service.client import ServiceClient, ServiceError
-from servers import running_service
+from servers import grasps_at, running_service
 
 NPY = {"content-type": "application/x-npy"}
 
@@ -20,15 +20,6 @@ def npy(a) -> bytes:
     np.save(b, a)
     return b.getvalue()
 
-
-def grasps_at(center=(149.5, 149.5), k=128, seed=0):
-    rng = np.random.default_rng(seed)
-    g = np.zeros((k, 7), np.float32)
-    g[:, :2] = np.asarray(center) + rng.uniform(-30, 30, (k, 2))
-    g[:, 2] = 0.66
-    q = rng.standard_normal((k, 4))
-    g[:, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)
-    return g
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +36,7 @@ def client(url):
 
 def test_upload_then_score_returns_one_probability_per_grasp(client, scene):
     iid = client.upload(scene)
-    p = client.score(iid, grasps_at())
+    p = client.score(iid, grasps_at(k=128))
     assert p.shape == (128,) and np.all((p >= 0) & (p <= 1))
 
 

@@ -17,7 +17,7 @@ import pytest
 from PIL import Image
 
 from conftest import table_scene
-from servers import running_service
+from servers import grasps_at, running_service
 
 MAX_BODY = 2_000_000
 MAX_GRASPS = 64
@@ -73,15 +73,6 @@ def zip_bomb(member_bytes: int, lie_size: int | None = None) -> bytes:
         struct.pack_into("<I", b, cd + 24, lie_size)  # its central directory entry
     return bytes(b)
 
-
-def grasps_at(center=CENTER, k=8, seed=0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    g = np.zeros((k, 7), np.float32)
-    g[:, :2] = np.asarray(center) + rng.uniform(-30, 30, (k, 2))
-    g[:, 2] = 0.66
-    q = rng.standard_normal((k, 4))
-    g[:, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)
-    return g
 
 
 def with_depth(**changes) -> np.ndarray:
@@ -217,8 +208,8 @@ SCORES = [
      "application/json", 422, ["zero quaternion"]),
     ("outside-window-u", lambda: _bin(_g(r5c0=10.0)), "application/octet-stream", 422, ["outside the window"]),
     ("outside-window-v", lambda: _bin(_g(r5c1=1e30)), "application/octet-stream", 422, ["outside the window"]),
-    ("text-plain", lambda: _bin(grasps_at()), "text/plain", 415, ["text/plain"]),
-    ("no-content-type", lambda: _bin(grasps_at()), None, 415, ["content type"]),
+    ("text-plain", lambda: _bin(grasps_at(k=8)), "text/plain", 415, ["text/plain"]),
+    ("no-content-type", lambda: _bin(grasps_at(k=8)), None, 415, ["content type"]),
 ]
 
 
@@ -248,7 +239,7 @@ def test_non_unit_quaternion_scores_like_the_unit_one(url, image_id, scale):
 @pytest.mark.parametrize("iid", ["0" * 32, "not-an-id", "x" * 5000, "..", "%2e%2e", "..%2F..%2Fetc%2Fpasswd",
                                  "%2Fetc%2Fpasswd", "..%5C..%5Cwindows", "model_card.json", "%00"])
 def test_unknown_or_path_like_image_id_is_404(url, iid):
-    r = httpx.post(f"{url}/v1/images/{iid}/scores", content=_bin(grasps_at()), headers={"content-type": "application/octet-stream"})
+    r = httpx.post(f"{url}/v1/images/{iid}/scores", content=_bin(grasps_at(k=8)), headers={"content-type": "application/octet-stream"})
     assert r.status_code == 404
     assert "error" in r.json()
 
@@ -275,16 +266,16 @@ ONE_SHOT = [
     ("npz-zip-bomb-lying-size", lambda: zip_bomb(5_000_000, lie_size=1000), "application/x-npz", 422, ["'depth'"]),
     ("npz-many-members", lambda: npz(**{f"a{i}": np.zeros(1) for i in range(200)}), "application/x-npz", 422, ["members"]),
     ("npz-missing-grasps", lambda: npz(depth=table_scene()), "application/x-npz", 422, ["'grasps'"]),
-    ("npz-depth-1d", lambda: npz(depth=np.full(300, 0.7, np.float32), grasps=grasps_at()), "application/x-npz", 422, ["depth has shape"]),
-    ("npz-depth-huge-dims", lambda: _npz_raw(depth=npy_header_only((100000, 100000)), grasps=npy(grasps_at())),
+    ("npz-depth-1d", lambda: npz(depth=np.full(300, 0.7, np.float32), grasps=grasps_at(k=8)), "application/x-npz", 422, ["depth has shape"]),
+    ("npz-depth-huge-dims", lambda: _npz_raw(depth=npy_header_only((100000, 100000)), grasps=npy(grasps_at(k=8))),
      "application/x-npz", 422, ["depth"]),
-    ("npz-depth-int", lambda: npz(depth=np.full((300, 300), 7, np.int64), grasps=grasps_at()), "application/x-npz", 422, ["dtype int64"]),
-    ("npz-depth-nan", lambda: npz(depth=nan_depth, grasps=grasps_at()), "application/x-npz", 422, ["non-finite"]),
+    ("npz-depth-int", lambda: npz(depth=np.full((300, 300), 7, np.int64), grasps=grasps_at(k=8)), "application/x-npz", 422, ["dtype int64"]),
+    ("npz-depth-nan", lambda: npz(depth=nan_depth, grasps=grasps_at(k=8)), "application/x-npz", 422, ["non-finite"]),
     ("npz-grasps-shape", lambda: npz(depth=table_scene(), grasps=np.zeros((3, 6))), "application/x-npz", 422, ["(k, 7)"]),
     ("npz-grasps-k0", lambda: npz(depth=table_scene(), grasps=np.zeros((0, 7))), "application/x-npz", 422, ["k = 0"]),
-    ("npz-grasps-outside", lambda: npz(depth=table_scene(), grasps=grasps_at(center=(20, 20))), "application/x-npz", 422, ["outside"]),
-    ("npz-center-3", lambda: npz(depth=table_scene(), grasps=grasps_at(), center=np.zeros(3)), "application/x-npz", 422, ["center"]),
-    ("npz-pickled-member", lambda: _npz_raw(depth=npy(np.array([None] * 4), allow_pickle=True), grasps=npy(grasps_at())),
+    ("npz-grasps-outside", lambda: npz(depth=table_scene(), grasps=grasps_at(center=(20, 20), k=8)), "application/x-npz", 422, ["outside"]),
+    ("npz-center-3", lambda: npz(depth=table_scene(), grasps=grasps_at(k=8), center=np.zeros(3)), "application/x-npz", 422, ["center"]),
+    ("npz-pickled-member", lambda: _npz_raw(depth=npy(np.array([None] * 4), allow_pickle=True), grasps=npy(grasps_at(k=8))),
      "application/x-npz", 422, ["dtype object"]),
     ("multipart-garbage", lambda: b"--xyz\r\nnot a part", "multipart/form-data; boundary=xyz", 400, ["malformed multipart"]),
     ("multipart-no-boundary", lambda: b"abc", "multipart/form-data", 400, ["multipart"]),
@@ -307,7 +298,7 @@ def test_bad_one_shot(url, name, body, ct, status, words):
 
 
 def test_multipart_without_depth_part_is_422(url):
-    r = httpx.post(f"{url}/v1/score", files={"grasps": ("g.json", _json({"grasps": grasps_at().tolist()}), "application/json")})
+    r = httpx.post(f"{url}/v1/score", files={"grasps": ("g.json", _json({"grasps": grasps_at(k=8).tolist()}), "application/json")})
     assert_error(r, 422, '"depth"')
 
 
@@ -318,7 +309,7 @@ def test_multipart_without_grasps_part_is_422(url):
 
 def test_multipart_with_bad_depth_names_it(url):
     r = httpx.post(f"{url}/v1/score", files={"depth": ("d.npy", npy(nan_depth), NPY)},
-                   data={"grasps": _json({"grasps": grasps_at().tolist()}).decode()})
+                   data={"grasps": _json({"grasps": grasps_at(k=8).tolist()}).decode()})
     assert_error(r, 422, "non-finite")
 
 
@@ -387,7 +378,7 @@ def test_slow_loris_trickle_is_408(url, image_id):
 
 
 def test_service_still_answers_after_the_matrix(url, image_id):
-    r = httpx.post(f"{url}/v1/images/{image_id}/scores", content=_bin(grasps_at()), headers={"content-type": "application/octet-stream"})
+    r = httpx.post(f"{url}/v1/images/{image_id}/scores", content=_bin(grasps_at(k=8)), headers={"content-type": "application/octet-stream"})
     assert r.status_code == 200 and len(r.json()["p_success"]) == 8
     text = httpx.get(f"{url}/metrics").text
     assert 'status="500"' not in text
@@ -397,15 +388,15 @@ def test_service_still_answers_after_the_matrix(url, image_id):
 def test_api_key_guards_upload_score_and_one_shot_only(model_dir):
     with running_service(model_dir, env={"VGQ_API_KEY": "s3cret"}) as u:
         body, octet = npy(table_scene()), {"content-type": "application/octet-stream"}
-        guarded = [("/v1/images", body, {"content-type": NPY}), ("/v1/images/" + "0" * 32 + "/scores", _bin(grasps_at()), octet),
-                   ("/v1/score", npz(depth=table_scene(), grasps=grasps_at()), {"content-type": "application/x-npz"})]
+        guarded = [("/v1/images", body, {"content-type": NPY}), ("/v1/images/" + "0" * 32 + "/scores", _bin(grasps_at(k=8)), octet),
+                   ("/v1/score", npz(depth=table_scene(), grasps=grasps_at(k=8)), {"content-type": "application/x-npz"})]
         for path, content, headers in guarded:
             for key in (None, "wrong", "s3cre", "s3cret" * 2):
                 h = headers if key is None else {**headers, "x-api-key": key}
                 assert_error(httpx.post(u + path, content=content, headers=h), 401, "X-API-Key")
         ok = httpx.post(u + "/v1/images", content=body, headers={"content-type": NPY, "x-api-key": "s3cret"})
         assert ok.status_code == 200
-        r = httpx.post(f"{u}/v1/images/{ok.json()['image_id']}/scores", content=_bin(grasps_at()), headers={**octet, "x-api-key": "s3cret"})
+        r = httpx.post(f"{u}/v1/images/{ok.json()['image_id']}/scores", content=_bin(grasps_at(k=8)), headers={**octet, "x-api-key": "s3cret"})
         assert r.status_code == 200
         for path in ("/healthz", "/readyz", "/metrics"):
             assert httpx.get(u + path).status_code == 200, path

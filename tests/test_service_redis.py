@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from conftest import table_scene
-from servers import free_port, running_service
+from servers import free_port, grasps_at, running_service
 from service.cache import CachedImage
 from service.client import ServiceClient, ServiceError
 
@@ -53,15 +53,6 @@ def stop(proc: subprocess.Popen) -> None:
         proc.kill()
         proc.wait(5)
 
-
-def grasps_at(center=(149.5, 149.5), k=16, seed=0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    g = np.zeros((k, 7), np.float32)
-    g[:, :2] = np.asarray(center) + rng.uniform(-30, 30, (k, 2))
-    g[:, 2] = 0.66
-    q = rng.standard_normal((k, 4))
-    g[:, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)
-    return g
 
 
 def redis_env(url: str) -> dict:
