@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import hashlib
 import io
-import json
 import os
 import platform
 import tempfile
@@ -26,9 +25,10 @@ import numpy as np
 
 from vgq import __version__ as vgq_version
 from vgq import atomic
-from vgq.schema import CROP_FIELDS, CROP_FORMAT, FORMAT_VERSION, GRASP_FIELDS, GRASP_FORMAT, IMAGE_FIELDS, SPLITS, check_fields
+from vgq import schema
+from vgq.schema import (CROP_FIELDS, CROP_FORMAT, FORMAT_VERSION, GRASP_FIELDS, GRASP_FORMAT, IMAGE_FIELDS, MANIFEST,
+                        SPLITS, check_fields)
 
-MANIFEST = "manifest.json"
 SHARD_DIR = "shards"
 
 
@@ -132,24 +132,7 @@ def read_shard(path: str | Path, sha256: str | None = None) -> tuple[dict[str, n
 
 
 def read_manifest(root: str | Path, expected_format: str) -> dict:
-    root = Path(root)
-    if not root.exists():
-        raise DatasetError(f"dataset folder {root} does not exist")
-    if not root.is_dir():
-        raise DatasetError(f"{root} is not a folder")
-    p = root / MANIFEST
-    if not p.is_file():
-        raise DatasetError(f"no {MANIFEST} in {root}: not a {expected_format} dataset")
-    try:
-        m = json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(f"{p} is not valid JSON ({e})") from e
-    if not isinstance(m, dict) or m.get("format") != expected_format:
-        fmt = m.get("format") if isinstance(m, dict) else None
-        raise DatasetError(f"{p}: format {fmt!r}, expected {expected_format!r}")
-    if m.get("format_version") != FORMAT_VERSION:
-        raise DatasetError(f"{p}: format_version {m.get('format_version')!r}, expected {FORMAT_VERSION}")
-    return m
+    return schema.read_manifest(root, expected_format, DatasetError)
 
 
 def new_grasp_manifest(config: dict, seed: int, objects: list[dict], label_threshold: float, **extra) -> dict:

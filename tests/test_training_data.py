@@ -37,7 +37,7 @@ def test_missing_folder(tmp_path):
 
 def test_wrong_format(tmp_path, data):
     (tmp_path / "manifest.json").write_text(json.dumps({"format": "vgq-grasps", "format_version": 1}))
-    with pytest.raises(DatasetError, match="format is 'vgq-grasps'"):
+    with pytest.raises(DatasetError, match="format 'vgq-grasps', expected 'vgq-crops'"):
         open_crop_dataset(tmp_path)
 
 

@@ -17,7 +17,6 @@ Manifest keys read here (written by ``datagen crops`` and by
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,7 +26,7 @@ import torch
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
 from vgq.crop import CropGeometry
 from vgq.pose import POSE_COLUMNS, pose_column_indices
-from vgq.schema import CROP_FIELDS, CROP_FORMAT, FORMAT_VERSION, SPLITS, check_fields
+from vgq.schema import CROP_FIELDS, CROP_FORMAT, SPLITS, check_fields, read_manifest
 
 
 class DatasetError(ValueError):
@@ -126,27 +125,6 @@ class CropDataset:
         )
 
 
-def _read_manifest(path: Path) -> dict:
-    if not path.exists():
-        raise DatasetError(f"crop dataset folder {path} does not exist")
-    if not path.is_dir():
-        raise DatasetError(f"crop dataset {path} is not a folder")
-    mf = path / "manifest.json"
-    if not mf.is_file():
-        raise DatasetError(f"{path} is not a crop dataset: no manifest.json")
-    try:
-        m = json.loads(mf.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(f"{mf}: not valid JSON ({e})") from e
-    if not isinstance(m, dict):
-        raise DatasetError(f"{mf}: expected a JSON object")
-    if m.get("format") != CROP_FORMAT:
-        raise DatasetError(f"{mf}: format is {m.get('format')!r}, expected {CROP_FORMAT!r}")
-    if int(m.get("format_version", FORMAT_VERSION)) != FORMAT_VERSION:
-        raise DatasetError(f"{mf}: format_version {m.get('format_version')} unsupported (expected {FORMAT_VERSION})")
-    return m
-
-
 def _open_split(path: Path, name: str) -> CropSplit | None:
     d = path / name
     if not d.is_dir():
@@ -170,7 +148,7 @@ def _open_split(path: Path, name: str) -> CropSplit | None:
 def open_crop_dataset(path: str | Path) -> CropDataset:
     """Open and validate a crop dataset folder; raises DatasetError naming the problem."""
     path = Path(path)
-    m = _read_manifest(path)
+    m = read_manifest(path, CROP_FORMAT, DatasetError)
     g = m.get("geometry") or m.get("crop_geometry")
     if not isinstance(g, dict):
         raise DatasetError(f"{path}/manifest.json: no crop 'geometry' entry")

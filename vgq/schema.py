@@ -20,6 +20,9 @@ A shard listed in the manifest is complete; files not listed are ignored.
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 
 from .pose import FULL_POSE_COLUMNS
@@ -28,6 +31,7 @@ GRASP_FORMAT = "vgq-grasps"
 CROP_FORMAT = "vgq-crops"
 FORMAT_VERSION = 1
 SPLITS = ("train", "val", "test")
+MANIFEST = "manifest.json"
 
 #: name -> (dtype, per-row shape, meaning and unit)
 IMAGE_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
@@ -85,3 +89,26 @@ def check_fields(fields: dict, arrays: dict[str, np.ndarray], where: str) -> int
         elif a.shape[0] != n:
             raise ValueError(f"{where}: field {name!r} has {a.shape[0]} rows, expected {n}")
     return int(n or 0)
+
+
+def read_manifest(root: str | Path, expected_format: str, error: type[Exception] = ValueError) -> dict:
+    """The manifest of the dataset folder ``root``, checked to be ``expected_format`` at
+    FORMAT_VERSION; anything else raises ``error`` naming the folder or file at fault."""
+    root = Path(root)
+    if not root.exists():
+        raise error(f"dataset folder {root} does not exist")
+    if not root.is_dir():
+        raise error(f"{root} is not a folder")
+    p = root / MANIFEST
+    if not p.is_file():
+        raise error(f"no {MANIFEST} in {root}: not a {expected_format} dataset")
+    try:
+        m = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise error(f"{p} is not valid JSON ({e})") from e
+    fmt = m.get("format") if isinstance(m, dict) else None
+    if fmt != expected_format:
+        raise error(f"{p}: format {fmt!r}, expected {expected_format!r}")
+    if m.get("format_version") != FORMAT_VERSION:
+        raise error(f"{p}: format_version {m.get('format_version')!r}, expected {FORMAT_VERSION}")
+    return m
