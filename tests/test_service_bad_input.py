@@ -377,6 +377,38 @@ def test_slow_loris_trickle_is_408(url, image_id):
     assert data.split(b" ", 2)[1] == b"408", data[:100]
 
 
+def _silent_client(url: str, sent: bytes) -> tuple[bytes, float]:
+    """Connect, send ``sent`` (maybe nothing) and stall; return (all the server sent, seconds until it closed)."""
+    host, port = url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=TIMEOUT_S + 5) as s:
+        t0 = time.monotonic()
+        s.sendall(sent)
+        data = b""
+        while chunk := s.recv(65536):
+            data += chunk
+        return data, time.monotonic() - t0
+
+
+@pytest.mark.parametrize("sent", [b"", b"POST /v1/ima", b"POST /v1/images HTTP/1.1\r\nHost: x\r\nContent-Ty"],
+                         ids=["nothing", "half-request-line", "half-headers"])
+def test_slow_loris_headers_get_408_and_the_connection_closed(url, sent):
+    data, dt = _silent_client(url, sent)
+    assert data.startswith(b"HTTP/1.1 408 "), data[:100]
+    assert b"request headers not received within" in data
+    assert TIMEOUT_S * 0.9 <= dt < TIMEOUT_S + 3
+
+
+def test_idle_keep_alive_connection_outlives_the_header_deadline(url):
+    """The deadline covers a request's headers, not the idle time between keep-alive requests
+    (bounded by uvicorn's keep-alive timeout): one socket, two requests 1.5 deadlines apart."""
+    host, port = url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=TIMEOUT_S + 5) as s:
+        for _ in range(2):
+            s.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            assert s.recv(65536).startswith(b"HTTP/1.1 200 ")
+            time.sleep(TIMEOUT_S * 1.5)
+
+
 def test_service_still_answers_after_the_matrix(url, image_id):
     r = httpx.post(f"{url}/v1/images/{image_id}/scores", content=_bin(grasps_at(k=8)), headers={"content-type": "application/octet-stream"})
     assert r.status_code == 200 and len(r.json()["p_success"]) == 8
