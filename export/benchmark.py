@@ -184,7 +184,8 @@ def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs
     kmax = max(ks)
     work = load_workload(kmax)
     depth, all_grasps = work.depth, work.grasps.astype(np.float64)
-    fast = FastModel(model_dir, threads=threads)
+    fast = FastModel(model_dir, threads=threads)  # as the service runs it (head_precision auto)
+    fast32 = FastModel(model_dir, threads=threads, head_precision="fp32") if fast.head_precision != "fp32" else None
     geom = fast.geometry
     center = np.array([(depth.shape[1] - 1) / 2, (depth.shape[0] - 1) / 2])
     notes = []
@@ -217,6 +218,7 @@ def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs
                 "fast_pre": (lambda: fast_preprocess(depth, grasps, geom, center), runs),
                 "vgq_pre": (lambda: vgq_preprocess(depth, grasps, geom_vgq, geom, center), n_vpre),
                 "peak": (peak_call, max(5, min(50, runs // 20))),
+                **({"head_fp32": (lambda: fast32.score(term, poses), runs)} if fast32 else {}),
             }, warmup=min(20, max(2, runs // 10)))
             # the peak of this k's time window: load from other processes lowers both alike
             peak = 2 * PEAK_N**3 / t.pop("peak").min() / 1e9
@@ -243,7 +245,8 @@ def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs
                              "the p99 of few runs is close to their max)")
     return {
         "machine": machine_info(threads),
-        "config": {"model_dir": str(model_dir), "model_version": fast.version, "runs": runs, "ks": list(ks),
+        "config": {"model_dir": str(model_dir), "model_version": fast.version, "head_precision": fast.head_precision,
+                   "runs": runs, "ks": list(ks),
                    "threads": threads, "vgq_budget_s": vgq_budget_s, "image": work.source,
                    "date": time.strftime("%Y-%m-%d %H:%M:%S %Z")},
         "encoder_mflop": enc_flops / 1e6,
@@ -284,7 +287,8 @@ def markdown(report: dict) -> str:
            "", "| k grasps | " + " | ".join(ks) + " |", "|---|" + "---:|" * len(ks),
            line("VGQ-CNN prediction, ms (median / p99)", ms("vgq")),
            line("Fast-VGQ-CNN prediction (encoder + head), ms", ms("fast")),
-           line("Fast-VGQ-CNN head only (cached image), ms", ms("head")),
+           line(f"Fast-VGQ-CNN head only (cached image, {c.get('head_precision', 'fp32')}), ms", ms("head")),
+           *([line("Fast-VGQ-CNN head only, fp32 graph, ms", ms("head_fp32"))] if "head_fp32" in rows[ks[0]] else []),
            line("Fast-VGQ-CNN encoder only, ms", ms("encoder")),
            line("VGQ-CNN preprocessing (k crops), ms", ms("vgq_pre")),
            line("Fast-VGQ-CNN preprocessing (1 crop), ms", ms("fast_pre")),

@@ -33,6 +33,7 @@ from vgq.model_card import (
 )
 
 from .graphs import EncoderGraph, HeadGraph, OnePieceGraph
+from .quantize import QuantizationError, check_int8_head, quantize_head
 
 log = logging.getLogger(__name__)
 OPSET = 17
@@ -138,9 +139,14 @@ def export_model(
     metrics: dict | None = None,
     label_threshold: float = 0.002,
     tolerance: float = DEFAULT_TOLERANCE,
+    int8_check: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> ModelCard:
     """Export ``net`` to ``out_dir`` after verifying ONNX against torch on ``crops`` (n, S, S)
-    metres and raw ``poses`` (n, n_pose) in the net's pose columns. Returns the model card."""
+    metres and raw ``poses`` (n, n_pose) in the net's pose columns. Returns the model card.
+
+    ``int8_check`` (Fast-VGQ-CNN only): labelled (crops, poses, labels) on which an int8 head
+    (``export.quantize``) must score like the fp32 one; it is then added as ``head_int8.onnx``
+    and its check recorded in the card (``export.int8_head``)."""
     net = net.eval()
     crops, poses = _check_inputs(net, crops, poses)
     out_dir = Path(out_dir)
@@ -174,6 +180,18 @@ def export_model(
         )
         if bad:
             raise ExportError(f"ONNX does not reproduce torch: {ver.to_dict()} (tolerance {tolerance})")
+        extra = {}
+        if int8_check is not None:
+            if net.arch != "fast_vgqcnn":
+                raise ExportError(f"an int8 head exists for fast_vgqcnn only, not {net.arch}")
+            log.info("quantising the head to int8 and checking it on %d labelled crops", len(int8_check[0]))
+            files["head_int8"] = "head_int8.onnx"
+            try:
+                nodes = quantize_head(tmp / files["head"], tmp / files["head_int8"])
+                extra["int8_head"] = check_int8_head(tmp / files["encoder"], tmp / files["head"], tmp / files["head_int8"],
+                                                     *int8_check, quantized_nodes=nodes).to_dict()
+            except QuantizationError as e:
+                raise ExportError(str(e)) from e
         digest = _sha(tmp / f for f in files.values())
         card = ModelCard(
             model_version=f"{net.arch}-{digest[:12]}",
@@ -186,7 +204,7 @@ def export_model(
             training=dict(training or {}),
             metrics=dict(metrics or {}),
             export={"opset": OPSET, "torch": torch.__version__, "onnxruntime": ort.__version__,
-                    "verification": ver.to_dict(), "tolerance": tolerance, "sha256": digest},
+                    "verification": ver.to_dict(), "tolerance": tolerance, "sha256": digest, **extra},
             label_threshold=label_threshold,
         )
         card.save(tmp)

@@ -100,13 +100,15 @@ class Service:
         """Load (unless given) and warm up the model; then mark ready."""
         try:
             if self.model is None:
-                self.model = FastModel(self.settings.model_dir, threads=self.settings.ort_threads)
+                self.model = FastModel(self.settings.model_dir, threads=self.settings.ort_threads,
+                                       head_precision=self.settings.head_precision)
             self.model.warm_up()
             gc.collect()
             gc.freeze()  # start-up objects out of the collector's way: no GC pauses on them later
             self.ready = True
             self.metrics.ready.set(1)
-            logs.event(self.log, "ready", model_version=self.model.version, threads=self.settings.ort_threads,
+            logs.event(self.log, "ready", model_version=self.model.version, head=self.model.head_precision,
+                       threads=self.settings.ort_threads,
                        cache=self.cache.backend)
         except Exception as e:  # reported by /readyz and the log; the process stays up for diagnosis
             self.load_error = str(e)
@@ -264,7 +266,7 @@ def create_app(settings: Settings | None = None, model: FastModel | None = None,
     async def model_info():
         if not svc.ready:
             raise ApiError(503, "model not ready")
-        return _json({"model_card": svc.model.card.to_dict(), "limits": {
+        return _json({"model_card": svc.model.card.to_dict(), "head_precision": svc.model.head_precision, "limits": {
             "max_grasps": settings.max_grasps, "max_body_bytes": settings.max_body_bytes,
             "max_image_side": settings.max_image_side, "request_timeout_s": settings.request_timeout_s},
             "depth_content_types": list(DEPTH_TYPES)})

@@ -31,7 +31,9 @@ def session_options(threads: int) -> ort.SessionOptions:
 class FastModel:
     """Fast-VGQ-CNN: ``encode`` (1 crop -> 1024 image term) and ``score`` (k poses)."""
 
-    def __init__(self, model_dir: str | Path, threads: int = 1):
+    def __init__(self, model_dir: str | Path, threads: int = 1, head_precision: str = "auto"):
+        """``head_precision``: ``fp32``, ``int8`` (the card's checked ``head_int8`` graph, see
+        export/quantize.py) or ``auto`` (int8 when the model folder has one)."""
         model_dir = Path(model_dir)
         try:
             self.card = ModelCard.load(model_dir)
@@ -39,10 +41,18 @@ class FastModel:
             raise ModelError(f"cannot load model from {model_dir}: {e}") from e
         if self.card.architecture != "fast_vgqcnn":
             raise ModelError(f"{model_dir}: architecture {self.card.architecture!r}; the service serves fast_vgqcnn")
+        has_int8 = "head_int8" in self.card.files
+        if head_precision == "int8" and not has_int8:
+            raise ModelError(f"{model_dir}: head_precision int8 asked for, but the model has no int8 head "
+                             "(export it with --int8-head)")
+        if head_precision not in ("auto", "fp32", "int8"):
+            raise ModelError(f"head_precision must be auto, fp32 or int8, got {head_precision!r}")
+        self.head_precision = "int8" if has_int8 and head_precision != "fp32" else "fp32"
+        head_file = self.card.files["head_int8" if self.head_precision == "int8" else "head"]
         so = session_options(threads)
         try:
             self.encoder = ort.InferenceSession(str(model_dir / self.card.files["encoder"]), so, providers=["CPUExecutionProvider"])
-            self.head = ort.InferenceSession(str(model_dir / self.card.files["head"]), so, providers=["CPUExecutionProvider"])
+            self.head = ort.InferenceSession(str(model_dir / head_file), so, providers=["CPUExecutionProvider"])
         except Exception as e:  # onnxruntime raises its own exception types
             raise ModelError(f"cannot open ONNX graphs in {model_dir}: {e}") from e
         self.geometry = self.card.geometry

@@ -160,3 +160,54 @@ def test_export_cli_refuses_baseline_of_another_dataset(tmp_path, capsys):
               "--baseline", str(tmp_path / "b" / "baseline_logreg.json")])
     assert e.value.code == 2 and "not on" in capsys.readouterr().err
     assert not (tmp_path / "m").exists()
+
+
+@pytest.fixture(scope="module")
+def int8_model(tmp_path_factory, briefly_trained):
+    """The briefly trained net exported with a checked int8 head."""
+    net, imgs, poses = briefly_trained
+    chk_imgs, chk_poses, chk_labels = synthetic_crops(400, np.random.default_rng(7))
+    out = tmp_path_factory.mktemp("int8") / "m"
+    card = export_model(net, out, imgs[:16], poses[:16], GEOM, DEFAULT_INTRINSICS,
+                        int8_check=(chk_imgs, chk_poses, chk_labels))
+    return out, card
+
+
+def test_int8_head_quantises_only_the_largest_layer_and_records_its_check(int8_model):
+    out, card = int8_model
+    q = card.export["int8_head"]
+    assert card.files["head_int8"] == "head_int8.onnx" and q["quantized_nodes"] == ["/head/fc5/Gemm"]
+    assert q["n"] == 400 and q["max_abs_diff_probability"] <= 0.05
+    ops = [n.op_type for n in onnx.load(str(out / "head_int8.onnx")).graph.node]
+    assert ops.count("MatMulInteger") == 1 and ops.count("MatMul") + ops.count("Gemm") >= 3  # pose layers stay fp32
+
+
+def test_service_runtime_serves_the_int8_head_by_default_and_fp32_on_request(int8_model, briefly_trained):
+    from service.runtime import FastModel
+
+    out, _ = int8_model
+    _, imgs, poses = briefly_trained
+    m8, m32 = FastModel(out), FastModel(out, head_precision="fp32")
+    assert (m8.head_precision, m32.head_precision) == ("int8", "fp32")
+    term = m32.encode(imgs[0])
+    p8, p32 = m8.score(term, poses[:64]), m32.score(term, poses[:64])
+    assert np.abs(p8 - p32).max() <= 0.05 and not np.array_equal(p8, p32)
+
+
+def test_int8_check_refuses_a_head_that_scores_differently(int8_model):
+    from export.quantize import QuantizationError, check_int8_head
+
+    out, _ = int8_model
+    imgs, poses, labels = synthetic_crops(64, np.random.default_rng(3))
+    with pytest.raises(QuantizationError, match="unlike the fp32 head"):
+        check_int8_head(out / "encoder.onnx", out / "head.onnx", out / "head_int8.onnx", imgs, poses, labels,
+                        max_abs_diff=0.0)
+
+
+def test_int8_head_is_for_fast_vgqcnn_only(tmp_path, briefly_trained):
+    _, imgs, poses = briefly_trained
+    net = GraspQualityNet("vgqcnn").eval()
+    with pytest.raises(ExportError, match="fast_vgqcnn only"):
+        export_model(net, tmp_path / "v", imgs[:4], poses[:4, 2:], GEOM, DEFAULT_INTRINSICS,
+                     int8_check=(imgs[:200], poses[:200, 2:], np.arange(200) % 2))
+    assert not (tmp_path / "v").exists()

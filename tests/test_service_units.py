@@ -195,3 +195,16 @@ def test_limits_come_from_the_environment():
 def test_bad_limits_are_refused_by_name(kw, word):
     with pytest.raises(ValueError, match=word):
         Settings(**kw)
+
+
+def test_head_precision_setting_is_checked():
+    with pytest.raises(ValueError, match="head_precision"):
+        Settings(head_precision="bf16")
+
+
+def test_int8_head_asked_of_a_model_without_one_is_a_clear_error(model_dir):
+    from service.runtime import FastModel, ModelError
+
+    assert FastModel(model_dir).head_precision == "fp32"  # auto falls back to fp32
+    with pytest.raises(ModelError, match="no int8 head"):
+        FastModel(model_dir, head_precision="int8")

@@ -1,0 +1,106 @@
+"""An int8 variant of Fast-VGQ-CNN's head graph, kept only if it scores like the fp32 one.
+
+Nearly all of the head's work is fc5 (1024 x 1024 per grasp: 2.1 of its 2.2 MFLOP). Only that
+layer is quantised (onnxruntime dynamic quantisation: int8 weights per output channel, uint8
+activations scaled per call); the pose layers stay fp32, since raw poses mix pixels (tens)
+with depths that matter to the millimetre and do not survive one shared 8-bit scale.
+
+The check runs both heads on real labelled crops and refuses the int8 head when its balanced
+accuracy falls by more than ``max_bacc_drop`` or a probability moves by more than
+``max_abs_diff``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+
+from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT
+
+MAX_BACC_DROP = 0.005
+MAX_ABS_DIFF = 0.05
+
+
+class QuantizationError(ValueError):
+    """The int8 head does not score like the fp32 head."""
+
+
+@dataclass(frozen=True)
+class Int8Check:
+    n: int
+    n_positive: int
+    balanced_accuracy_fp32: float
+    balanced_accuracy_int8: float
+    max_abs_diff_probability: float
+    mean_abs_diff_probability: float
+    decisions_changed: int  # grasps on the other side of 0.5
+    quantized_nodes: tuple[str, ...]
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["quantized_nodes"] = list(self.quantized_nodes)
+        return d
+
+
+def largest_gemm(model_path: str | Path) -> str:
+    """Name of the Gemm / MatMul node with the largest weight (fc5 in the head graph)."""
+    m = onnx.load(str(model_path))
+    sizes = {i.name: int(np.prod(i.dims)) for i in m.graph.initializer}
+    nodes = [(max(sizes.get(x, 0) for x in n.input), n.name) for n in m.graph.node if n.op_type in ("Gemm", "MatMul")]
+    if not nodes:
+        raise QuantizationError(f"{model_path}: no Gemm or MatMul node to quantise")
+    return max(nodes)[1]
+
+
+def quantize_head(head_path: str | Path, out_path: str | Path) -> tuple[str, ...]:
+    """Write ``out_path``: ``head_path`` with its largest fully connected layer in int8.
+    Returns the names of the quantised nodes."""
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+
+    node = largest_gemm(head_path)
+    # dynamic quantisation rewrites a Gemm as MatMul + Add first; the MatMul keeps the name + "_MatMul"
+    quantize_dynamic(str(head_path), str(out_path), per_channel=True, weight_type=QuantType.QInt8,
+                     nodes_to_quantize=[node, node + "_MatMul"])
+    if not any(n.op_type == "MatMulInteger" for n in onnx.load(str(out_path)).graph.node):
+        raise QuantizationError(f"onnxruntime left {node} of {head_path} unquantised")
+    return (node,)
+
+
+def _balanced_accuracy(p: np.ndarray, y: np.ndarray) -> float:
+    pred = p > 0.5
+    return float((pred[y].mean() + (~pred[~y]).mean()) / 2)
+
+
+def check_int8_head(encoder_path, head_path, int8_path, crops: np.ndarray, poses: np.ndarray, labels: np.ndarray,
+                    quantized_nodes: tuple[str, ...] = (), max_bacc_drop: float = MAX_BACC_DROP,
+                    max_abs_diff: float = MAX_ABS_DIFF) -> Int8Check:
+    """Score (n, S, S) or (n, 1, S, S) crops (metres) with their (n, 7) raw poses through encoder + each head,
+    one crop per grasp; raise QuantizationError when the int8 head is off."""
+    y = np.asarray(labels).astype(bool)
+    if y.all() or not y.any():
+        raise QuantizationError("the int8 check needs positive and negative examples")
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    enc, h32, h8 = (ort.InferenceSession(str(p), so, providers=["CPUExecutionProvider"])
+                    for p in (encoder_path, head_path, int8_path))
+    crops = np.ascontiguousarray(crops, np.float32).reshape(len(crops), 1, *np.shape(crops)[-2:])
+    poses = np.ascontiguousarray(poses, np.float32)
+    terms = np.concatenate([enc.run([ENCODER_OUTPUT], {ENCODER_INPUT: crops[i:i + 256]})[0]
+                            for i in range(0, len(crops), 256)])
+
+    def score(sess) -> np.ndarray:  # one image term per grasp, as the service runs it
+        return np.array([sess.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: terms[i:i + 1], HEAD_INPUTS[1]: poses[i:i + 1]})[0][0]
+                         for i in range(len(poses))])
+
+    p32, p8 = score(h32), score(h8)
+    d = np.abs(p32 - p8)
+    check = Int8Check(len(y), int(y.sum()), _balanced_accuracy(p32, y), _balanced_accuracy(p8, y), float(d.max()),
+                      float(d.mean()), int(((p32 > 0.5) != (p8 > 0.5)).sum()), tuple(quantized_nodes))
+    if check.balanced_accuracy_fp32 - check.balanced_accuracy_int8 > max_bacc_drop or check.max_abs_diff_probability > max_abs_diff:
+        raise QuantizationError(f"int8 head scores unlike the fp32 head: {check.to_dict()} "
+                                f"(allowed: balanced accuracy drop {max_bacc_drop}, |dp| {max_abs_diff})")
+    return check
