@@ -7,7 +7,8 @@ N clients run concurrently for a bounded time. Each repeats a cycle (``--mix``, 
 ``upload=1,score=8,once=1``): upload a fresh depth image (``POST /v1/images``, encoder runs),
 score k grasps against it several times (``POST /v1/images/{id}/scores``, cached image, head
 only; float32 body and answer, as ``service.client`` sends), then one-shot calls with fresh
-images (``POST /v1/score``, .npz body, uncached: encoder + head). Images are the example in
+images (``POST /v1/score``, .npz body, uncached: encoder + head), then (``bad=N``) malformed
+requests in rotation, each of which must get a 4xx with an error message (soak runs). Images are the example in
 ``examples/`` (or a synthetic table + box scene) with a unique value written into pixel (0, 0),
 outside the crop window, so every upload is a cache miss.
 
@@ -28,6 +29,7 @@ import json
 import os
 import sys
 import time
+import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -36,32 +38,34 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = ROOT / "examples"
-ENDPOINTS = ("upload", "score", "score_once")
+ENDPOINTS = ("upload", "score", "score_once", "bad")
 OCTET = "application/octet-stream"
 
 
 @dataclass(frozen=True)
 class Mix:
-    """Requests per client cycle: uploads of a fresh image, score calls per upload, one-shots."""
+    """Requests per client cycle: uploads of a fresh image, score calls per upload, one-shots,
+    and bad requests (malformed on purpose; each must get a 4xx naming the problem)."""
 
     upload: int = 1
     score: int = 8
     once: int = 1
+    bad: int = 0
 
     @classmethod
     def parse(cls, text: str) -> "Mix":
-        """``"upload=1,score=8,once=1"`` (missing keys keep their defaults)."""
+        """``"upload=1,score=8,once=1,bad=0"`` (missing keys keep their defaults)."""
         kw = {}
         for part in filter(None, (p.strip() for p in text.split(","))):
             name, _, value = part.partition("=")
-            if name not in ("upload", "score", "once") or not value.strip().isdigit():
-                raise ValueError(f"bad --mix entry {part!r}; expected upload=N, score=N, once=N (N >= 0)")
+            if name not in ("upload", "score", "once", "bad") or not value.strip().isdigit():
+                raise ValueError(f"bad --mix entry {part!r}; expected upload=N, score=N, once=N, bad=N (N >= 0)")
             kw[name] = int(value)
         mix = cls(**kw)
         if mix.score and not mix.upload:
             raise ValueError("--mix: score calls need an upload (upload >= 1)")
-        if not (mix.upload or mix.once):
-            raise ValueError("--mix: nothing to do (upload and once are both 0)")
+        if not (mix.upload or mix.once or mix.bad):
+            raise ValueError("--mix: nothing to do (upload, once and bad are all 0)")
         return mix
 
 
@@ -146,6 +150,45 @@ class FreshImages:
         return buf.getvalue()
 
 
+def bad_requests(work: Workload) -> list[tuple[str, bytes, dict]]:
+    """Malformed requests the service must answer with a 4xx naming the problem:
+    (path, body, headers). NaN depth, truncated .npy, corrupt PNG, a zip-bomb .npz (40 MB of
+    zeros declared, ~40 kB sent), malformed JSON, zero quaternion, an unknown image id."""
+    npy_h, octet = {"content-type": "application/x-npy"}, {"content-type": OCTET}
+    nan = np.array(work.depth, np.float32)
+    nan[100:110, 100:110] = np.nan
+    good = io.BytesIO()
+    np.save(good, np.asarray(work.depth, np.float32))
+    bomb = io.BytesIO()
+    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as z:
+        with z.open("depth.npy", "w") as f:
+            np.save(f, np.zeros((5000, 2000), np.float32))
+    zero_q = np.array(work.grasps[:4], "<f4")
+    zero_q[1, 3:] = 0
+    unknown = "/v1/images/" + "0" * 64 + "/scores"
+    return [
+        ("/v1/images", _npy_bytes(nan), npy_h),
+        ("/v1/images", good.getvalue()[: len(good.getvalue()) // 2], npy_h),
+        ("/v1/images", b"\x89PNG\r\n\x1a\n" + bytes(range(256)) * 4, {"content-type": "image/png"}),
+        ("/v1/score", bomb.getvalue(), {"content-type": "application/x-npz"}),
+        (unknown, b'{"grasps": [[1, 2,', {"content-type": "application/json"}),
+        ("/v1/score", _npz_bytes(depth=np.asarray(work.depth, np.float32), grasps=zero_q), {"content-type": "application/x-npz"}),
+        (unknown, np.ascontiguousarray(work.grasps, "<f4").tobytes(), octet),
+    ]
+
+
+def _npy_bytes(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, a, allow_pickle=False)
+    return buf.getvalue()
+
+
+def _npz_bytes(**arrays: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
 # ---- target and server memory ------------------------------------------------------------
 def check_target(url: str, allow_remote: bool) -> str:
     """The base URL without a trailing slash; ValueError unless http(s) to a loopback host
@@ -217,7 +260,7 @@ async def _server_totals(http) -> dict | None:
 
 
 # ---- clients ------------------------------------------------------------------------------
-async def _timed(rec: Recorder, endpoint: str, coro, check) -> object | None:
+async def _timed(rec: Recorder, endpoint: str, coro, check, ok=lambda status: status == 200) -> object | None:
     t = time.perf_counter()
     try:
         r = await coro
@@ -225,7 +268,7 @@ async def _timed(rec: Recorder, endpoint: str, coro, check) -> object | None:
         rec.error(endpoint, f"{type(e).__name__}: {e}")
         return None
     dt = time.perf_counter() - t
-    problem = f"HTTP {r.status_code}: {r.text[:160]}" if r.status_code != 200 else check(r)
+    problem = f"HTTP {r.status_code}: {r.text[:160]}" if not ok(r.status_code) else check(r)
     if problem:
         rec.error(endpoint, problem)
         return None
@@ -251,6 +294,14 @@ async def client_loop(http, work: Workload, mix: Mix, deadline: float, rec: Reco
         except ValueError:
             return "answer is not JSON"
 
+    def error_named(r):
+        try:
+            return None if r.json()["error"]["message"] else "4xx without a message"
+        except (ValueError, KeyError, TypeError):
+            return f"4xx answer is not an error object: {r.text[:80]}"
+
+    bad, n_bad = bad_requests(work), 0
+
     while time.perf_counter() < deadline:
         image_id = None
         for _ in range(mix.upload):
@@ -268,6 +319,12 @@ async def client_loop(http, work: Workload, mix: Mix, deadline: float, rec: Reco
             r = await _timed(rec, "score_once", http.post("/v1/score", content=fresh.next_npz(work.grasps), headers=npz_h), scores_ok)
             if r is not None and rec.recording:
                 rec.grasps += k
+            if time.perf_counter() >= deadline:
+                return
+        for _ in range(mix.bad):
+            path, body, headers = bad[n_bad % len(bad)]
+            n_bad += 1
+            await _timed(rec, "bad", http.post(path, content=body, headers=headers), error_named, ok=lambda st: 400 <= st < 500)
             if time.perf_counter() >= deadline:
                 return
 
@@ -422,6 +479,8 @@ async def run_load(url: str, clients: int, duration: float, work: Workload, mix:
 def summarize(rec: Recorder, wall: float) -> dict:
     eps = {}
     for e in ENDPOINTS:
+        if e == "bad" and not (rec.latencies[e] or rec.errors[e]):
+            continue  # no bad requests in this mix
         lat = np.asarray(rec.latencies[e]) * 1e3
         n = len(lat)
         eps[e] = {"requests": n, "errors": rec.errors[e], "per_s": n / wall if wall > 0 else 0.0,

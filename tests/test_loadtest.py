@@ -35,6 +35,16 @@ def test_single_client_uses_the_raw_transport_and_scores_every_call(url):
     assert score["requests"] > 0 and report["grasps_per_s"] > 0
 
 
+@pytest.mark.parametrize("clients", [1, 2], ids=["raw", "httpx"])
+def test_bad_requests_in_the_mix_all_get_a_named_4xx(url, clients):
+    """`bad=N` rotates malformed requests (NaN depth, truncated .npy, corrupt PNG, zip bomb,
+    broken JSON, zero quaternion, unknown id): every one must be a 4xx with a message."""
+    report = main(["--url", url, "--clients", str(clients), "--duration", "1.5", "--warmup", "0", "--k", "16",
+                   "--mix", "upload=1,score=1,once=0,bad=7"])
+    bad = report["endpoints"]["bad"]
+    assert bad["requests"] >= 7 and bad["errors"] == 0 and report["errors"] == 0, report["error_messages"]
+
+
 def test_loadtest_refuses_a_non_loopback_host():
     with pytest.raises(ValueError, match="non-loopback"):
         check_target("http://192.0.2.1:8000", allow_remote=False)
