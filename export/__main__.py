@@ -37,6 +37,17 @@ def _baselines(files: list[str], data_path) -> dict:
     return out
 
 
+def _sample(ds, order: tuple[str, ...], n: int, seed: int, arch: str):
+    """(split, crops, poses, labels) as numpy: ``n`` random rows of the first non-empty split in ``order``."""
+    from training.data import DatasetError
+
+    split = next((ds.splits[s] for s in order if s in ds.splits and len(ds.splits[s])), None)
+    if split is None:
+        raise DatasetError(f"{ds.path}: no non-empty split among {order}")
+    idx = np.sort(np.random.default_rng(seed).choice(len(split), min(n, len(split)), replace=False))
+    return (split, *(t.numpy() for t in split.batch(idx, arch)))
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(prog="vgq-export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", required=True, help="training run folder (or a checkpoint file)")
@@ -70,28 +81,23 @@ def main(argv=None) -> None:
         logging.info("loading %s", a.run)
         net, meta = load_trained(a.run)
         ds = open_crop_dataset(a.data)
-        split = next((ds.splits[s] for s in ("test", "val", "train") if s in ds.splits and len(ds.splits[s])), None)
-        if split is None:
-            raise DatasetError(f"{a.data}: no non-empty split to take verification inputs from")
-        idx = np.sort(np.random.default_rng(a.seed).choice(len(split), min(a.verify_n, len(split)), replace=False))
-        crops, poses, _ = split.batch(idx, meta["arch"])
+        split, crops, poses, _ = _sample(ds, ("test", "val", "train"), a.verify_n, a.seed, meta["arch"])
         int8 = None
         if a.int8_head:
-            chk = next((ds.splits[s] for s in ("val", "test", "train") if s in ds.splits and len(ds.splits[s])))
-            ci = np.sort(np.random.default_rng(a.seed).choice(len(chk), min(a.int8_check_n, len(chk)), replace=False))
-            c, q, y = chk.batch(ci, meta["arch"])
-            int8 = (c.numpy(), q.numpy(), y.numpy())
-            logging.info("int8 head check on %d %s crops", len(ci), chk.name)
+            chk, *labelled = _sample(ds, ("val", "test", "train"), a.int8_check_n, a.seed, meta["arch"])
+            int8 = tuple(labelled)
+            logging.info("int8 head check on %d %s crops", len(labelled[0]), chk.name)
         if a.recipe:
             meta["dataset"]["recipe"] = a.recipe
         meta["metrics"].update(_baselines(a.baseline, ds.path))
-        logging.info("exporting %s, verifying on %d %s crops", meta["arch"], len(idx), split.name)
+        logging.info("exporting %s, verifying on %d %s crops", meta["arch"], len(crops), split.name)
         card = export_model(
-            net, a.out, crops.numpy(), poses.numpy(),
+            net, a.out, crops, poses,
             geometry=CropGeometry.from_dict(meta["geometry"]),
             intrinsics=Intrinsics.from_dict(meta["intrinsics"]),
             dataset=meta["dataset"], training=meta["training"], metrics=meta["metrics"],
-            label_threshold=float(meta.get("label_threshold", 0.002)), tolerance=a.tolerance, int8_check=int8,
+            label_threshold=float(meta.get("label_threshold", 0.002)), tolerance=a.tolerance,
+            int8_check=int8,
         )
     except (CheckpointError, DatasetError, ExportError, FileNotFoundError, ValueError) as e:
         print(f"vgq-export: {e}", file=sys.stderr)

@@ -140,14 +140,10 @@ class FreshImages:
         return self.depth
 
     def next_npy(self) -> bytes:
-        buf = io.BytesIO()
-        np.save(buf, self.next_array(), allow_pickle=False)
-        return buf.getvalue()
+        return _npy_bytes(self.next_array())
 
     def next_npz(self, grasps: np.ndarray) -> bytes:
-        buf = io.BytesIO()
-        np.savez(buf, depth=self.next_array(), grasps=grasps)
-        return buf.getvalue()
+        return _npz_bytes(depth=self.next_array(), grasps=grasps)
 
 
 def bad_requests(work: Workload) -> list[tuple[str, bytes, dict]]:
@@ -157,8 +153,7 @@ def bad_requests(work: Workload) -> list[tuple[str, bytes, dict]]:
     npy_h, octet = {"content-type": "application/x-npy"}, {"content-type": OCTET}
     nan = np.array(work.depth, np.float32)
     nan[100:110, 100:110] = np.nan
-    good = io.BytesIO()
-    np.save(good, np.asarray(work.depth, np.float32))
+    good = _npy_bytes(np.asarray(work.depth, np.float32))
     bomb = io.BytesIO()
     with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as z:
         with z.open("depth.npy", "w") as f:
@@ -168,7 +163,7 @@ def bad_requests(work: Workload) -> list[tuple[str, bytes, dict]]:
     unknown = "/v1/images/" + "0" * 64 + "/scores"
     return [
         ("/v1/images", _npy_bytes(nan), npy_h),
-        ("/v1/images", good.getvalue()[: len(good.getvalue()) // 2], npy_h),
+        ("/v1/images", good[: len(good) // 2], npy_h),
         ("/v1/images", b"\x89PNG\r\n\x1a\n" + bytes(range(256)) * 4, {"content-type": "image/png"}),
         ("/v1/score", bomb.getvalue(), {"content-type": "application/x-npz"}),
         (unknown, b'{"grasps": [[1, 2,', {"content-type": "application/json"}),

@@ -10,6 +10,8 @@ import onnxruntime as ort
 
 from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT, ModelCard
 
+from .config import HEAD_PRECISIONS
+
 
 class ModelError(RuntimeError):
     """The model folder is missing, unreadable or of an architecture this service can't serve."""
@@ -41,12 +43,12 @@ class FastModel:
             raise ModelError(f"cannot load model from {model_dir}: {e}") from e
         if self.card.architecture != "fast_vgqcnn":
             raise ModelError(f"{model_dir}: architecture {self.card.architecture!r}; the service serves fast_vgqcnn")
+        if head_precision not in HEAD_PRECISIONS:
+            raise ModelError(f"head_precision must be one of {HEAD_PRECISIONS}, got {head_precision!r}")
         has_int8 = "head_int8" in self.card.files
         if head_precision == "int8" and not has_int8:
             raise ModelError(f"{model_dir}: head_precision int8 asked for, but the model has no int8 head "
                              "(export it with --int8-head)")
-        if head_precision not in ("auto", "fp32", "int8"):
-            raise ModelError(f"head_precision must be auto, fp32 or int8, got {head_precision!r}")
         self.head_precision = "int8" if has_int8 and head_precision != "fp32" else "fp32"
         head_file = self.card.files["head_int8" if self.head_precision == "int8" else "head"]
         so = session_options(threads)
