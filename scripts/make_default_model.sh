@@ -24,3 +24,5 @@ $PY -m training baseline --data "$DATA/crops" --model mlp --out runs/baseline
 $PY -m export --run "$RUN" --data "$DATA/crops" --out "$OUT" \
   --recipe "python -m datagen recipe --out $DATA" --baseline runs/baseline/baseline_mlp.json --int8-head
 cp "$RUN/eval/heatmap_test.png" "$RUN/eval/curves.png" "$OUT/"
+# golden end-to-end scores of the new model on the example image (tests/test_golden_scores.py)
+if [ "$OUT" = models/fast-vgqcnn-default ]; then $PY examples/golden.py --model-dir "$OUT"; fi
