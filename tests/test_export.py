@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 
 import numpy as np
@@ -84,6 +85,75 @@ def test_encoder_plus_head_graphs_equal_torch_on_fresh_inputs(model_dir, briefly
     assert got.shape == (16,) and np.abs(got - ref).max() < 1e-4
 
 
+def strongly_activated(net: GraspQualityNet, crops: np.ndarray, poses: np.ndarray) -> GraspQualityNet:
+    """A copy of ``net`` whose every layer matters: conv1_2 x150 and conv2_2 x10 drive both LRNs
+    far into their non-linear range (alpha sum x^2 >> 1), fc4_image is rescaled to a unit-spread
+    image term and fc6 x10 (bias centred) spreads the probabilities over (0.15, 0.85)."""
+    s = copy.deepcopy(net).eval()
+    x, p = torch.from_numpy(crops[:, None]), torch.from_numpy(poses)
+    with torch.no_grad():
+        for layer, f in ((s.conv1_2, 150.0), (s.conv2_2, 10.0)):
+            layer.weight *= f
+            layer.bias *= f
+        s.fc4_image.weight /= s.encode(x).std()
+        s.fc6.weight *= 10.0
+        s.fc6.bias[1] -= torch.logit(s.head(s.encode(x), p)).median()
+    return s
+
+
+def encode_without_lrn(net: GraspQualityNet, x: torch.Tensor, which: int) -> torch.Tensor:
+    """``net.encode`` with its first (0) or second (1) LRN left out."""
+    def lrn(y, i):
+        return y if i == which else net.lrn(y)
+
+    y = torch.relu(net.conv1_1((x - net.image_mean) / net.image_std))
+    y = torch.nn.functional.max_pool2d(lrn(torch.relu(net.conv1_2(y)), 0), 2)
+    y = torch.nn.functional.max_pool2d(lrn(torch.relu(net.conv2_2(torch.relu(net.conv2_1(y)))), 1), 2)
+    return net.fc4_image(torch.relu(net.fc3(torch.flatten(y, 1))))
+
+
+@pytest.fixture(scope="module")
+def strong(tmp_path_factory, briefly_trained):
+    """(net, model folder) of :func:`strongly_activated`, exported (its own verification included)."""
+    net, imgs, poses = briefly_trained
+    s = strongly_activated(net, imgs[:64], poses[:64])
+    out = tmp_path_factory.mktemp("strong") / "m"
+    export_model(s, out, imgs[:32], poses[:32], GEOM, DEFAULT_INTRINSICS)
+    return s, out
+
+
+def test_strong_net_needs_each_lrn_and_spreads_its_probabilities(strong, briefly_trained):
+    """The parity check below can see a missing layer: leaving out either LRN moves the image
+    term by > 10% of its largest value and some probability by > 0.1."""
+    net, _ = strong
+    imgs, poses, _ = synthetic_crops(64, np.random.default_rng(11))
+    x, p = torch.from_numpy(imgs[:, None]), torch.from_numpy(poses)
+    with torch.no_grad():
+        term, prob = net.encode(x), net.head(net.encode(x), p)
+        assert prob.std() > 0.1 and 0.02 < prob.min() and prob.max() < 0.98
+        for which in (0, 1):
+            t = encode_without_lrn(net, x, which)
+            assert (t - term).abs().max() > 0.1 * term.abs().max(), which
+            assert (net.head(t, p) - prob).abs().max() > 0.1, which
+        np.testing.assert_allclose(encode_without_lrn(net, x, -1), term, rtol=1e-6, atol=1e-6)  # the helper is encode
+
+
+def test_onnx_encoder_and_head_reproduce_a_net_whose_every_layer_matters(strong):
+    net, out = strong
+    imgs, poses, _ = synthetic_crops(64, np.random.default_rng(12))
+    enc = ort.InferenceSession(str(out / "encoder.onnx"), providers=["CPUExecutionProvider"])
+    head = ort.InferenceSession(str(out / "head.onnx"), providers=["CPUExecutionProvider"])
+    terms = enc.run(None, {"depth_crop": imgs[:, None]})[0]
+    with torch.no_grad():
+        ref_terms = net.encode(torch.from_numpy(imgs[:, None])).numpy()
+        ref_p = net.head(torch.from_numpy(ref_terms[:1]), torch.from_numpy(poses)).numpy()
+    rel = np.abs(terms - ref_terms).max(axis=1) / np.abs(ref_terms).max(axis=1)  # per image, to its own scale
+    assert rel.max() < 1e-5, rel.max()
+    got = head.run(None, {"image_term": terms[:1], "poses": poses})[0]
+    assert np.abs(got - ref_p).max() < 1e-5 and ref_p.std() > 0.1
+    assert ModelCard.load(out).export["verification"]["max_rel_diff_image_term"] < 1e-5
+
+
 def test_folded_head_equals_network_head():
     net = GraspQualityNet("fast_vgqcnn").eval()
     imgs, poses, _ = synthetic_crops(32, np.random.default_rng(1))
@@ -142,7 +212,9 @@ def test_export_cli_records_recipe_and_pose_only_baseline(tmp_path):
     card = ModelCard.load(tmp_path / "m")
     assert card.dataset["recipe"] == "python -m datagen recipe --out data/recipe"
     base = card.metrics["baseline_logreg"]
-    assert base["columns"] == ["u", "v", "z", "qw", "qx", "qy", "qz"] and 0 <= base["test"]["balanced_accuracy"] <= 1
+    assert base["columns"] == ["u", "v", "z", "qw", "qx", "qy", "qz"]
+    recorded = json.loads((tmp_path / "b" / "baseline_logreg.json").read_text())["test"]
+    assert base["test"] == recorded and base["test"]["n"] == 8  # the baseline's own test numbers, all 8 test crops
     assert card.training["samples_seen"] == 16
 
 
