@@ -2,17 +2,20 @@
 crop or pose code: the window and the offsets are written out here by hand, then the ONNX
 encoder and fp32 head run directly in onnxruntime.
 
-    python examples/golden.py            # rewrite examples/golden_scores.json (with the model)
+    python examples/golden.py   # rewrite golden_scores.json and golden_heldout.json (with the model)
 
 ``scripts/make_default_model.sh`` reruns this after exporting the model; the golden file is
-never regenerated on its own (``tests/test_golden_scores.py`` compares the running service,
-this computation and the stored numbers).
+never regenerated on its own (``tests/test_golden_scores.py`` and ``tests/test_default_model.py``
+compare the running service, this computation and the stored numbers). ``golden_heldout.json``
+holds the fp32 scores of the held-out grasps of ``heldout_images.npz`` (``heldout.py``), each in
+its own window.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +27,7 @@ ROOT = HERE.parent
 MODEL = ROOT / "models" / "fast-vgqcnn-default"
 DEPTH = HERE / "depth_example.npy"
 GOLDEN = HERE / "golden_scores.json"
+GOLDEN_HELDOUT = HERE / "golden_heldout.json"
 
 # The example image is 300 x 300; the service's default window centre is the image centre
 # (149.5, 149.5). A 96 px window centred there starts at pixel 149.5 - 48 + 0.5 = 102 and ends
@@ -48,24 +52,71 @@ def golden_grasps() -> np.ndarray:
     return np.concatenate([example, offs])
 
 
+class HandScorer:
+    """The bundled model's ONNX graphs, run directly, on windows cut out by hand."""
+
+    def __init__(self, model_dir: Path = MODEL, head: str = "head.onnx"):
+        self.encoder = ort.InferenceSession(str(model_dir / "encoder.onnx"), providers=["CPUExecutionProvider"])
+        self.head = ort.InferenceSession(str(model_dir / head), providers=["CPUExecutionProvider"])
+
+    @staticmethod
+    def small_window(depth: np.ndarray, centre=(CENTRE, CENTRE)) -> np.ndarray:
+        """The 96 px window centred on ``centre`` (u, v; a window centre: an integer + 0.5,
+        the window inside the image), shrunk to 32 x 32."""
+        u0, v0 = centre[0] - 47.5, centre[1] - 47.5
+        assert u0 == int(u0) and v0 == int(v0) and 0 <= u0 and 0 <= v0, centre
+        assert v0 + 96 <= depth.shape[0] and u0 + 96 <= depth.shape[1], centre
+        window = np.ascontiguousarray(depth[int(v0):int(v0) + 96, int(u0):int(u0) + 96], np.float32)
+        return np.asarray(Image.fromarray(window).resize((96 // SHRINK,) * 2, Image.Resampling.BILINEAR), np.float32)
+
+    @staticmethod
+    def poses(grasps: np.ndarray, centre=(CENTRE, CENTRE)) -> np.ndarray:
+        """Network pose rows: offsets from ``centre`` / 3, z, unit quaternion with w >= 0."""
+        q = grasps[:, 3:7] / np.linalg.norm(grasps[:, 3:7], axis=1, keepdims=True)
+        q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+        du, dv = (grasps[:, 0] - centre[0]) / SHRINK, (grasps[:, 1] - centre[1]) / SHRINK
+        return np.column_stack([du, dv, grasps[:, 2], q]).astype(np.float32)
+
+    @staticmethod
+    def poses_each(grasps: np.ndarray, centres: np.ndarray) -> np.ndarray:
+        """Pose rows of grasps (m, 7), each in its own window (centres (m, 2))."""
+        g = np.asarray(grasps, np.float64)
+        return np.concatenate([HandScorer.poses(g[j:j + 1], centres[j]) for j in range(len(g))])
+
+    def terms(self, small: np.ndarray) -> np.ndarray:
+        """(n, 32, 32) shrunk windows -> (n, 1024) image terms."""
+        return self.encoder.run(None, {"depth_crop": np.asarray(small, np.float32)[:, None]})[0]
+
+    def scores(self, term: np.ndarray, poses: np.ndarray) -> np.ndarray:
+        """(1 or k, 1024) image terms, (k, 7) pose rows -> (k,) success probabilities."""
+        return self.head.run(None, {"image_term": term, "poses": poses})[0]
+
+
 def hand_scores(depth: np.ndarray, grasps: np.ndarray, model_dir: Path = MODEL, head: str = "head.onnx") -> np.ndarray:
-    """Success probabilities (k,) of ``grasps`` on the 300 x 300 ``depth`` (metres)."""
+    """Success probabilities (k,) of ``grasps`` on the 300 x 300 ``depth`` (metres), default window."""
     assert depth.shape == (300, 300), depth.shape
-    window = np.ascontiguousarray(depth[ROWS, COLS], np.float32)
-    small = np.asarray(Image.fromarray(window).resize((96 // SHRINK,) * 2, Image.Resampling.BILINEAR), np.float32)
-    q = grasps[:, 3:7] / np.linalg.norm(grasps[:, 3:7], axis=1, keepdims=True)
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    poses = np.column_stack([(grasps[:, 0] - CENTRE) / SHRINK, (grasps[:, 1] - CENTRE) / SHRINK, grasps[:, 2], q])
-    enc = ort.InferenceSession(str(model_dir / "encoder.onnx"), providers=["CPUExecutionProvider"])
-    hd = ort.InferenceSession(str(model_dir / head), providers=["CPUExecutionProvider"])
-    term = enc.run(None, {"depth_crop": small[None, None]})[0]
-    return hd.run(None, {"image_term": term, "poses": poses.astype(np.float32)})[0]
+    s = HandScorer(model_dir, head)
+    return s.scores(s.terms(s.small_window(depth)[None]), s.poses(grasps))
+
+
+def heldout_scores(depth: np.ndarray, grasps: np.ndarray, image_index: np.ndarray, center: np.ndarray,
+                   model_dir: Path = MODEL) -> np.ndarray:
+    """fp32 success probabilities (m,) of held-out grasps, each in the window at its ``center``."""
+    s = HandScorer(model_dir)
+    terms = s.terms(np.stack([s.small_window(depth[i], c) for i, c in zip(image_index, center)]))
+    return s.scores(terms, s.poses_each(grasps, center))
+
+
+def balanced_accuracy(labels: np.ndarray, p: np.ndarray) -> float:
+    y, pred = np.asarray(labels) == 1, np.asarray(p) > 0.5
+    return float((pred[y].mean() + (~pred[~y]).mean()) / 2)
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model-dir", default=str(MODEL))
     p.add_argument("--out", default=str(GOLDEN))
+    p.add_argument("--heldout-out", default=str(GOLDEN_HELDOUT))
     a = p.parse_args()
     model_dir = Path(a.model_dir)
     card = json.loads((model_dir / "model_card.json").read_text())
@@ -74,13 +125,18 @@ def main() -> None:
     doc = {"model_version": card["model_version"], "image": DEPTH.name, "window_center": [CENTRE, CENTRE],
            "head": "fp32", "grasps": [[round(float(x), 6) for x in r] for r in g],
            "p_success": [float(x) for x in p32]}
-    import sys
-
     sys.path.insert(0, str(ROOT))
+    from heldout import load_heldout_images
     from vgq import atomic
 
     atomic.write_json(Path(a.out), doc)
     print(f"{a.out}: {len(g)} golden scores of {card['model_version']}")
+    h = load_heldout_images()
+    p = heldout_scores(h.depth, h.grasps, h.image_index, h.center, model_dir)
+    atomic.write_json(Path(a.heldout_out), {
+        "model_version": card["model_version"], "images": "heldout_images.npz", "head": "fp32",
+        "balanced_accuracy": balanced_accuracy(h.labels, p), "p_success": [float(x) for x in p]})
+    print(f"{a.heldout_out}: {len(p)} held-out scores, balanced accuracy {balanced_accuracy(h.labels, p):.4f}")
 
 
 if __name__ == "__main__":

@@ -1,20 +1,28 @@
 """The bundled default model is a trained grasp model, not a placeholder: its card records how
 it was made and what it scores, and its ONNX graphs (the service's runtime, no torch) classify
-real held-out crops of test objects better than chance."""
+whole held-out images of test objects through the real service as the stored scores say."""
 
 from __future__ import annotations
 
+import io
+import json
+import sys
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 
-from service.runtime import FastModel
+from servers import running_service
 from vgq.model_card import ModelCard
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "examples"))
+from golden import GOLDEN_HELDOUT, HandScorer, balanced_accuracy, heldout_scores  # noqa: E402
+from heldout import load_heldout_images  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = ROOT / "models" / "fast-vgqcnn-default"
-HELDOUT = ROOT / "examples" / "heldout_test_crops.npz"
+BOUND = 0.77  # balanced accuracy on the held-out images: see test_service_classifies_whole_heldout_images
 
 
 @pytest.fixture(scope="module")
@@ -36,11 +44,85 @@ def test_card_beats_the_pose_only_baseline_on_the_same_test_split(card):
     assert model["balanced_accuracy"] > base["balanced_accuracy"] + 0.05
 
 
-def test_onnx_graphs_classify_heldout_test_crops():
-    d = np.load(HELDOUT)
-    m = FastModel(DEFAULT, threads=1)
-    p = np.concatenate([m.score(m.encode(img), pose[None]) for img, pose in zip(d["images"], d["poses"])])
-    pred, y = p > 0.5, d["labels"] == 1
-    tpr, tnr = pred[y].mean(), (~pred[~y]).mean()
-    assert y.sum() >= 100 and (~y).sum() >= 100
-    assert (tpr + tnr) / 2 > 0.7, (tpr, tnr)
+@pytest.fixture(scope="module")
+def heldout():
+    return load_heldout_images()
+
+
+@pytest.fixture(scope="module")
+def served(heldout) -> np.ndarray:
+    """fp32 scores of the held-out grasps from the real service: each grasp sent in a one-shot
+    request with its whole image and its window centre (the npz ``center``)."""
+    p = np.empty(len(heldout))
+    with running_service(DEFAULT, "--head-precision", "fp32") as url, httpx.Client(base_url=url) as c:
+        for j in range(len(heldout)):
+            body = io.BytesIO()
+            np.savez(body, depth=heldout.depth[heldout.image_index[j]], grasps=heldout.grasps[j:j + 1],
+                     center=heldout.center[j].astype(np.float64))
+            r = c.post("/v1/score", content=body.getvalue(), headers={"content-type": "application/x-npz"})
+            assert r.status_code == 200, r.text
+            p[j] = r.json()["p_success"][0]
+    return p
+
+
+def test_service_classifies_whole_heldout_images(card, heldout, served):
+    """Balanced accuracy of the served model on whole images of the recipe's test objects.
+
+    The bound is not the card's 0.864 - 0.02: these 700 grasps are drawn at random on 54 images
+    (no positivity equalisation, no uniform (phi, beta) binning as in the recipe's test split),
+    and the model scores 0.784 on them (fp32; examples/golden_heldout.json, measured by
+    ``python examples/golden.py``). BOUND = 0.77 lies between that and what a broken serving
+    path scores on the same grasps (see the next test): u and v swapped 0.661, offsets negated
+    0.641, only u negated 0.758, the network's crop mirrored (left-right, in service/app.py) 0.754.
+    A mirrored whole image (window and grasps staying put: 0.779) is not separable by accuracy
+    here (the objects lie near the image centre, most of them near-symmetric); the per-grasp
+    comparison below and tests/test_golden_scores.py catch it."""
+    y = heldout.labels == 1
+    assert y.sum() >= 200 and (~y).sum() >= 200 and len(np.unique(heldout.image_index)) >= 50
+    ba = balanced_accuracy(heldout.labels, served)
+    assert ba >= BOUND, ba
+    assert card.metrics["test"]["balanced_accuracy"] - ba < 0.1  # same model, same objects: not far from the card
+
+
+def test_service_scores_equal_the_stored_heldout_scores(card, served):
+    """Grasp by grasp, the service scores what the hand computation of examples/golden.py
+    stored for this model: any change of crop, offsets or image orientation moves them."""
+    stored = json.loads(GOLDEN_HELDOUT.read_text())
+    assert stored["model_version"] == card.model_version
+    np.testing.assert_allclose(served, stored["p_success"], atol=1e-5, rtol=0)
+
+
+def test_broken_serving_paths_fall_below_the_bound(heldout):
+    """What the accuracy test would see from a serving path with u and v swapped, offsets
+    negated, or u negated (the same graphs, windows cut by hand): all below BOUND. A mirrored
+    image moves single scores far (> 0.2) although its accuracy barely changes."""
+    h, s = heldout, HandScorer()
+    terms = s.terms(np.stack([s.small_window(h.depth[i], c) for i, c in zip(h.image_index, h.center)]))
+    g = h.grasps.astype(np.float64)
+
+    def ba(transform):
+        moved = np.concatenate([transform(g[j:j + 1], h.center[j]) for j in range(len(g))])
+        return balanced_accuracy(h.labels, s.scores(terms, s.poses_each(moved, h.center)))
+
+    def swap(x, c):
+        x = x.copy()
+        x[:, :2] = c + (x[:, :2] - c)[:, ::-1]
+        return x
+
+    def negate(x, c):
+        x = x.copy()
+        x[:, :2] = 2 * c - x[:, :2]
+        return x
+
+    def negate_u(x, c):
+        x = x.copy()
+        x[:, 0] = 2 * c[0] - x[:, 0]
+        return x
+
+    assert ba(lambda x, c: x) >= BOUND
+    for broken in (swap, negate, negate_u):
+        assert ba(broken) < BOUND, broken.__name__
+    n = 200  # a mirrored image: single scores move far (on the first 200 grasps)
+    mirrored = heldout_scores(h.depth[:, :, ::-1], h.grasps[:n], h.image_index[:n], h.center[:n])
+    stored = np.array(json.loads(GOLDEN_HELDOUT.read_text())["p_success"][:n])
+    assert np.abs(mirrored - stored).max() > 0.2
