@@ -214,7 +214,7 @@ def cmd_objects(args) -> int:
         raise CliError("give --family NAME (or all) and --out DIR, or --list")
     names = family_names() if args.family == "all" else [get_family(n.strip()).name for n in args.family.split(",")]
     out = Path(args.out)
-    entries, rows = [], []
+    entries, rows, views = [], [], {}
     for fam in names:
         objs = [make_object(fam, i, args.seed) for i in range(args.count)]
         for i, o in enumerate(objs):
@@ -224,12 +224,14 @@ def cmd_objects(args) -> int:
                             "extents_m": [round(float(x), 5) for x in o.mesh.extents], "volume_m3": float(o.mesh.volume),
                             "watertight": bool(o.mesh.is_watertight)})
         if not args.no_sheet:
-            sheet = contact_sheet([(fam, objs)], out / f"{fam}.png", f"{fam}: {FAMILIES[fam].summary} (seed {args.seed})", cols=5)
+            sheet = contact_sheet([(fam, objs)], out / f"{fam}.png", f"{fam}: {FAMILIES[fam].summary} (seed {args.seed})", cols=5,
+                                  cache=views)
             print(f"{sheet}: {len(objs)} objects")
         rows.append((fam, objs))
     atomic.write_json(out / "objects.json", {"seed": args.seed, "objects": entries})
     if len(names) > 1 and not args.no_sheet:
-        sheet = contact_sheet([(f, o[:6]) for f, o in rows], out / "families.png", f"object families (seed {args.seed})")
+        sheet = contact_sheet([(f, o[:6]) for f, o in rows], out / "families.png", f"object families (seed {args.seed})",
+                              cache=views)
         print(f"{sheet}: {len(names)} families")
     print(f"{out}: {len(entries)} meshes (.stl, metres) and objects.json (family, parameters)")
     return 0

@@ -120,6 +120,30 @@ def test_holdout_families_go_only_to_test():
         split_by_family(list(fams), fams, (0.8, 0.1, 0.1), 0, holdout=("torus",))
 
 
+def test_sample_dataset_splits_within_families_and_keeps_family_records(tmp_path):
+    import json
+
+    from datagen import storage
+    from datagen.sampling import SamplingParams, sample_dataset
+    from datagen_fakes import fake_dataset
+
+    fake_dataset(tmp_path / "raw", n_objects=12, n_grasps=200)
+    mp = tmp_path / "raw" / "manifest.json"
+    m = json.loads(mp.read_text())
+    for o in m["objects"]:  # 6 random_urdfs, 3 mugs, 3 boxes
+        o["family"] = "random_urdfs" if o["object_id"] < 6 else ("mug" if o["object_id"] < 9 else "box")
+        o["params"] = {} if o["family"] == "random_urdfs" else {"index": o["object_id"]}
+    storage.write_manifest(tmp_path / "raw", m)
+    logs: list[str] = []
+    stats = sample_dataset(tmp_path / "raw", tmp_path / "s", SamplingParams(uniform=False), log=logs.append, plot=False)
+    out = storage.open_dataset(tmp_path / "s").manifest
+    assert stats["families"] == {f: {"train": n - 2, "val": 1, "test": 1} for f, n in
+                                 (("box", 3), ("mug", 3), ("random_urdfs", 6))}
+    for o, src in zip(out["objects"], m["objects"]):
+        assert o["family"] == src["family"] and o["params"] == src["params"]
+    assert any("objects per family" in line for line in logs)
+
+
 # ----------------------------------------------------------------------------- config and CLI
 
 

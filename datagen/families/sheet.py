@@ -1,4 +1,4 @@
-"""Contact sheets of family objects: each object at its most probable stable pose, rendered
+"""Contact sheets of family objects: each object in a likely stable pose, rendered
 by datagen's embree depth renderer from an oblique camera, hill-shaded, laid out with
 matplotlib (Agg, PNG)."""
 
@@ -24,16 +24,19 @@ VIEW_THETA = math.radians(35.0)  # camera azimuth
 
 def view_depth(mesh) -> tuple[np.ndarray, np.ndarray]:
     """(depth (H, W) float32 metres, object mask (H, W) bool) of ``mesh`` (object frame,
-    metres) resting in its most probable stable pose, seen from the oblique sheet camera at
-    a distance that makes the object fill about half of the image."""
+    metres) resting in a stable pose (of those with probability >= 5 %, the most upright:
+    cups and bottles stand), seen from the oblique sheet camera at a distance that makes
+    the object fill about half of the image."""
     from ..camera import look_at_table_origin
     from ..mesh import GraspableObject, stable_poses
     from ..render import render_depth
 
     m = mesh.copy()
     m.apply_translation(-m.center_mass)
-    T, _ = stable_poses(GraspableObject("view", "view", m), 0.0, 1)
-    m.apply_transform(T[0])
+    T, p = stable_poses(GraspableObject("view", "view", m), 0.0)
+    likely = p >= min(0.05, p[0])
+    up = np.where(likely, T[:, 2, 2], -np.inf)  # world z of the object's z axis: upright cups, bottles, mugs
+    m.apply_transform(T[int(np.argmax(up))])
     m.apply_translation([0.0, 0.0, -0.5 * m.bounds[1, 2]])  # look at the object's middle, not its base
     radius = float(np.linalg.norm(m.extents)) / 2
     intr = DEFAULT_INTRINSICS
@@ -56,7 +59,8 @@ def shaded(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """RGB (H, W, 3) hill shade of a depth image, the object tinted, cropped to the object."""
     ls = LightSource(azdeg=315, altdeg=45)
     z = -depth.astype(np.float64)
-    rgb = ls.shade(z, cmap=plt.get_cmap("bone"), vert_exag=2000.0, blend_mode="soft", vmin=z.min(), vmax=z.max())[..., :3]
+    rgb = ls.shade(z, cmap=plt.get_cmap("bone"), vert_exag=2000.0, blend_mode="soft", vmin=z.min(), vmax=z.max())
+    rgb = rgb[..., :3]
     rgb[mask] = 0.55 * rgb[mask] + 0.45 * np.array([0.95, 0.6, 0.2])
     v, u = np.nonzero(mask)
     if len(v) == 0:
@@ -73,9 +77,13 @@ def _label(obj) -> str:
     return f"{obj.name} {kind}\n{e[0]:.1f} x {e[1]:.1f} x {e[2]:.1f} cm"
 
 
-def contact_sheet(rows: list[tuple[str, list]], path: str | Path, title: str, cols: int | None = None) -> Path:
+def contact_sheet(
+    rows: list[tuple[str, list]], path: str | Path, title: str, cols: int | None = None, cache: dict | None = None
+) -> Path:
     """Write a PNG with one row of rendered objects per ``(row label, [FamilyObject])``
-    (``cols`` images per row at most; a single row wraps). Returns the path."""
+    (``cols`` images per row at most; a single row wraps). ``cache``: a dict that keeps the
+    rendered views by object name across calls. Returns the path."""
+    cache = {} if cache is None else cache
     if len(rows) == 1 and cols:
         label, objs = rows[0]
         rows = [(label if i == 0 else "", objs[i : i + cols]) for i in range(0, len(objs), cols)]
@@ -89,7 +97,9 @@ def contact_sheet(rows: list[tuple[str, list]], path: str | Path, title: str, co
             for s in ax.spines.values():
                 s.set_visible(False)
             if c < len(objs):
-                ax.imshow(shaded(*view_depth(objs[c].mesh)))
+                if objs[c].name not in cache:
+                    cache[objs[c].name] = shaded(*view_depth(objs[c].mesh))
+                ax.imshow(cache[objs[c].name])
                 ax.set_title(_label(objs[c]), fontsize=6.5)
             if c == 0 and label:
                 ax.set_ylabel(label, fontsize=9, fontweight="bold")
