@@ -127,7 +127,7 @@ def test_sample_dataset_splits_within_families_and_keeps_family_records(tmp_path
     from datagen.sampling import SamplingParams, sample_dataset
     from datagen_fakes import fake_dataset
 
-    fake_dataset(tmp_path / "raw", n_objects=12, n_grasps=200)
+    fake_dataset(tmp_path / "raw", n_objects=12, n_grasps=60, n_images=1)
     mp = tmp_path / "raw" / "manifest.json"
     m = json.loads(mp.read_text())
     for o in m["objects"]:  # 6 random_urdfs, 3 mugs, 3 boxes
