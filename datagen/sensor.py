@@ -9,8 +9,11 @@ Effects, in the order applied to a clean depth image ``z`` (H, W) metres, 0 = no
      axis (-x if negative) cannot light: with disparity d = fx * b / z, pixel u of a row maps
      to projector column u - d; it is shadowed if some pixel further along +u maps to a
      smaller projector column (a nearer surface blocks the projector's ray);
-   * depth discontinuities: pixels whose (2 ``edge_width_px`` + 1)^2 neighbourhood spans a
-     depth jump > ``edge_jump_m``, each dropped with probability ``edge_dropout``;
+   * depth discontinuities (jump edges): both pixels of each 4-neighbour pair whose depth
+     step exceeds ``edge_jump_m`` and whose 3-D segment lies within ``edge_angle_deg`` of the
+     viewing ray (|dz| > z / (f tan angle): a jump, not a steep surface; 5 deg marks ~0.3% of
+     a rendered scene, its object outlines), widened to ``edge_width_px`` px, and pixels next
+     to no surface; each dropped with probability ``edge_dropout``;
    * dropout blobs: Poisson(``blob_rate``) ellipses per image, semi-axes uniform in
      ``blob_radius_px``, random orientation (dark or shiny spots);
 2. a multiplicative depth-scale error per image, Gamma(k, 1/k) with k = ``gamma_shape``
@@ -52,8 +55,9 @@ class SensorModel:
     noise_base_m: float = 0.0  # per-pixel noise std at z = 0, metres
     noise_quad_m: float = 0.0  # per-pixel noise std growth: + noise_quad_m * z^2 (z metres)
     baseline_m: float = 0.0  # projector offset along camera +x (negative: -x), metres; 0 = no shadows
-    edge_jump_m: float = 0.0  # depth jump marking a discontinuity, metres; 0 = off
-    edge_width_px: int = 1  # neighbourhood half-size of the discontinuity test, px
+    edge_jump_m: float = 0.0  # smallest depth step of a discontinuity, metres
+    edge_angle_deg: float = 5.0  # a step whose 3-D segment is within this angle of the viewing ray is a jump
+    edge_width_px: int = 1  # width of the dropped band on each side of a jump, px
     edge_dropout: float = 0.0  # probability that a discontinuity pixel reads 0
     blob_rate: float = 0.0  # expected dropout blobs per image (Poisson)
     blob_radius_px: tuple[float, float] = (2.0, 6.0)  # blob semi-axis range, px
@@ -76,6 +80,8 @@ class SensorModel:
         for name in ("gp_rate", "edge_dropout"):
             if not 0 <= getattr(self, name) <= 1:
                 bad(name, "a probability in [0, 1]")
+        if not 0 < self.edge_angle_deg <= 45:
+            bad("edge_angle_deg", "in (0, 45] degrees")
         if self.gp_cell_px < 1:
             bad("gp_cell_px", ">= 1")
         if abs(self.baseline_m) > 1:
@@ -134,8 +140,8 @@ class SensorModel:
         drop = ~valid
         if self.baseline_m != 0:
             drop |= shadow_mask(z, self.baseline_m, intr.fx)
-        if self.edge_jump_m > 0 and self.edge_dropout > 0:
-            edges = discontinuity_mask(z, self.edge_jump_m, self.edge_width_px)
+        if self.edge_dropout > 0:
+            edges = discontinuity_mask(z, self.edge_jump_m, self.edge_angle_deg, intr, self.edge_width_px)
             drop |= edges & (rng.random(z.shape) < self.edge_dropout)
         if self.blob_rate > 0:
             drop |= blob_mask(z.shape, self.blob_rate, self.blob_radius_px, rng)
@@ -162,7 +168,7 @@ PRESETS: dict[str, SensorModel] = {
     "realistic": SensorModel(
         gamma_shape=1000.0, gp_sigma_m=0.005, gp_cell_px=4.0, gp_rate=0.5,
         noise_base_m=0.0005, noise_quad_m=0.002, baseline_m=0.075,
-        edge_jump_m=0.01, edge_width_px=1, edge_dropout=0.5,
+        edge_jump_m=0.005, edge_angle_deg=5.0, edge_width_px=1, edge_dropout=0.5,
         blob_rate=2.0, blob_radius_px=(2.0, 6.0), quantum_m=0.001,
     ),
 }
@@ -243,16 +249,30 @@ def shadow_mask(z: np.ndarray, baseline_m: float, fx: float) -> np.ndarray:
     return shadow[:, ::-1] if flip else shadow
 
 
-def discontinuity_mask(z: np.ndarray, jump_m: float, width_px: int = 1) -> np.ndarray:
-    """Pixels (H, W) bool whose (2 width + 1)^2 neighbourhood of valid depth spans more than
-    ``jump_m`` metres (both sides of an edge; a surface next to no reading counts too)."""
-    z = np.asarray(z, dtype=np.float32)
-    k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * width_px + 1, 2 * width_px + 1))
+def discontinuity_mask(z: np.ndarray, jump_m: float, angle_deg: float = 5.0, intr: Intrinsics = DEFAULT_INTRINSICS,
+                       width_px: int = 1) -> np.ndarray:
+    """Jump-edge pixels (H, W) bool of depth ``z`` (H, W) metres (0 = no surface): both pixels
+    of every 4-neighbour pair with |dz| > max(``jump_m``, z_near / (f tan ``angle_deg``)),
+    i.e. whose 3-D segment lies within ``angle_deg`` of the viewing ray, plus surface pixels
+    next to no surface; widened to ``width_px`` px on each side."""
+    z = np.asarray(z, dtype=np.float64)
     valid = z > 0
-    hi = cv2.dilate(np.where(valid, z, 0).astype(np.float32), k, borderType=cv2.BORDER_REPLICATE)
-    lo = cv2.erode(np.where(valid, z, np.float32(1e6)).astype(np.float32), k, borderType=cv2.BORDER_REPLICATE)
-    near_hole = cv2.dilate((~valid).view(np.uint8), k, borderType=cv2.BORDER_REPLICATE).astype(bool)
-    return valid & ((hi - lo > jump_m) | near_hole)
+    m = np.zeros(z.shape, dtype=bool)
+    for axis, f in ((1, intr.fx), (0, intr.fy)):
+        a, b = (z[:, 1:], z[:, :-1]) if axis == 1 else (z[1:], z[:-1])
+        va, vb = (valid[:, 1:], valid[:, :-1]) if axis == 1 else (valid[1:], valid[:-1])
+        thr = np.maximum(jump_m, np.minimum(a, b) / (f * np.tan(np.radians(angle_deg))))
+        jump = (va & vb & (np.abs(a - b) > thr)) | (va != vb)
+        if axis == 1:
+            m[:, 1:] |= jump
+            m[:, :-1] |= jump
+        else:
+            m[1:] |= jump
+            m[:-1] |= jump
+    if width_px > 1:
+        k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * width_px - 1, 2 * width_px - 1))
+        m = cv2.dilate(m.view(np.uint8), k).astype(bool)
+    return m & valid
 
 
 def blob_mask(shape: tuple[int, int], rate: float, radius_px: tuple[float, float], rng: np.random.Generator) -> np.ndarray:

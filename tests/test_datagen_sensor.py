@@ -72,16 +72,33 @@ def test_occlusion_shadow_lies_beside_the_box_away_from_the_projector(box_scene)
 
 
 def test_discontinuities_are_the_box_outline(box_scene):
-    e = discontinuity_mask(box_scene, 0.01, 1)
+    e = discontinuity_mask(box_scene, 0.005, 5.0)
     u0, u1 = box_columns(box_scene)
     assert e[150, u0 - 1] and e[150, u0] and e[150, u1] and e[150, u1 + 1]
-    assert not e[150, u0 + 2 : u1 - 1].any() and not e[:, : u0 - 2].any()
-    assert not discontinuity_mask(box_scene, 0.06, 1).any()  # a 5 cm jump is below 6 cm
+    assert not e[150, u0 + 1 : u1].any() and not e[:, : u0 - 1].any()
+    assert not discontinuity_mask(box_scene, 0.06, 5.0).any()  # a 5 cm jump is below 6 cm
+    assert discontinuity_mask(box_scene, 0.005, 5.0, width_px=3)[150, u0 - 3 : u0 + 3].all()
+
+
+def test_a_steep_plane_is_not_a_discontinuity():
+    """A plane seen at 80 deg incidence at the image centre (more towards its horizon): large
+    depth steps per pixel, but no jump until the incidence nears 85 deg (z ~ 1.4 m)."""
+    v = np.arange(300, dtype=np.float64)[:, None] - 149.5
+    tilt = np.radians(80)
+    # plane through (0, 0, 0.7) with normal (0, -sin, -cos): depth along the ray (x, y, 1)
+    z = 0.7 * np.cos(tilt) / (np.cos(tilt) - np.sin(tilt) * v / DEFAULT_INTRINSICS.fy)
+    z = np.where(z > 0, z, 0) * np.ones((1, 300))
+    z[z > 5] = 0
+    steps = np.abs(np.diff(z, axis=0))[z[1:] * z[:-1] > 0]
+    assert steps.max() > 0.005  # a fixed depth threshold would call this an edge
+    e = discontinuity_mask(z, 0.005, 5.0)
+    assert not e[(z > 0) & (z < 1.2)].any()
+    assert e[(z > 1.6) & (z < 4.5)].all()  # grazing beyond ~85 deg: the sensor loses it
 
 
 def test_edge_dropout_probability_and_missing_readings(box_scene):
-    s = SensorModel(edge_jump_m=0.01, edge_dropout=0.5)
-    e = discontinuity_mask(box_scene, 0.01, 1)
+    s = SensorModel(edge_jump_m=0.005, edge_dropout=0.5)
+    e = discontinuity_mask(box_scene, 0.005, 5.0)
     out = s.apply(box_scene, np.random.default_rng(0))
     dropped = out == 0
     assert not dropped[~e].any()
@@ -143,6 +160,7 @@ def test_realistic_preset_misses_few_pixels_and_keeps_the_rest_close(box_scene):
 @pytest.mark.parametrize("field, value, words", [
     ("gp_rate", 1.5, "probability"), ("baseline_m", 2.0, "[-1, 1]"), ("blob_radius_px", [6, 2], "pair"),
     ("gamma_shape", -1, ">= 0"), ("quantum_m", float("nan"), "finite"), ("edge_width_px", 0, "integer"),
+    ("edge_angle_deg", 60, "(0, 45]"),
 ])
 def test_out_of_range_values_name_the_setting(field, value, words):
     with pytest.raises(ValueError, match=field) as e:
