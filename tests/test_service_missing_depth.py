@@ -165,11 +165,13 @@ def balanced_accuracy(labels: np.ndarray, p: np.ndarray) -> float:
     return float((pred[y].mean() + (~pred[~y]).mean()) / 2)
 
 
-def heldout_comparison(url: str, blob_rate: float = 25.0) -> dict:
+def heldout_comparison(url: str, blob_rate: float = 25.0, model: SensorModel | None = None) -> dict:
+    """Scores of the held-out images clean and corrupted by ``model`` (default: MISSING_2PCT
+    with ``blob_rate``) through the service at ``url``."""
     from heldout import load_heldout_images
 
     held = load_heldout_images()
-    model = MISSING_2PCT.with_overrides({"blob_rate": blob_rate})
+    model = model or MISSING_2PCT.with_overrides({"blob_rate": blob_rate})
     holed = np.stack([corrupt(d, int(o), i, model) for i, (d, o) in enumerate(zip(held.depth, held.object_id))])
     image_missing = float(np.mean(holed == 0))
     p_clean, _ = score_heldout(url, held.depth, held)
@@ -224,10 +226,16 @@ def main(argv=None) -> int:
                                             "2%-missing uploads (sensor-model blobs + edge dropouts).")
     p.add_argument("--root", default=str(ROOT), help="code tree whose service to run (default: this one)")
     p.add_argument("--blob-rate", type=float, default=25.0, help="dropout blobs per image (25: ~2%% missing)")
+    p.add_argument("--sensor", help="corrupt with this datagen.sensor preset (e.g. realistic) instead")
     a = p.parse_args(argv)
     t0 = time.perf_counter()
+    model = None
+    if a.sensor:
+        from datagen.sensor import resolve
+
+        model = resolve(a.sensor)[1]
     with service_from(Path(a.root).resolve(), BUNDLED) as u:
-        r = heldout_comparison(u, a.blob_rate)
+        r = heldout_comparison(u, a.blob_rate, model)
     print(f"service code: {Path(a.root).resolve()}")
     print(f"{r['grasps']} grasps on {r['images']} held-out images; missing pixels {100 * r['image_missing']:.2f}% "
           f"of the images, {100 * r['window_missing_mean']:.2f}% of the windows" if r["window_missing_mean"] is not None
