@@ -19,6 +19,7 @@ RECIPE = {
     "arch": "fast_vgqcnn",
     "kappa": 36.0,  # px in the 96 px window (the authors' default)
     "sampling": {"uniform_quantile": 0.1},  # small dataset: cap bins at the 10% quantile, not the minimum
+    "sensor": "clean",  # the shipped model saw clean renders (the crops CLI default is the realistic sensor)
 }
 
 
@@ -147,7 +148,7 @@ def cmd_recipe(args) -> int:
         f"--seed {RECIPE['seed']} --workers {workers}",
         f"python -m datagen sample --in {out / 'grasps'} --out {out / 'sampled'} --seed {RECIPE['seed']} " + " ".join(sets),
         f"python -m datagen crops --in {out / 'sampled'} --out {out / 'crops'} --arch {RECIPE['arch']} "
-        f"--kappa {RECIPE['kappa']:g} --seed {RECIPE['seed']}",
+        f"--kappa {RECIPE['kappa']:g} --seed {RECIPE['seed']} --sensor {RECIPE['sensor']}",
     ]
     for s in steps:
         print(s)
