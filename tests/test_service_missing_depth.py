@@ -126,6 +126,14 @@ def test_one_shot_reports_and_refuses_the_same_way(url):
         assert e.value.status == 422 and "no depth reading" in e.value.message
 
 
+def test_shared_cache_entries_keep_the_missing_fraction():
+    from service.cache import CachedImage
+    from service.redis_cache import pack_entry, unpack_entry
+
+    e = CachedImage(np.ones((1, 1024), np.float32), np.array([149.5, 149.5]), (300, 300), 0.0375)
+    assert unpack_entry(pack_entry(e)).missing_fraction == 0.0375
+
+
 def test_max_missing_fraction_is_a_setting(model_dir):
     with pytest.raises(ValueError, match="max_missing_fraction"):
         Settings(max_missing_fraction=1.5)
