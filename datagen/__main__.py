@@ -115,7 +115,6 @@ def cmd_sample(args) -> int:
 
 def cmd_crops(args) -> int:
     from .crops import make_crops
-
     from .sensor import parse_override
 
     make_crops(args.inp, args.out, args.arch, args.kappa, seed=args.seed, progress=not args.quiet,

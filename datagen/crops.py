@@ -23,9 +23,8 @@ from typing import Callable
 
 import numpy as np
 
-from vgq import atomic
+from vgq import atomic, inpaint
 from vgq import crop as vcrop
-from vgq import inpaint
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
 from vgq.pose import FULL_POSE_COLUMNS
 from vgq.schema import CROP_FORMAT, FORMAT_VERSION, SPLITS

@@ -108,7 +108,7 @@ class SensorModel:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "SensorModel":
+    def from_dict(cls, d: dict) -> SensorModel:
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
@@ -121,7 +121,7 @@ class SensorModel:
             kw["blob_radius_px"] = tuple(r)
         return cls(**kw)
 
-    def with_overrides(self, overrides: dict) -> "SensorModel":
+    def with_overrides(self, overrides: dict) -> SensorModel:
         """A copy with fields replaced (``{"baseline_m": 0.05}``), validated."""
         return SensorModel.from_dict({**self.to_dict(), **overrides})
 
@@ -295,7 +295,7 @@ def correlated_noise(shape: tuple[int, int], sigma_m: float, cell_px: float, rng
     """Spatially correlated noise (H, W) metres: N(0, ``sigma_m``) on a grid ``cell_px``
     times coarser, upsampled bicubically (Dex-Net 2.0's Gaussian-process noise)."""
     h, w = shape
-    gh, gw = max(1, int(round(h / cell_px))), max(1, int(round(w / cell_px)))
+    gh, gw = max(1, round(h / cell_px)), max(1, round(w / cell_px))
     coarse = rng.normal(0.0, sigma_m, (gh, gw)).astype(np.float32)
     return cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC).astype(np.float64)
 
@@ -306,5 +306,17 @@ def missing_fraction(depth: np.ndarray) -> float:
     return float(np.mean(~(np.isfinite(d) & (d > 0))))
 
 
-__all__ = ["SensorModel", "CLEAN", "PRESETS", "DEFAULT_PRESET", "resolve", "parse_override", "image_rng",
-           "shadow_mask", "discontinuity_mask", "blob_mask", "correlated_noise", "missing_fraction"]
+__all__ = [
+    "CLEAN",
+    "DEFAULT_PRESET",
+    "PRESETS",
+    "SensorModel",
+    "blob_mask",
+    "correlated_noise",
+    "discontinuity_mask",
+    "image_rng",
+    "missing_fraction",
+    "parse_override",
+    "resolve",
+    "shadow_mask",
+]

@@ -16,7 +16,15 @@ from datagen.__main__ import main as datagen_main
 from datagen.crops import fast_window_origins, make_crops
 from datagen.render import render_depth
 from datagen.sensor import (
-    CLEAN, PRESETS, SensorModel, blob_mask, correlated_noise, discontinuity_mask, image_rng, missing_fraction, resolve,
+    CLEAN,
+    PRESETS,
+    SensorModel,
+    blob_mask,
+    correlated_noise,
+    discontinuity_mask,
+    image_rng,
+    missing_fraction,
+    resolve,
     shadow_mask,
 )
 from vgq import crop as vcrop

@@ -22,9 +22,9 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from servers import free_port, grasps_at, running_service
 
 from datagen.sensor import SensorModel, image_rng
-from servers import free_port, grasps_at, running_service
 from service.client import ServiceClient, ServiceError
 from service.config import Settings
 from service.preprocess import window_input

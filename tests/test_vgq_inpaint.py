@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from vgq import crop as vcrop
-from vgq.inpaint import MARGIN_PX, NoValidDepth, crop_filled, fill_nearest, filled_window, missing_mask
+from vgq.inpaint import (
+    MARGIN_PX,
+    NoValidDepth,
+    crop_filled,
+    fill_nearest,
+    filled_window,
+    missing_mask,
+)
 
 GEOM = vcrop.CropGeometry(96, 32, 36.0)
 
