@@ -19,6 +19,7 @@ RECIPE = {
     "arch": "fast_vgqcnn",
     "kappa": 36.0,  # px in the 96 px window (the authors' default)
     "sampling": {"uniform_quantile": 0.1},  # small dataset: cap bins at the 10% quantile, not the minimum
+    "sensor": "clean",  # the shipped model saw clean renders (the crops CLI default is the realistic sensor)
 }
 
 
@@ -149,8 +150,10 @@ def cmd_sample(args) -> int:
 
 def cmd_crops(args) -> int:
     from .crops import make_crops
+    from .sensor import parse_override
 
-    make_crops(args.inp, args.out, args.arch, args.kappa, seed=args.seed, progress=not args.quiet)
+    make_crops(args.inp, args.out, args.arch, args.kappa, seed=args.seed, progress=not args.quiet,
+               sensor=args.sensor, sensor_overrides=dict(parse_override(o) for o in args.sensor_set))
     return 0
 
 
@@ -179,7 +182,7 @@ def cmd_recipe(args) -> int:
         f"--seed {RECIPE['seed']} --workers {workers}",
         f"python -m datagen sample --in {out / 'grasps'} --out {out / 'sampled'} --seed {RECIPE['seed']} " + " ".join(sets),
         f"python -m datagen crops --in {out / 'sampled'} --out {out / 'crops'} --arch {RECIPE['arch']} "
-        f"--kappa {RECIPE['kappa']:g} --seed {RECIPE['seed']}",
+        f"--kappa {RECIPE['kappa']:g} --seed {RECIPE['seed']} --sensor {RECIPE['sensor']}",
     ]
     for s in steps:
         print(s)
@@ -274,7 +277,11 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True, help="output folder")
     c.add_argument("--arch", required=True, choices=("fast_vgqcnn", "vgqcnn", "gqcnn"))
     c.add_argument("--kappa", type=float, help="Fast-VGQ-CNN offset range, source px (default 36)")
-    c.add_argument("--seed", type=_nonneg_int, default=0)
+    c.add_argument("--seed", type=_nonneg_int, default=0, help="window offsets and the sensor model's noise (default 0)")
+    c.add_argument("--sensor", default="realistic",
+                   help="depth-sensor model: a preset (clean, realistic; default realistic) or a .json file of settings")
+    c.add_argument("--sensor-set", metavar="NAME=VALUE", action="append", default=[],
+                   help="override one sensor setting, e.g. --sensor-set baseline_m=0.05 --sensor-set blob_rate=4")
     c.add_argument("--quiet", action="store_true")
     c.set_defaults(func=cmd_crops)
 
