@@ -27,7 +27,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from vgq.crop import crop, window_center, window_origin
+from vgq.crop import window_center, window_origin
 
 from . import logs
 from .cache import CachedImage, MemoryCache, image_id
@@ -37,6 +37,7 @@ from .errors import ApiError
 from .grasps import GRASP_WIDTH, parse_binary, parse_json, to_network_poses
 from .metrics import Metrics
 from .openapi import ERROR_RESPONSES, ONE_SHOT_BODY, SCORE_BODY, SCORE_RESPONSE, UPLOAD_BODY, UPLOAD_RESPONSE
+from .preprocess import window_input
 from .runtime import FastModel
 
 JSON = "application/json"
@@ -169,10 +170,10 @@ class Service:
 
     def encode_image(self, key: str, depth: np.ndarray, center) -> CachedImage:
         geom = self.model.geometry
-        img, actual = crop(depth, center, geom)
-        term = self.model.encode(img)
+        win = window_input(depth, window_origin(center, geom), geom, self.settings.max_missing_fraction)
+        term = self.model.encode(win.image)
         self.metrics.encoder.observe(self.model.encode_seconds)
-        entry = CachedImage(term, actual, depth.shape)
+        entry = CachedImage(term, win.center, depth.shape, win.missing_fraction)
         self.cache.put(key, entry)
         return entry
 
@@ -187,6 +188,7 @@ class Service:
         c, k = entry.window_center, self.model.geometry.kappa_px
         return {"image_id": key, "cached": cached, "model_version": self.model.version,
                 "image_shape": list(entry.image_shape), "window_center": [float(c[0]), float(c[1])],
+                "missing_fraction": entry.missing_fraction,
                 "grasp_range": {"u": [float(c[0] - k), float(c[0] + k)], "v": [float(c[1] - k), float(c[1] + k)]}}
 
 
@@ -350,7 +352,8 @@ def create_app(settings: Settings | None = None, model: FastModel | None = None,
             to_network_poses(grasps, window_center(window_origin(center, geom), geom), geom, settings.max_grasps)
             entry = svc.encode_image(key, depth, center)
         p = svc.score(entry, grasps)
-        return _scores_response(request, {"image_id": key, "cached": cached, "model_version": svc.model.version}, p)
+        return _scores_response(request, {"image_id": key, "cached": cached, "model_version": svc.model.version,
+                                          "missing_fraction": entry.missing_fraction}, p)
 
     return app
 

@@ -29,6 +29,7 @@ class Settings:
     redis_url: str = "redis://127.0.0.1:6379/0"
     cache_ttl_s: float = 86400.0  # redis backend: an image unused this long expires (each hit renews it)
     request_timeout_s: float = 10.0
+    max_missing_fraction: float = 0.5  # a crop window with more pixels without depth (0) is refused (422)
     api_key: str = ""  # when set, upload and score need header X-API-Key
     log_level: str = "info"
     access_log: bool = False  # one structured line per request
@@ -45,6 +46,8 @@ class Settings:
             raise ValueError(f"setting cache_backend must be 'memory' or 'redis', got {self.cache_backend!r}")
         if self.cache_backend == "redis" and not self.redis_url.startswith(("redis://", "rediss://", "unix://")):
             raise ValueError(f"setting redis_url must be a redis://, rediss:// or unix:// URL, got {self.redis_url!r}")
+        if not 0 <= self.max_missing_fraction <= 1:
+            raise ValueError(f"setting max_missing_fraction must be in [0, 1], got {self.max_missing_fraction!r}")
         for name in ("request_timeout_s", "cache_ttl_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"setting {name} must be > 0, got {getattr(self, name)!r}")

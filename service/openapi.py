@@ -39,10 +39,12 @@ UPLOAD_RESPONSE = {
         "image_id": {"type": "string"}, "cached": {"type": "boolean"}, "model_version": {"type": "string"},
         "image_shape": {"type": "array", "items": {"type": "integer"}},
         "window_center": {"type": "array", "items": {"type": "number"}},
+        "missing_fraction": {"type": "number", "minimum": 0, "maximum": 1,
+                             "description": "fraction of the crop window's pixels without a depth reading (0); filled before encoding"},
         "grasp_range": {"type": "object", "properties": {"u": {"type": "array", "items": {"type": "number"}},
                                                          "v": {"type": "array", "items": {"type": "number"}}}}}},
         "example": {"image_id": "3f1c0e9a5b7d4c2e8f6a1b3c5d7e9f01", "cached": False, "model_version": "fast_vgqcnn-0123456789ab",
-                    "image_shape": [300, 300], "window_center": [149.5, 149.5], "grasp_range": {"u": [113.5, 185.5], "v": [113.5, 185.5]}}}},
+                    "image_shape": [300, 300], "window_center": [149.5, 149.5], "missing_fraction": 0.012, "grasp_range": {"u": [113.5, 185.5], "v": [113.5, 185.5]}}}},
 }
 SCORE_BODY = {
     "required": True,
