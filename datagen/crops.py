@@ -16,10 +16,8 @@ from typing import Callable
 
 import numpy as np
 
-from vgq import atomic
 from vgq import crop as vcrop
-from vgq.pose import FULL_POSE_COLUMNS
-from vgq.schema import CROP_FORMAT, FORMAT_VERSION, SPLITS
+from vgq.schema import SPLITS, crop_counts, write_crop_manifest
 
 from . import storage
 from .sampling import SamplingParams, split_objects
@@ -152,26 +150,12 @@ def make_crops(
             for wr in ws.values():
                 wr.abort()
         raise
-    counts = {
-        s: {
-            "grasps": n[s],
-            "positive": pos[s],
-            "positivity": pos[s] / n[s] if n[s] else 0.0,
-            "objects": sorted(i for i, v in split_of.items() if v == s),
-        }
-        for s in SPLITS
-    }
+    counts = {s: crop_counts(n[s], pos[s], objects=sorted(i for i, v in split_of.items() if v == s)) for s in SPLITS}
     cfg = m_src.get("config", {})
-    m = {
-        "format": CROP_FORMAT,
-        "format_version": FORMAT_VERSION,
-        "architecture": arch,
-        "geometry": geom.to_dict(),
-        "kappa_px": geom.kappa_px,
-        "pose_columns": list(FULL_POSE_COLUMNS),
-        "label_threshold": thr,
-        "seed": int(seed),
-        "source": {
+    native = m_src.get("sampling", {}).get("stats", {}).get("steps", {}).get("native")  # before sampling
+    m = write_crop_manifest(
+        out, arch, geom, counts, thr,
+        source={
             "dataset": str(Path(src).resolve()),
             "seed": m_src.get("seed"),
             "config": cfg,
@@ -179,13 +163,11 @@ def make_crops(
             "split": split_note,
             "objects": [{"object_id": o["object_id"], "name": o.get("name")} for o in m_src["objects"]],
         },
-        "counts": counts,
-        "versions": storage.library_versions(),
-    }
-    intr = m_src.get("intrinsics") or cfg.get("intrinsics")
-    if intr:
-        m["intrinsics"] = intr
-    atomic.write_json(out / storage.MANIFEST, m)
+        intrinsics=m_src.get("intrinsics") or cfg.get("intrinsics"),
+        native_counts=crop_counts(native["grasps"], native["positive"]) if native else None,
+        seed=int(seed),
+        versions=storage.library_versions(),
+    )
     for s in SPLITS:
         log(f"{s}: {n[s]} crops, positivity {100 * counts[s]['positivity']:.1f}%")
     return m
