@@ -12,6 +12,7 @@ import logging
 import os
 import shutil
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -66,17 +67,29 @@ def _session(path: Path) -> ort.InferenceSession:
 
 
 def _export(module: torch.nn.Module, args: tuple, path: Path, inputs, outputs, dynamic_axes) -> None:
-    torch.onnx.export(
-        module,
-        args,
-        str(path),
-        input_names=list(inputs),
-        output_names=list(outputs),
-        dynamic_axes=dynamic_axes,
-        opset_version=OPSET,
-        do_constant_folding=True,
-        dynamo=False,
-    )
+    # The TorchScript exporter (dynamo=False) on purpose, its two deprecation warnings silenced
+    # here and only here. torch's recommended exporter (dynamo=True) needs onnxscript (not
+    # installed, not a dependency) and names nodes and weights its own way, while
+    # export.from_onnx reads weights by the names this exporter gives them ("net.conv1_1.weight",
+    # node "/fc4_image/MatMul") and the int8 check records "/head/fc5/Gemm"; the graph structure
+    # (LRN as band Conv + Sqrt, the head's addmm as Gemm + Relu) is what export.graphs traces.
+    # The outputs are verified against torch below whichever exporter writes them.
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="You are using the legacy TorchScript-based ONNX export",
+                                category=DeprecationWarning)
+        warnings.filterwarnings("ignore", message="The feature will be removed. Please remove usage of this function",
+                                category=DeprecationWarning, module=r"torch\.onnx\._internal\.torchscript_exporter")
+        torch.onnx.export(
+            module,
+            args,
+            str(path),
+            input_names=list(inputs),
+            output_names=list(outputs),
+            dynamic_axes=dynamic_axes,
+            opset_version=OPSET,
+            do_constant_folding=True,
+            dynamo=False,
+        )
 
 
 def _sha(paths) -> str:
