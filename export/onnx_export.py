@@ -33,6 +33,7 @@ from vgq.model_card import (
     ModelCard,
 )
 
+from .calibrate import DIAGRAM, CalibrationReport, plot_reliability
 from .graphs import EncoderGraph, HeadGraph, OnePieceGraph
 from .quantize import QuantizationError, check_int8_head, quantize_head
 
@@ -153,13 +154,17 @@ def export_model(
     label_threshold: float = 0.002,
     tolerance: float = DEFAULT_TOLERANCE,
     int8_check: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    calibration: CalibrationReport | None = None,
 ) -> ModelCard:
     """Export ``net`` to ``out_dir`` after verifying ONNX against torch on ``crops`` (n, S, S)
     metres and raw ``poses`` (n, n_pose) in the net's pose columns. Returns the model card.
 
     ``int8_check`` (Fast-VGQ-CNN only): labelled (crops, poses, labels) on which an int8 head
     (``export.quantize``) must score like the fp32 one; it is then added as ``head_int8.onnx``
-    and its check recorded in the card (``export.int8_head``)."""
+    and its check recorded in the card (``export.int8_head``).
+
+    ``calibration`` (``export.calibrate.calibration_report``): recorded in the card's
+    ``calibration``, its reliability diagram written beside the graphs."""
     net = net.eval()
     crops, poses = _check_inputs(net, crops, poses)
     out_dir = Path(out_dir)
@@ -219,7 +224,10 @@ def export_model(
             export={"opset": OPSET, "torch": torch.__version__, "onnxruntime": ort.__version__,
                     "verification": ver.to_dict(), "tolerance": tolerance, "sha256": digest, **extra},
             label_threshold=label_threshold,
+            calibration=calibration.to_dict() if calibration is not None else {},
         )
+        if calibration is not None:
+            plot_reliability(calibration, tmp / DIAGRAM)
         card.save(tmp)
         os.chmod(tmp, 0o755)
         _swap_in(tmp, out_dir)
