@@ -4,6 +4,8 @@
 
 Verification inputs are real crops and poses from the dataset's test split (else val, else
 train). Nothing is written unless onnxruntime matches torch within the tolerance.
+The card also records a calibration of the probabilities (``export.calibrate``): fitted on
+the val split for the dataset's positivity before sampling, its ECE measured on the test split.
 """
 
 from __future__ import annotations
