@@ -227,6 +227,27 @@ def _optimizer(cfg: TrainConfig, net: GraspQualityNet) -> torch.optim.Optimizer:
     return torch.optim.SGD(net.parameters(), lr=cfg.base_lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
 
 
+def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit, ckpt: dict | None, paths: RunPaths):
+    """(net with its normalisation, optimizer, Normalization, TrainState, last validation, best validation):
+    fresh (normalisation from the training split) or as saved in ``ckpt``."""
+    torch.manual_seed(cfg.seed)
+    net = GraspQualityNet(cfg.arch, image_size=data.geometry.out)
+    opt = _optimizer(cfg, net)
+    best_val: dict = {}
+    if ckpt is None:
+        norm = Normalization.from_data(train_split.arrays["images"], train_split.poses(cfg.arch), net.pose_columns)
+        state, last_val = TrainState(), {}
+    else:
+        net.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        norm = Normalization.from_dict(ckpt["normalization"])
+        state, last_val = TrainState.from_dict(ckpt["state"], str(paths.last)), dict(ckpt.get("val") or {})
+        if paths.best.is_file():
+            best_val = dict(load_checkpoint(paths.best).get("val") or {})
+    net.set_normalization(norm)
+    return net, opt, norm, state, last_val, best_val
+
+
 def checkpoint_dict(cfg: TrainConfig, net: GraspQualityNet, opt: torch.optim.Optimizer | None, norm: Normalization,
                     state: TrainState, data_info: dict, data: CropDataset, val: dict) -> dict:
     """The one checkpoint layout (version CHECKPOINT_VERSION): tensors and plain containers
@@ -288,21 +309,7 @@ def train(
         torch.set_num_threads(cfg.num_threads)
     ckpt = _checkpoint_to_resume(paths, resume, cfg, data)
 
-    torch.manual_seed(cfg.seed)
-    net = GraspQualityNet(cfg.arch, image_size=data.geometry.out)
-    opt = _optimizer(cfg, net)
-    best_val: dict = {}
-    if ckpt is None:
-        norm = Normalization.from_data(train_split.arrays["images"], train_split.poses(cfg.arch), net.pose_columns)
-        state, last_val = TrainState(), {}
-    else:
-        net.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["optimizer"])
-        norm = Normalization.from_dict(ckpt["normalization"])
-        state, last_val = TrainState.from_dict(ckpt["state"], str(paths.last)), dict(ckpt.get("val") or {})
-        if paths.best.is_file():
-            best_val = dict(load_checkpoint(paths.best).get("val") or {})
-    net.set_normalization(norm)
+    net, opt, norm, state, last_val, best_val = _start_or_resume(cfg, data, train_split, ckpt, paths)
     state.world_size = d.world
     model = DistributedDataParallel(net) if d.world > 1 else net
     weights = _class_weights(train_split) if cfg.class_balance == "loss_weights" else None
