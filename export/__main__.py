@@ -121,7 +121,10 @@ def main(argv=None) -> None:
         )
         if calibration is not None and a.reliability_png:
             atomic.write_bytes(a.reliability_png, (Path(a.out) / DIAGRAM).read_bytes())
-    except (CalibrationError, CheckpointError, DatasetError, ExportError, FileNotFoundError, ValueError) as e:
+    except CalibrationError as e:
+        print(f"vgq-export: calibration: {e} (--no-calibration exports without one)", file=sys.stderr)
+        sys.exit(2)
+    except (CheckpointError, DatasetError, ExportError, FileNotFoundError, ValueError) as e:
         print(f"vgq-export: {e}", file=sys.stderr)
         sys.exit(2)
     v = card.export["verification"]

@@ -106,3 +106,20 @@ def test_native_positivity_prefers_given_then_manifest_then_sampled_source(tmp_p
     old = {"counts": m["counts"], "source": {"dataset": str(src)}}  # a crop manifest from before native_counts
     assert native_positivity(old)[0] == pytest.approx(0.04)
     assert native_positivity({"counts": m["counts"]})[0] == pytest.approx(0.19)
+
+
+def test_export_cli_without_both_classes_in_val_exits_2_naming_the_way_out(tmp_path, capsys):
+    from export.__main__ import main
+    from training.config import TrainConfig
+    from training.synthetic import make_synthetic_crop_dataset
+    from training.train import train
+
+    make_synthetic_crop_dataset(tmp_path / "d", 16, 8, 8, positive_rate=0.0, seed=0)  # no positives anywhere
+    train(TrainConfig(samples=16, batch_size=8, val_every_samples=10**6), tmp_path / "d", tmp_path / "run", progress=False)
+    args = ["--run", str(tmp_path / "run"), "--data", str(tmp_path / "d"), "--verify-n", "4"]
+    with pytest.raises(SystemExit) as e:
+        main([*args, "--out", str(tmp_path / "m")])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "both classes" in err and "--no-calibration" in err and not (tmp_path / "m").exists()
+    main([*args, "--out", str(tmp_path / "m"), "--no-calibration"])
+    assert ModelCard.load(tmp_path / "m").calibration == {}
