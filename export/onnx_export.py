@@ -69,12 +69,13 @@ def _session(path: Path) -> ort.InferenceSession:
 
 def _export(module: torch.nn.Module, args: tuple, path: Path, inputs, outputs, dynamic_axes) -> None:
     # The TorchScript exporter (dynamo=False) on purpose, its two deprecation warnings silenced
-    # here and only here. torch's recommended exporter (dynamo=True) needs onnxscript (not
-    # installed, not a dependency) and names nodes and weights its own way, while
-    # export.from_onnx reads weights by the names this exporter gives them ("net.conv1_1.weight",
-    # node "/fc4_image/MatMul") and the int8 check records "/head/fc5/Gemm"; the graph structure
-    # (LRN as band Conv + Sqrt, the head's addmm as Gemm + Relu) is what export.graphs traces.
-    # The outputs are verified against torch below whichever exporter writes them.
+    # here and only here. Tried with torch 2.13 + onnxscript 0.7.2 (not a dependency): the
+    # dynamo exporter keeps the band-Conv + Sqrt LRN and the weight names, but (1) the head
+    # graph no longer broadcasts one image term against k poses (torch.export ties the two
+    # batch dims; onnxruntime fails "Shape mismatch ... {1,1024} != {16,1024}"), (2) it renames
+    # nodes ("node_linear_1", not "/head/fc5/Gemm" / "/fc4_image/MatMul" that export.from_onnx
+    # and the int8 check rely on), (3) it raises FutureWarnings of its own. The outputs are
+    # verified against torch below whichever exporter writes them.
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="You are using the legacy TorchScript-based ONNX export",
                                 category=DeprecationWarning)
