@@ -1,4 +1,4 @@
-"""Command line: ``python -m datagen {generate,sample,crops,bench,recipe,config} ...``.
+"""Command line: ``python -m datagen {generate,sample,crops,bench,recipe,config,objects} ...``.
 
 Bad input (missing folders, unreadable meshes, nonsense config values) exits with code 2
 and one line naming the problem; an interrupted ``generate`` resumes when rerun.
@@ -37,6 +37,40 @@ def _positive_int(name):
         return v
 
     return parse
+
+
+def _count(name):
+    def parse(s):
+        try:
+            v = int(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be an integer, got {s!r}") from None
+        if v < 0:
+            raise argparse.ArgumentTypeError(f"{name} must be >= 0, got {v}")
+        return v
+
+    return parse
+
+
+def parse_family_counts(text: str) -> dict[str, int]:
+    """``"mug=5,box=3"`` (or ``"all=5"``) -> {family: count}; CliError naming a bad entry."""
+    from .families import family_names, get_family
+
+    out: dict[str, int] = {}
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        name, sep, n = part.partition("=")
+        name = name.strip()
+        try:
+            count = int(n)
+        except ValueError:
+            count = -1
+        if not sep or count < 0:
+            raise CliError(f"--families entry {part!r} must look like FAMILY=COUNT with COUNT >= 0, e.g. mug=5")
+        for fam in family_names() if name == "all" else [get_family(name).name]:
+            out[fam] = count
+    if not out:
+        raise CliError("--families is empty; give FAMILY=COUNT entries, e.g. mug=5,box=5 or all=5")
+    return out
 
 
 def _nonneg_int(s):
@@ -81,6 +115,7 @@ def cmd_generate(args) -> int:
     cfg = _build_config(
         args, base, source=str(Path(args.source).resolve()) if args.source else None, num_objects=args.objects,
         cameras_per_pose=args.cameras, seed=args.seed,
+        families=parse_family_counts(args.families) if args.families else None,
     )
     if args.source and not Path(args.source).exists():
         raise CliError(f"--source {args.source} does not exist")
@@ -166,6 +201,42 @@ def cmd_recipe(args) -> int:
     return 0
 
 
+def cmd_objects(args) -> int:
+    from .families import FAMILIES, family_names, get_family, make_object
+    from .families.sheet import contact_sheet
+    from vgq import atomic
+
+    if args.list:
+        for f in FAMILIES.values():
+            print(f"{f.name:<10} {f.summary} (extents {100 * f.extent_range[0]:g}-{100 * f.extent_range[1]:g} cm)")
+        return 0
+    if not args.family or not args.out:
+        raise CliError("give --family NAME (or all) and --out DIR, or --list")
+    names = family_names() if args.family == "all" else [get_family(n.strip()).name for n in args.family.split(",")]
+    out = Path(args.out)
+    entries, rows, views = [], [], {}
+    for fam in names:
+        objs = [make_object(fam, i, args.seed) for i in range(args.count)]
+        for i, o in enumerate(objs):
+            rel = f"{fam}/{o.name}.stl"
+            atomic.write_bytes(out / rel, o.mesh.export(file_type="stl"))
+            entries.append({"name": o.name, "family": fam, "index": i, "seed": args.seed, "params": o.params, "file": rel,
+                            "extents_m": [round(float(x), 5) for x in o.mesh.extents], "volume_m3": float(o.mesh.volume),
+                            "watertight": bool(o.mesh.is_watertight)})
+        if not args.no_sheet:
+            sheet = contact_sheet([(fam, objs)], out / f"{fam}.png", f"{fam}: {FAMILIES[fam].summary} (seed {args.seed})", cols=5,
+                                  cache=views)
+            print(f"{sheet}: {len(objs)} objects")
+        rows.append((fam, objs))
+    atomic.write_json(out / "objects.json", {"seed": args.seed, "objects": entries})
+    if len(names) > 1 and not args.no_sheet:
+        sheet = contact_sheet([(f, o[:6]) for f, o in rows], out / "families.png", f"object families (seed {args.seed})",
+                              cache=views)
+        print(f"{sheet}: {len(names)} families")
+    print(f"{out}: {len(entries)} meshes (.stl, metres) and objects.json (family, parameters)")
+    return 0
+
+
 def cmd_config(args) -> int:
     cfg = _build_config(args)
     print(json.dumps(cfg.to_dict(), indent=2, sort_keys=True))
@@ -179,7 +250,8 @@ def build_parser() -> argparse.ArgumentParser:
     g = sub.add_parser("generate", help="render a grasp dataset (vgq-grasps) from meshes; rerun to resume")
     g.add_argument("--out", required=True, help="output folder")
     g.add_argument("--source", help="mesh folder or file (default: pybullet_data random_urdfs)")
-    g.add_argument("--objects", type=_positive_int("--objects"), help="use the first N objects (sorted by name)")
+    g.add_argument("--objects", type=_count("--objects"), help="use the first N objects of --source (sorted by name; 0: none)")
+    g.add_argument("--families", metavar="FAMILY=N,...", help="add N procedural objects per family, e.g. mug=5,box=5 or all=5")
     g.add_argument("--cameras", type=_positive_int("--cameras"), help="camera poses per stable pose (default 10)")
     g.add_argument("--workers", type=_positive_int("--workers"), help="worker processes (default: CPU cores)")
     g.add_argument("--ray", action="store_true", help="run the per-object tasks on Ray (pip install vgq-cnn[ray])")
@@ -222,6 +294,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--workers", type=_positive_int("--workers"))
     r.add_argument("--dry-run", action="store_true", help="only print the commands")
     r.set_defaults(func=cmd_recipe)
+
+    o = sub.add_parser("objects", help="write example meshes of the object families and contact sheets")
+    o.add_argument("--family", help="family name, comma-separated names, or all")
+    o.add_argument("--count", type=_positive_int("--count"), default=5, help="objects per family (default 5)")
+    o.add_argument("--out", help="output folder")
+    o.add_argument("--seed", type=_nonneg_int, default=0, help="run seed (default 0)")
+    o.add_argument("--list", action="store_true", help="list the families and exit")
+    o.add_argument("--no-sheet", action="store_true", help="skip the contact-sheet PNGs")
+    o.set_defaults(func=cmd_objects)
 
     k = sub.add_parser("config", help="print the (default or given) config as JSON")
     _add_config_args(k)
