@@ -72,7 +72,7 @@ def main(argv=None) -> None:
     c.add_argument("--calibration-method", choices=("platt", "temperature"), default="platt")
     c.add_argument("--native-positivity", type=float, metavar="FRACTION",
                    help="positivity to calibrate for (default: the dataset's before sampling, from its manifests)")
-    c.add_argument("--calibration-n", type=int, default=20000, help="max rows of each split (default 20000; 0: all)")
+    c.add_argument("--calibration-n", type=int, default=10000, help="max rows of each split (default 10000; 0: all)")
     c.add_argument("--reliability-png", metavar="PATH", help="also copy the reliability diagram here "
                    "(e.g. docs/img/reliability_diagram.png)")
     a = p.parse_args(argv)

@@ -212,7 +212,7 @@ def plot_reliability(report: CalibrationReport, path: str | Path) -> Path:
 
 
 def calibrate_on_dataset(net, ds, meta: dict, method: str = "platt", native: float | None = None,
-                         max_n: int = 20_000, seed: int = 0) -> CalibrationReport:
+                         max_n: int = 10_000, seed: int = 0) -> CalibrationReport:
     """Fit on the validation split and measure on the test split of the crop dataset ``ds``
     (``training.data.CropDataset``; at most ``max_n`` random rows of each) the calibration of
     ``net`` (torch, whose outputs the exported graphs reproduce) for the dataset's native
