@@ -14,9 +14,9 @@ from service.cache import CachedImage
 from service.config import Settings, from_env
 from service.depth_io import decode_depth, encode_npy, parse_npy, png_header, read_npz
 from service.errors import ApiError
-from service.grasps import MAX_Z_M, to_network_poses
 from service.redis_cache import pack_entry, redacted, unpack_entry
 from vgq.crop import CropGeometry
+from vgq.grasps import MAX_Z_M, GraspError, pose_rows
 
 GEOM = CropGeometry(96, 32, 36.0)
 
@@ -144,14 +144,15 @@ def test_quaternion_scale_does_not_change_pose_rows(scale):
     s = g.copy()
     s[:, 3:] *= scale
     c = np.array([149.5, 149.5])
-    assert np.allclose(to_network_poses(s, c, GEOM, 16), to_network_poses(g, c, GEOM, 16))
+    assert np.allclose(pose_rows(s, c, GEOM, 16), pose_rows(g, c, GEOM, 16))
 
 
 def test_depth_beyond_bound_is_rejected():
     g = _grasps()
     g[1, 2] = MAX_Z_M * 1.5
-    status, msg = status_of(to_network_poses, g, np.array([149.5, 149.5]), GEOM, 16)
-    assert status == 422 and "depth z" in msg
+    with pytest.raises(GraspError, match="depth z") as e:
+        pose_rows(g, np.array([149.5, 149.5]), GEOM, 16)
+    assert e.value.indices == [1] and isinstance(e.value, ValueError)
 
 
 # ---- redis entry format -------------------------------------------------------------------------------------------
