@@ -21,6 +21,22 @@ import orjson
 from . import logs
 from .metrics import Metrics
 
+#: peak bytes held per buffered body byte: the body itself, plus, for an .npz, its unpacked depth
+#: member (1x) and the boolean masks of the depth check (0.25x, one at a time); measured in
+#: tests/test_service_limits.py::test_rss_under_concurrent_large_bodies_stays_under_the_bound
+BODY_AMPLIFICATION = 2.25
+#: per request in flight: uvicorn's read buffer (64 KiB high-water mark) and the header block
+PER_REQUEST_BYTES = 64 * 1024 + 16 * 1024
+
+
+def worst_case_rss_bytes(settings, ready_rss_bytes: int) -> int:
+    """Upper bound on the service's resident memory: its size once ready (model, sessions,
+    empty cache), plus a full cache, plus every buffered body at its worst amplification, plus
+    the per-request buffers of ``max_inflight`` requests."""
+    return int(ready_rss_bytes + settings.cache_bytes + BODY_AMPLIFICATION * settings.max_buffered_bytes
+               + settings.max_inflight * (PER_REQUEST_BYTES + settings.max_header_bytes))
+
+
 EXEMPT = frozenset({"/healthz", "/readyz", "/metrics"})
 RETRY_AFTER_S = 1
 CLIENT_GONE = 499  # nginx's code for "client closed the request"; never sent, only counted
@@ -86,7 +102,7 @@ class LimitsMiddleware:
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
-        t0 = time.perf_counter()
+        t0 = scope.get("vgq.t0") or time.perf_counter()  # headers complete (service.protocol), queueing included
         status = [500]
 
         async def send_status(msg):

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import time
 
 import httptools
 import orjson
@@ -115,6 +116,9 @@ class HeaderTimeoutProtocol(HttpToolsProtocol):
         super().on_header(name, value)
 
     def on_headers_complete(self) -> None:
+        # the request's clock starts here, not when its task first runs: time spent queued behind
+        # other requests' work on the event loop counts in the service's latency metrics
+        self.scope["vgq.t0"] = time.perf_counter()
         self._disarm()
         self._in_head = False
         self._heads_done += 1
