@@ -24,6 +24,7 @@ import numpy as np
 from PIL import Image
 
 from .errors import ApiError
+from .media import media_type
 
 NPY_TYPES = ("application/x-npy", "application/npy")
 PNG_TYPES = ("image/png",)
@@ -144,7 +145,7 @@ def validate_depth(a: np.ndarray) -> np.ndarray:
 def decode_depth(body: bytes, content_type: str, *, width: int | None = None, height: int | None = None,
                  min_side: int = 32, max_side: int = 4096) -> np.ndarray:
     """Decode and validate a depth upload. Raises ApiError (415 or 422) naming the problem."""
-    ct = (content_type or "").split(";")[0].strip().lower()
+    ct = media_type(content_type)
     if not body:
         raise ApiError(422, "depth body is empty")
     if ct in NPY_TYPES:
