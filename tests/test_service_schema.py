@@ -25,10 +25,9 @@ from hypothesis import strategies as st  # noqa: E402
 from PIL import Image  # noqa: E402
 from schemathesis.config import SchemathesisConfig  # noqa: E402
 
-from servers import running_service  # noqa: E402
-from test_service_bad_input import npy  # noqa: E402
 from conftest import table_scene  # noqa: E402
-from servers import grasps_at  # noqa: E402
+from servers import grasps_at, running_service  # noqa: E402
+from test_service_bad_input import npy  # noqa: E402
 
 
 def _npz() -> bytes:
