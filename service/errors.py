@@ -6,7 +6,7 @@ from __future__ import annotations
 import re
 
 # an absolute POSIX or Windows path (at least two components): answers name files, never folders of this host
-_ABS_PATH = re.compile(r"(?<![\w.~-])(?:[A-Za-z]:[\\/]|/)(?:[^\s'\"/\\:,;]+[\\/])+([^\s'\"/\\:,;]*)")
+_ABS_PATH = re.compile(r"(?<![\w.~:/-])(?:[A-Za-z]:[\\/]|/)(?:[^\s'\"/\\:,;]+[\\/])+([^\s'\"/\\:,;]*)")
 
 
 class ApiError(Exception):
@@ -24,13 +24,17 @@ class ApiError(Exception):
         return {"error": d}
 
 
+#: fields whose values look like paths but are not files: ONNX node names (``/head/fc5/Gemm``)
+NOT_PATHS = frozenset({"quantized_nodes"})
+
+
 def redact_paths(obj):
-    """``obj`` (str, or dicts / lists of them) with every absolute path cut to its last part:
-    ``/home/ci/data/crops`` -> ``crops``."""
+    """``obj`` (str, or dicts / lists of them) with every absolute file-system path cut to its
+    last part: ``/home/ci/data/crops`` -> ``crops``. URLs and the fields in NOT_PATHS are kept."""
     if isinstance(obj, str):
         return _ABS_PATH.sub(lambda m: m.group(1) or "<path>", obj)
     if isinstance(obj, dict):
-        return {k: redact_paths(v) for k, v in obj.items()}
+        return {k: v if k in NOT_PATHS else redact_paths(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [redact_paths(v) for v in obj]
     return obj

@@ -233,10 +233,12 @@ def test_absolute_paths_are_cut_to_their_last_part():
     from service.errors import redact_paths
 
     doc = {"root": "/home/ci/data/crops", "msg": "cannot load model from /srv/models/fast: no card", "rel": "examples/x.npy",
-           "win": "C:\\build\\data\\shard.npz", "n": 3, "list": ["/a/b/c.json"]}
+           "win": "C:\\build\\data\\shard.npz", "n": 3, "list": ["/a/b/c.json"], "quantized_nodes": ["/head/fc5/Gemm"],
+           "url": "redis://cache:6379/0 and http://host/a/b/c"}
     out = redact_paths(doc)
     assert out["root"] == "crops" and out["msg"] == "cannot load model from fast: no card" and out["rel"] == "examples/x.npy"
     assert out["win"] == "shard.npz" and out["n"] == 3 and out["list"] == ["c.json"]
+    assert out["quantized_nodes"] == ["/head/fc5/Gemm"] and out["url"] == doc["url"]
 
 
 def test_multipart_parts_are_views_into_the_body():
