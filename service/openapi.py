@@ -27,7 +27,6 @@ def errors(codes) -> dict:
     return {code: {"description": _WHAT[code], "content": {"application/json": {"schema": _ERROR}}} for code in codes}
 
 
-ERROR_RESPONSES = errors(BODY_ERRORS)
 STATUS_RESPONSE = {"description": "status", "content": {"application/json": {"schema": {
     "type": "object", "required": ["status"], "properties": {"status": {"type": "string"}, "model_version": {"type": "string"}}}}}}
 NOT_READY = {"description": "model loading or failed", "content": {"application/json": {"schema": {
