@@ -305,5 +305,4 @@ def test_rss_under_concurrent_large_bodies_stays_under_the_bound(model_dir):
             assert served and len(served) < 8, answers  # two max-size bodies at once at most
             assert all(a in ((200, None), (503, "1"), ("closed", None)) for a in answers), answers
             assert peak <= bound, f"{kind}: peak RSS {peak / 2**20:.0f} MiB over the bound {bound / 2**20:.0f} MiB"
-            del bodies
         assert httpx.get(u + "/healthz").status_code == 200
