@@ -341,4 +341,5 @@ def plan(depth, intrinsics: Intrinsics | None, model, k: int = 5, roi=None, seed
     )
     seconds["select"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - t0
-    return PlanResult(grasps, None, counts, seconds, version)
+    everything = {"frames": cands.frames, "contacts": cands.contacts, "scores": scores}
+    return PlanResult(grasps, None, counts, seconds, version, everything)

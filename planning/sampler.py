@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from vgq.camera import Intrinsics
 
@@ -46,6 +47,8 @@ class Scene:
     normal_ok: np.ndarray
     table: TablePlane | None
     objects: np.ndarray
+    labels: np.ndarray | None = None
+    centres: np.ndarray | None = None
 
     @property
     def up(self) -> np.ndarray:
@@ -106,7 +109,30 @@ def analyse_scene(depth: np.ndarray, intr: Intrinsics, params: PlanParams, rng: 
         c0, c1 = max(cols[0] - m, 0), min(cols[-1] + m + 1, valid.shape[1])
         n, ok = estimate_normals(pts[r0:r1, c0:c1], valid[r0:r1, c0:c1], params.normal_window)
         normals[r0:r1, c0:c1], nok[r0:r1, c0:c1] = n, ok
-    return Scene(np.asarray(depth, np.float64), intr, pts, valid, normals, nok, table, objects)
+    labels, centres = object_centres(pts, objects, table)
+    return Scene(np.asarray(depth, np.float64), intr, pts, valid, normals, nok, table, objects, labels, centres)
+
+
+def object_centres(points: np.ndarray, objects: np.ndarray, table: TablePlane | None) -> tuple[np.ndarray, np.ndarray]:
+    """Connected object regions (H, W) int (0 = none, region i is label i) and a guess of
+    each one's centre of mass (n + 1, 3), camera frame: the mean of its points dropped to
+    half their height above the table (objects rest on it; without a table, the mean of
+    its points). Row 0 is unused."""
+    labels, n = ndimage.label(objects, structure=np.ones((3, 3)))
+    centres = np.zeros((n + 1, 3))
+    if n == 0:
+        return labels, centres
+    p = points[objects]
+    lab = labels[objects]
+    if table is not None:
+        h = table.height(p)
+        top = ndimage.maximum(h, lab, index=np.arange(1, n + 1))
+        # each point dropped onto the table, then raised to half its region's height
+        p = p - h[:, None] * table.normal + 0.5 * np.asarray(top)[lab - 1][:, None] * table.normal
+    cnt = np.bincount(lab, minlength=n + 1).astype(float)
+    for i in range(3):
+        centres[:, i] = np.bincount(lab, weights=p[:, i], minlength=n + 1) / np.maximum(cnt, 1)
+    return labels, centres
 
 
 def _lookup(scene: Scene, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -175,6 +201,11 @@ def sample_contact_pairs(scene: Scene, n_seeds: int, params: PlanParams, rng: np
     cos_lim = np.cos(np.arctan(mu))
     n2 = scene.normals[r2, c2]
     ok &= ~seen | (np.einsum("ij,ij->i", n2, axes) >= cos_lim)
+    if params.max_centre_offset is not None and scene.centres is not None:
+        # the jaw line should pass near the object's centre of mass (torques it must resist)
+        lab = scene.labels.reshape(-1)[cand[seeds]]
+        off = np.linalg.norm(np.cross(scene.centres[lab] - p1, axes), axis=1)
+        ok &= off <= params.max_centre_offset
     contacts = np.stack([p1[ok], p2[ok]], axis=1)
     return contacts, axes[ok], width[ok], seen[ok]
 

@@ -60,6 +60,7 @@ class PlanParams:
     friction_coef: float = 0.5
     cone_fraction: float = 0.8
     min_width: float = 0.0025
+    max_centre_offset: float | None = 0.012
     jaw_clearance: float = 0.002
     march_step: float = 0.001
     surface_tolerance: float = 0.003
@@ -150,6 +151,9 @@ class PlanResult:
     counts: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
     model_version: str = ""
+    #: every scored candidate (``frames`` (n, 4, 4), ``contacts`` (n, 2, 3), ``scores`` (n,)),
+    #: for benchmarks; not part of :meth:`to_dict`
+    candidates: dict | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
         return {
