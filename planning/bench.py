@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -119,7 +120,7 @@ def run_precision(args) -> dict:
     model = _model(args.model, args.threads)
     config = _recipe_config(model)
     params = dataclasses.replace(PlanParams(), cem_iterations=args.cem, windows=args.windows,
-                                 max_centre_offset=args.centre_offset)
+                                 max_centre_offset=args.centre_offset, min_width=args.min_width)
     ids = heldout_object_ids(args.heldout)
     rng = np.random.default_rng(args.seed)
     picked = rng.choice(ids, size=args.scenes, replace=args.scenes > len(ids))
@@ -160,7 +161,7 @@ def run_precision(args) -> dict:
         "scenes_with_a_positive_candidate": int(sum(r["oracle_best_exists"] for r in rows)),
         "pose_only_baseline": str(baseline_file) if baseline_file else "not available: no model file is bundled",
         "params": {"cem_iterations": args.cem, "windows": args.windows, "num_candidates": params.num_candidates,
-                   "max_centre_offset": args.centre_offset},
+                   "max_centre_offset": args.centre_offset, "min_width": args.min_width},
         "seed": args.seed, "model": model.version, "rows": rows,
     }
     print()
@@ -171,6 +172,59 @@ def run_precision(args) -> dict:
     print(f"| random collision-free candidate (expectation) | {r:.1f}% | {r:.1f}% |")
     print(f"| pose-only baseline | {summary['pose_only_baseline']} | |")
     print(f"scenes: {len(rows)} ({summary['scenes_with_a_positive_candidate']} with at least one positive candidate)")
+    return summary
+
+
+def run_trials_bench(args) -> dict:
+    """pybullet lift-and-shake trials (datagen.physics) of the plan's top-1 grasp and of a
+    random collision-free candidate, on the first ``--scenes`` scenes of the precision
+    benchmark's draw (same seed: the same objects, poses and cameras)."""
+    try:
+        from datagen.physics import GraspSimulator, PhysicsParams, run_trials
+    except ImportError as e:
+        raise SystemExit(f"physical trials need datagen.physics (pybullet grasp trials): {e}")
+    from datagen.gripper import GripperGeometry as DatagenGripper
+
+    from .policy import plan
+
+    model = _model(args.model, args.threads)
+    config = _recipe_config(model)
+    params = dataclasses.replace(PlanParams(), cem_iterations=args.cem, windows=args.windows,
+                                 max_centre_offset=args.centre_offset, min_width=args.min_width)
+    ids = heldout_object_ids(args.heldout)
+    rng = np.random.default_rng(args.seed)
+    picked = rng.choice(ids, size=args.scenes, replace=args.scenes > len(ids))
+    rows = []
+    gripper = DatagenGripper(**dataclasses.asdict(config.gripper))
+    with GraspSimulator(gripper, PhysicsParams()) as sim:
+        for i, oid in enumerate(picked):
+            t = time.perf_counter()
+            scene = make_scene(int(oid), config, rng)
+            res = plan(scene.depth, config.intrinsics, model, k=5, seed=int(args.seed) + i, params=params)
+            if not res.grasps:
+                rows.append({"object_id": int(oid), "planned": False, "top1_held": 0, "random_held": 0, "trials": 0})
+                print(f"scene {i:2d} object {oid:3d}: no grasp ({res.reason})", flush=True)
+                continue
+            sim.set_object(scene.mesh_object, scene.T_world_object)
+            top = scene.T_world_camera @ res.grasps[0].pose
+            cand = res.candidates["frames"]
+            rand = scene.T_world_camera @ cand[np.random.default_rng(2000 + i).integers(len(cand))]
+            tr = run_trials(sim, np.stack([top, rand]), args.trials, np.random.default_rng(3000 + i))
+            row = {"object_id": int(oid), "planned": True, "trials": args.trials,
+                   "top1_held": int(tr.held[0].sum()), "random_held": int(tr.held[1].sum()),
+                   "top1_firm": int(tr.firm[0].sum()), "seconds": time.perf_counter() - t}
+            rows.append(row)
+            print(f"scene {i:2d} object {oid:3d}: top-1 held {row['top1_held']}/{args.trials}, random candidate held "
+                  f"{row['random_held']}/{args.trials}  [{row['seconds']:.1f} s]", flush=True)
+    n = sum(r["trials"] for r in rows)
+    top_held = sum(r["top1_held"] for r in rows)
+    rand_held = sum(r["random_held"] for r in rows)
+    summary = {"scenes": len(rows), "trials_per_grasp": args.trials, "trials": n,
+               "top1_held": top_held, "random_held": rand_held,
+               "top1_success": top_held / n if n else 0.0, "random_success": rand_held / n if n else 0.0,
+               "scenes_without_grasp": int(sum(not r["planned"] for r in rows)), "seed": args.seed, "rows": rows}
+    print(f"\ntop-1 lift success {top_held}/{n} ({100 * summary['top1_success']:.1f}%), random collision-free candidate "
+          f"{rand_held}/{n} ({100 * summary['random_success']:.1f}%); scenes without a grasp count as no trials")
     return summary
 
 
@@ -186,50 +240,61 @@ def run_timing(args) -> dict:
         s = make_scene(int(rng.choice(ids)), config, rng)
         scenes.append(s.depth)
     params = dataclasses.replace(PlanParams(), num_candidates=256, windows=args.windows)
-    totals, stages, counts = [], {}, []
+    totals, cpu, stages, counts = [], [], {}, []
     for r in range(args.repeats):
         for j, d in enumerate(scenes):
+            c0 = time.process_time()
             res = plan(d, config.intrinsics, model, k=5, seed=r * 1000 + j, params=params)
+            c1 = time.process_time()
             if r == 0:
                 continue  # warm-up pass
+            cpu.append(c1 - c0)
             totals.append(res.seconds.get("total", np.nan))
             counts.append(res.counts.get("collision_free", 0))
             for k, v in res.seconds.items():
                 stages.setdefault(k, []).append(v)
     t = 1e3 * np.asarray(totals)
+    c = 1e3 * np.asarray(cpu)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     out = {
         "runs": len(t), "p50_ms": float(np.nanpercentile(t, 50)), "p99_ms": float(np.nanpercentile(t, 99)),
+        "cpu_p50_ms": float(np.percentile(c, 50)), "cpu_p99_ms": float(np.percentile(c, 99)),
+        "load_average_1min": load, "cpu_cores": os.cpu_count(),
         "mean_candidates": float(np.mean(counts)),
         "stage_median_ms": {k: float(1e3 * np.median(v)) for k, v in stages.items()},
         "threads": args.threads, "model": model.version, "head": model.head_precision,
     }
     print(f"plan {out['runs']} runs on {args.scenes} scenes (300 x 300, up to 256 candidates, mean "
           f"{out['mean_candidates']:.0f}), onnxruntime threads={args.threads}, head {model.head_precision}:")
-    print(f"  p50 {out['p50_ms']:.1f} ms   p99 {out['p99_ms']:.1f} ms")
+    print(f"  wall: p50 {out['p50_ms']:.1f} ms   p99 {out['p99_ms']:.1f} ms   (load average {load:.1f} on {os.cpu_count()} cores)")
+    print(f"  CPU time of the process (all threads): p50 {out['cpu_p50_ms']:.1f} ms   p99 {out['cpu_p99_ms']:.1f} ms")
     print("  stage medians (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in out["stage_median_ms"].items()))
     return out
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m planning.bench", description=__doc__.splitlines()[0])
-    ap.add_argument("what", choices=["timing", "precision"])
+    ap.add_argument("what", choices=["timing", "precision", "trials"])
     ap.add_argument("--model", default=MODEL_DIR)
     ap.add_argument("--heldout", default=HELDOUT)
     ap.add_argument("--scenes", type=int, default=None, help="timing: 4, precision: 20")
     ap.add_argument("--repeats", type=int, default=26, help="timing: passes over the scenes (the first is warm-up)")
     ap.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--trials", type=int, default=5, help="trials: pybullet trials per grasp (with execution noise)")
     ap.add_argument("--cem", type=int, default=0, help="CEM iterations over omega (0: off)")
     ap.add_argument("--windows", choices=["cover", "grid"], default="cover")
     ap.add_argument("--centre-offset", type=float, default=PlanParams().max_centre_offset,
                     help="max distance (m) of the jaw line from the estimated centre of mass; <= 0: off")
+    ap.add_argument("--min-width", type=float, default=PlanParams().min_width, help="min contact distance (m)")
     ap.add_argument("--json", help="write the results here")
     args = ap.parse_args(argv)
     if args.centre_offset is not None and args.centre_offset <= 0:
         args.centre_offset = None
     if args.scenes is None:
-        args.scenes = 4 if args.what == "timing" else 20
-    out = run_timing(args) if args.what == "timing" else run_precision(args)
+        args.scenes = {"timing": 4, "precision": 20, "trials": 10}[args.what]
+    run = {"timing": run_timing, "precision": run_precision, "trials": run_trials_bench}[args.what]
+    out = run(args)
     if args.json:
         from vgq import atomic
 

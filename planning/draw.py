@@ -29,11 +29,24 @@ def _colour(rank: int, n: int) -> tuple[int, int, int]:
     return (int(255 * t), int(200 * (1 - t)) + 40, 255 - int(200 * t))
 
 
-def overlay(depth: np.ndarray, intr: Intrinsics, grasps: tuple[PlannedGrasp, ...] | list, scale: int = 2,
-            margin: float = 0.005) -> Image.Image:
-    """An RGB image (``scale`` x the depth image) with each grasp's jaw line, contacts,
-    TCP and rank (1 = best) drawn in the caller's pixels."""
-    img = depth_to_rgb(depth)
+def overlay(depth: np.ndarray, intr: Intrinsics, grasps: tuple[PlannedGrasp, ...] | list, scale: int | None = None,
+            margin: float = 0.005, zoom_margin: int = 40, size: int = 600) -> Image.Image:
+    """An RGB image with each grasp's jaw line, contacts, TCP and rank (1 = best) drawn
+    over the depth image: the part of it around the grasps (``zoom_margin`` px beyond
+    them; the whole image when there are none), enlarged by ``scale`` (default: to about
+    ``size`` px)."""
+    d = np.asarray(depth)
+    h, w = d.shape
+    u0, v0, u1, v1 = 0, 0, w, h
+    if len(grasps):
+        uv = project(np.concatenate([np.asarray(g.contacts, dtype=np.float64) for g in grasps]), intr)[:, :2]
+        u0, v0 = np.maximum(np.floor(uv.min(axis=0)).astype(int) - zoom_margin, 0)
+        u1, v1 = np.minimum(np.ceil(uv.max(axis=0)).astype(int) + zoom_margin + 1, [w, h])
+    d = d[v0:v1, u0:u1]
+    intr = Intrinsics(fx=intr.fx, fy=intr.fy, cx=intr.cx - u0, cy=intr.cy - v0, width=u1 - u0, height=v1 - v0)
+    if scale is None:
+        scale = max(1, size // max(d.shape))
+    img = depth_to_rgb(d)
     img = img.resize((img.width * scale, img.height * scale), Image.Resampling.NEAREST)
     draw = ImageDraw.Draw(img)
     n = len(grasps)
@@ -49,6 +62,6 @@ def overlay(depth: np.ndarray, intr: Intrinsics, grasps: tuple[PlannedGrasp, ...
         draw.line([tuple(uv[0]), tuple(uv[1])], fill=col, width=max(2, scale))
         for p in uv[2:]:
             draw.ellipse([p[0] - 2 * scale, p[1] - 2 * scale, p[0] + 2 * scale, p[1] + 2 * scale], outline=col, width=2)
-        tcp = (np.array([g.u, g.v]) + 0.5) * scale - 0.5
+        tcp = (project(np.asarray(g.pose)[None, :3, 3], intr)[0, :2] + 0.5) * scale - 0.5
         draw.text((tcp[0] + 3 * scale, tcp[1] - 6 * scale), f"{rank + 1}: {g.score:.2f}", fill=col)
     return img

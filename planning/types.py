@@ -60,9 +60,9 @@ class PlanParams:
     friction_coef: float = 0.5
     cone_fraction: float = 0.8
     min_width: float = 0.0025
-    max_centre_offset: float | None = 0.012
+    max_centre_offset: float | None = None
     jaw_clearance: float = 0.002
-    march_step: float = 0.001
+    march_step: float = 0.0015
     surface_tolerance: float = 0.003
     table_inlier_distance: float = 0.003
     object_height: float = 0.004
@@ -70,8 +70,8 @@ class PlanParams:
     point_clearance: float = 0.001
     collision_voxel: float = 0.004
     max_collision_points: int = 2000
-    ransac_iterations: int = 60
-    ransac_points: int = 3000
+    ransac_iterations: int = 40
+    ransac_points: int = 1500
     min_table_fraction: float = 0.1
     normal_window: int = 5
     nms_distance: float = 0.01
