@@ -67,8 +67,11 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(p) == 0 or voxel <= 0:
         return p
-    keys = np.floor(p / voxel).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    k = np.floor(p / voxel).astype(np.int64)
+    k -= k.min(axis=0)
+    span = k.max(axis=0) + 1
+    keys = (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]  # one integer per cube
+    _, first = np.unique(keys, return_index=True)
     return p[np.sort(first)]
 
 

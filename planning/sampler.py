@@ -109,7 +109,7 @@ def analyse_scene(depth: np.ndarray, intr: Intrinsics, params: PlanParams, rng: 
         c0, c1 = max(cols[0] - m, 0), min(cols[-1] + m + 1, valid.shape[1])
         n, ok = estimate_normals(pts[r0:r1, c0:c1], valid[r0:r1, c0:c1], params.normal_window)
         normals[r0:r1, c0:c1], nok[r0:r1, c0:c1] = n, ok
-    labels, centres = object_centres(pts, objects, table)
+    labels, centres = object_centres(pts, objects, table) if params.max_centre_offset is not None else (None, None)
     return Scene(np.asarray(depth, np.float64), intr, pts, valid, normals, nok, table, objects, labels, centres)
 
 
