@@ -240,7 +240,7 @@ def run_timing(args) -> dict:
         s = make_scene(int(rng.choice(ids)), config, rng)
         scenes.append(s.depth)
     params = dataclasses.replace(PlanParams(), num_candidates=256, windows=args.windows)
-    totals, cpu, stages, counts = [], [], {}, []
+    totals, cpu, stages, counts, checked = [], [], {}, [], []
     for r in range(args.repeats):
         for j, d in enumerate(scenes):
             c0 = time.process_time()
@@ -251,6 +251,7 @@ def run_timing(args) -> dict:
             cpu.append(c1 - c0)
             totals.append(res.seconds.get("total", np.nan))
             counts.append(res.counts.get("collision_free", 0))
+            checked.append(res.counts.get("checked", 0))
             for k, v in res.seconds.items():
                 stages.setdefault(k, []).append(v)
     t = 1e3 * np.asarray(totals)
@@ -261,6 +262,7 @@ def run_timing(args) -> dict:
         "cpu_p50_ms": float(np.percentile(c, 50)), "cpu_p99_ms": float(np.percentile(c, 99)),
         "load_average_1min": load, "cpu_cores": os.cpu_count(),
         "mean_candidates": float(np.mean(counts)),
+        "collision_checks": [int(np.min(checked)), int(np.median(checked)), int(np.max(checked))],
         "stage_median_ms": {k: float(1e3 * np.median(v)) for k, v in stages.items()},
         "threads": args.threads, "model": model.version, "head": model.head_precision,
     }
@@ -268,6 +270,7 @@ def run_timing(args) -> dict:
           f"{out['mean_candidates']:.0f}), onnxruntime threads={args.threads}, head {model.head_precision}:")
     print(f"  wall: p50 {out['p50_ms']:.1f} ms   p99 {out['p99_ms']:.1f} ms   (load average {load:.1f} on {os.cpu_count()} cores)")
     print(f"  CPU time of the process (all threads): p50 {out['cpu_p50_ms']:.1f} ms   p99 {out['cpu_p99_ms']:.1f} ms")
+    print("  collision checks per plan: min {} / median {} / max {}".format(*out["collision_checks"]))
     print("  stage medians (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in out["stage_median_ms"].items()))
     return out
 
