@@ -131,3 +131,22 @@ def test_nothing_to_grasp_gives_no_grasps_and_a_reason(model):
     res = plan(table, DEFAULT_INTRINSICS, model, k=5, seed=0, params=FAST)
     assert res.grasps == () and "no object" in res.reason
     assert res.to_dict()["grasps"] == []
+
+
+def test_the_same_seed_plans_the_same_grasps(model, two_boxes):
+    depth, _, _ = two_boxes
+    a = plan(depth, DEFAULT_INTRINSICS, model, k=3, seed=7, params=FAST)
+    b = plan(depth, DEFAULT_INTRINSICS, model, k=3, seed=7, params=FAST)
+    c = plan(depth, DEFAULT_INTRINSICS, model, k=3, seed=8, params=FAST)
+    assert [g.row.tolist() for g in a.grasps] == [g.row.tolist() for g in b.grasps]
+    assert [g.row.tolist() for g in a.grasps] != [g.row.tolist() for g in c.grasps]
+
+
+def test_cem_adds_collision_free_rotations_and_never_lowers_the_best_score(model, two_boxes):
+    import dataclasses
+
+    depth, _, _ = two_boxes
+    plain = plan(depth, DEFAULT_INTRINSICS, model, k=1, seed=3, params=FAST)
+    cem = plan(depth, DEFAULT_INTRINSICS, model, k=1, seed=3, params=dataclasses.replace(FAST, cem_iterations=2))
+    assert cem.counts["after_cem"] > cem.counts["collision_free"]
+    assert cem.grasps[0].score >= plain.grasps[0].score
