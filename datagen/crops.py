@@ -23,11 +23,10 @@ from typing import Callable
 
 import numpy as np
 
-from vgq import atomic, inpaint
 from vgq import crop as vcrop
+from vgq import inpaint
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
-from vgq.pose import FULL_POSE_COLUMNS
-from vgq.schema import CROP_FORMAT, FORMAT_VERSION, SPLITS
+from vgq.schema import SPLITS, crop_counts, write_crop_manifest
 
 from . import sensor as sensor_model
 from . import storage
@@ -178,28 +177,17 @@ def make_crops(
                 wr.abort()
         raise
     counts = {
-        s: {
-            "grasps": n[s],
-            "positive": pos[s],
-            "positivity": pos[s] / n[s] if n[s] else 0.0,
-            "missing_fraction_mean": missing_sum[s] / n[s] if n[s] else 0.0,
-            "objects": sorted(i for i, v in split_of.items() if v == s),
-        }
+        s: crop_counts(
+            n[s], pos[s], missing_fraction_mean=missing_sum[s] / n[s] if n[s] else 0.0,
+            objects=sorted(i for i, v in split_of.items() if v == s),
+        )
         for s in SPLITS
     }
     cfg = m_src.get("config", {})
-    m = {
-        "format": CROP_FORMAT,
-        "format_version": FORMAT_VERSION,
-        "architecture": arch,
-        "geometry": geom.to_dict(),
-        "kappa_px": geom.kappa_px,
-        "pose_columns": list(FULL_POSE_COLUMNS),
-        "label_threshold": thr,
-        "seed": int(seed),
-        "sensor": {"name": sensor_name, "params": sensor.to_dict()},
-        "inpaint": {"method": "nearest valid pixel (OpenCV distance transform, 5x5 mask)", "margin_px": inpaint.MARGIN_PX},
-        "source": {
+    native = m_src.get("sampling", {}).get("stats", {}).get("steps", {}).get("native")  # before sampling
+    m = write_crop_manifest(
+        out, arch, geom, counts, thr,
+        source={
             "dataset": str(Path(src).resolve()),
             "seed": m_src.get("seed"),
             "config": cfg,
@@ -207,12 +195,13 @@ def make_crops(
             "split": split_note,
             "objects": [{"object_id": o["object_id"], "name": o.get("name")} for o in m_src["objects"]],
         },
-        "counts": counts,
-        "versions": storage.library_versions(),
-    }
-    if intr_d:
-        m["intrinsics"] = intr_d
-    atomic.write_json(out / storage.MANIFEST, m)
+        intrinsics=intr_d,
+        native_counts=crop_counts(native["grasps"], native["positive"]) if native else None,
+        seed=int(seed),
+        sensor={"name": sensor_name, "params": sensor.to_dict()},
+        inpaint={"method": "nearest valid pixel (OpenCV distance transform, 5x5 mask)", "margin_px": inpaint.MARGIN_PX},
+        versions=storage.library_versions(),
+    )
     for s in SPLITS:
         log(f"{s}: {n[s]} crops, positivity {100 * counts[s]['positivity']:.1f}%, "
             f"missing pixels {100 * counts[s]['missing_fraction_mean']:.2f}% (sensor {sensor_name})")
