@@ -29,12 +29,13 @@ class Settings:
     max_url_bytes: int = 8 * 1024  # request target (path + query)
     max_image_side: int = 4096  # pixels, either dimension of an uploaded depth image
     cache_entries: int = 4096
-    cache_bytes: int = 64 * 1024 * 1024
+    cache_bytes: int = 256 * 1024 * 1024  # an image holds its depth (4 B/px) and 4.2 kB per encoded window
     cache_backend: str = "memory"  # memory | redis
     redis_url: str = "redis://127.0.0.1:6379/0"
     cache_ttl_s: float = 86400.0  # redis backend: an image unused this long expires (each hit renews it)
     request_timeout_s: float = 10.0
     max_missing_fraction: float = 0.5  # a crop window with more pixels without depth (0) is refused (422)
+    ood_window_missing: float = 0.25  # a window with more pixels without depth flags its grasps window_mostly_missing
     api_key: str = ""  # when set, upload and score need header X-API-Key
     log_level: str = "info"
     access_log: bool = False  # one structured line per request
@@ -55,8 +56,9 @@ class Settings:
             raise ValueError(f"setting cache_backend must be 'memory' or 'redis', got {self.cache_backend!r}")
         if self.cache_backend == "redis" and not self.redis_url.startswith(("redis://", "rediss://", "unix://")):
             raise ValueError(f"setting redis_url must be a redis://, rediss:// or unix:// URL, got {self.redis_url!r}")
-        if not 0 <= self.max_missing_fraction <= 1:
-            raise ValueError(f"setting max_missing_fraction must be in [0, 1], got {self.max_missing_fraction!r}")
+        for name in ("max_missing_fraction", "ood_window_missing"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"setting {name} must be in [0, 1], got {getattr(self, name)!r}")
         for name in ("request_timeout_s", "cache_ttl_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"setting {name} must be > 0, got {getattr(self, name)!r}")

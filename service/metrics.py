@@ -38,6 +38,7 @@ class Metrics:
                                  buckets=LATENCY_BUCKETS, registry=r)
         self.encoder = Histogram("vgq_encoder_seconds", "encoder (crop -> image term) time", buckets=LATENCY_BUCKETS, registry=r)
         self.head = Histogram("vgq_head_seconds", "head (k grasps) time", buckets=LATENCY_BUCKETS, registry=r)
+        self.windows_encoded = Counter("vgq_windows_encoded", "crop windows encoded (each once per cached image)", registry=r)
         self.grasps = Histogram("vgq_grasps_per_request", "grasps scored per request", buckets=GRASP_BUCKETS, registry=r)
         self.ready = Gauge("vgq_ready", "1 when the model is loaded and warmed up", registry=r)
         r.register(_CacheCollector(cache))

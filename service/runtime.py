@@ -64,9 +64,9 @@ class FastModel:
         self.score_seconds = 0.0
 
     def encode(self, crop: np.ndarray) -> np.ndarray:
-        """(out, out) float32 crop in metres -> (1, 1024) float32 image term."""
+        """(out, out) or (n, out, out) float32 crops in metres -> (n, 1024) float32 image terms."""
         t = time.perf_counter()
-        x = np.ascontiguousarray(crop, dtype=np.float32).reshape(1, 1, *crop.shape[-2:])
+        x = np.ascontiguousarray(crop, dtype=np.float32).reshape(-1, 1, *crop.shape[-2:])
         term = self.encoder.run([ENCODER_OUTPUT], {ENCODER_INPUT: x})[0]
         self.encode_seconds = time.perf_counter() - t
         return term
