@@ -37,7 +37,8 @@ def focal_range(model: Intrinsics) -> dict:
     return {"fx": [model.fx / hi, model.fx / lo], "fy": [model.fy / hi, model.fy / lo]}
 
 
-def to_model_camera(depth: np.ndarray, camera: Intrinsics, model: Intrinsics, max_side: int) -> tuple[np.ndarray, Intrinsics]:
+def to_model_camera(depth: np.ndarray, camera: Intrinsics, model: Intrinsics, max_side: int,
+                    assumed: tuple[str, ...] = ()) -> tuple[np.ndarray, Intrinsics]:
     """(depth at the model's focal lengths, its intrinsics); 422 naming the field the model
     cannot serve (focal length outside the range, principal point outside the image) or when
     the resampled image would exceed ``max_side``."""
@@ -49,4 +50,8 @@ def to_model_camera(depth: np.ndarray, camera: Intrinsics, model: Intrinsics, ma
                                 f"over max_image_side {max_side}; send a smaller image", {"field": "fx"})
         return resample_depth(depth, camera, model)
     except CameraMismatch as e:
-        raise ApiError(422, f"field {e.field}: {e}", {"field": e.field}) from None
+        field, note = e.field, ""
+        if field in assumed and field in ("fx", "fy"):  # derived from the other one, which is what was sent
+            field = "fy" if field == "fx" else "fx"
+            note = f" ({e.field} was not given and is derived from {field})"
+        raise ApiError(422, f"field {field}: {e}{note}", {"field": field}) from None

@@ -110,7 +110,7 @@ class Service:
             if not (0 <= cu <= w - 1 and 0 <= cv <= h - 1):
                 raise ApiError(422, f"window centre ({cu}, {cv}) must lie inside the {h}x{w} image "
                                     f"(u in [0, {w - 1}], v in [0, {h - 1}])")
-        resampled_depth, resampled = to_model_camera(depth, camera, model, self.settings.max_image_side)
+        resampled_depth, resampled = to_model_camera(depth, camera, model, self.settings.max_image_side, assumed)
         entry = CachedImage(resampled_depth, camera, resampled, assumed)
         if cu is not None:
             c = map_pixels([[cu, cv]], camera, resampled)[0]

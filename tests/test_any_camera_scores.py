@@ -17,7 +17,7 @@ from datagen.grasps import sample_antipodal_grasps
 from datagen.mesh import load_object, mesh_sources, stable_poses
 from datagen.project import project_grasps
 from datagen.render import render_depth
-from service.grasps import to_network_poses
+from vgq.grasps import pose_rows
 from service.runtime import FastModel
 from vgq.camera import Intrinsics, map_pixels, resample_depth
 from vgq.crop import crop, grid_window_centers
@@ -31,7 +31,7 @@ def _score(model, depth, rows):
     for c in np.unique(centres, axis=0):
         m = np.all(centres == c, axis=1)
         img, actual = crop(depth, c, model.geometry)
-        p[m] = model.score(model.encode(img), to_network_poses(rows[m], actual, model.geometry, 4096))
+        p[m] = model.score(model.encode(img), pose_rows(rows[m], actual, model.geometry, 4096))
     return p
 
 

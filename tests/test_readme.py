@@ -45,6 +45,14 @@ def test_python_example_runs(url):
     assert len(p) == 16 and np.all((p >= 0) & (p <= 1))
 
 
+def test_any_camera_example_runs(url):
+    code = blocks("python")[1].replace("http://127.0.0.1:8000", url)
+    assert len([ln for ln in code.splitlines() if ln.strip()]) <= 6
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert "'image_shape': [256, 256]" in r.stdout and "[]" in r.stdout  # 300 px at 615 px -> 256 px at 525; flags per grasp
+
+
 @pytest.mark.skipif(shutil.which("curl") is None, reason="curl is not installed")
 def test_curl_example_runs(url):
     cmds = [b for b in blocks("bash") if "curl" in b][0].replace("http://127.0.0.1:8000", url)
