@@ -50,7 +50,7 @@ def test_any_camera_example_runs(url):
     assert len([ln for ln in code.splitlines() if ln.strip()]) <= 6
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
-    assert "'image_shape': [256, 256]" in r.stdout and "[]" in r.stdout  # 300 px at 615 px -> 256 px at 525; flags per grasp
+    assert "'image_shape': [256, 256]" in r.stdout and "[[" in r.stdout  # 300 px at 615 px -> 256 px at 525; flags per grasp
 
 
 @pytest.mark.skipif(shutil.which("curl") is None, reason="curl is not installed")
