@@ -52,18 +52,43 @@ UPLOAD_BODY = {
         "application/octet-stream": {"schema": _BINARY, "description": "raw little-endian float32, needs width and height"},
     },
 }
+_INTR = {"type": "object", "properties": {k: {"type": "number"} for k in ("fx", "fy", "cx", "cy")}}
+_CAMERA = {
+    "intrinsics": {**_INTR, "description": "the camera's intrinsics (px) as used: given, or assumed"},
+    "intrinsics_assumed": {"type": "array", "items": {"type": "string", "enum": ["fx", "fy", "cx", "cy"]},
+                           "description": "intrinsics not sent: fx, fy the model's, (cx, cy) the image centre"},
+    "resampled": {"type": "object", "description": "the image at the model's focal length (what is cropped)", "properties": {
+        "image_shape": {"type": "array", "items": {"type": "integer"}}, "scale": {"type": "array", "items": {"type": "number"}},
+        "intrinsics": _INTR}},
+}
+_CAMERA_EXAMPLE = {"intrinsics": {"fx": 615.0, "fy": 615.0, "cx": 319.5, "cy": 239.5}, "intrinsics_assumed": [],
+                   "resampled": {"image_shape": [410, 546], "scale": [0.853125, 0.8541666666666666],
+                                 "intrinsics": {"fx": 524.671875, "fy": 525.3125, "cx": 272.5, "cy": 204.5}}}
 UPLOAD_RESPONSE = {
-    "description": "The image's id (content-addressed) and the window grasps must lie in.",
+    "description": "The image's id (content-addressed), its camera, and how grasps get windows: `grid` (anywhere in "
+                   "the image) or `fixed` (within grasp_range, client px).",
     "content": {"application/json": {"schema": {"type": "object", "required": ["image_id", "cached", "model_version"], "properties": {
         "image_id": {"type": "string"}, "cached": {"type": "boolean"}, "model_version": {"type": "string"},
-        "image_shape": {"type": "array", "items": {"type": "integer"}},
-        "window_center": {"type": "array", "items": {"type": "number"}},
+        "image_shape": {"type": "array", "items": {"type": "integer"}}, **_CAMERA,
+        "windows": {"type": "string", "enum": ["grid", "fixed"]},
+        "window_center": {"type": "array", "items": {"type": "number"}, "description": "fixed window only (client px)"},
         "missing_fraction": {"type": "number", "minimum": 0, "maximum": 1,
-                             "description": "fraction of the crop window's pixels without a depth reading (0); filled before encoding"},
+                             "description": "share of pixels without a depth reading (0): of the fixed window, else of the image"},
         "grasp_range": {"type": "object", "properties": {"u": {"type": "array", "items": {"type": "number"}},
                                                          "v": {"type": "array", "items": {"type": "number"}}}}}},
-        "example": {"image_id": "3f1c0e9a5b7d4c2e8f6a1b3c5d7e9f01", "cached": False, "model_version": "fast_vgqcnn-0123456789ab",
-                    "image_shape": [300, 300], "window_center": [149.5, 149.5], "missing_fraction": 0.012, "grasp_range": {"u": [113.5, 185.5], "v": [113.5, 185.5]}}}},
+        "examples": {
+            "grid": {"summary": "a 640 x 480 image of a 615 px camera: grasps anywhere",
+                     "value": {"image_id": "3f1c0e9a5b7d4c2e8f6a1b3c5d7e9f01", "cached": False, "model_version": "fast_vgqcnn-0123456789ab",
+                               "image_shape": [480, 640], "missing_fraction": 0.004, **_CAMERA_EXAMPLE, "windows": "grid"}},
+            "fixed": {"summary": "center_u / center_v given, model intrinsics assumed",
+                      "value": {"image_id": "9a0b1c2d3e4f5061728394a5b6c7d8e9", "cached": False, "model_version": "fast_vgqcnn-0123456789ab",
+                                "image_shape": [300, 300], "missing_fraction": 0.012,
+                                "intrinsics": {"fx": 525.0, "fy": 525.0, "cx": 149.5, "cy": 149.5},
+                                "intrinsics_assumed": ["fx", "fy", "cx", "cy"],
+                                "resampled": {"image_shape": [300, 300], "scale": [1.0, 1.0],
+                                              "intrinsics": {"fx": 525.0, "fy": 525.0, "cx": 149.5, "cy": 149.5}},
+                                "windows": "fixed", "window_center": [149.5, 149.5],
+                                "grasp_range": {"u": [113.5, 185.5], "v": [113.5, 185.5]}}}}}},
 }
 SCORE_BODY = {
     "required": True,
@@ -72,16 +97,36 @@ SCORE_BODY = {
         "application/octet-stream": {"schema": _BINARY, "description": "little-endian float32, k x 7 row-major"},
     },
 }
+_PER_GRASP = {"type": "array", "items": {"type": "number", "minimum": 0, "maximum": 1}}
 SCORE_RESPONSE = {
-    "description": "Success probabilities, one per grasp, in order.",
+    "description": "Per grasp, in request order: `p_success`, the calibrated probability of success at the dataset's native "
+                   "positivity (= `raw_score` when `calibrated` is false: the model card has no calibration); `raw_score`, the "
+                   "network's output (trained on resampled, class-balanced data: rank by it, do not read it as a probability); "
+                   "`ood`, the reasons the score is not to be trusted, and `ood_mask`, the same as bits (1 approach away from "
+                   "the camera, 2 z outside the training range, 4 centre on missing depth, 8 window mostly missing).",
     "content": {
-        "application/json": {"schema": {"type": "object", "required": ["image_id", "p_success", "model_version"], "properties": {
+        "application/json": {"schema": {"type": "object", "required": ["image_id", "p_success", "raw_score", "ood", "ood_mask",
+                                                                        "calibrated", "model_version"], "properties": {
             "image_id": {"type": "string"}, "cached": {"type": "boolean"}, "model_version": {"type": "string"},
-            "p_success": {"type": "array", "items": {"type": "number", "minimum": 0, "maximum": 1}}}},
-            "example": {"image_id": "3f1c0e9a5b7d4c2e8f6a1b3c5d7e9f01", "model_version": "fast_vgqcnn-0123456789ab", "p_success": [0.81, 0.07]}},
-        "application/octet-stream": {"schema": _BINARY, "description": "little-endian float32 (k,), with Accept: application/octet-stream"},
+            "p_success": _PER_GRASP, "raw_score": _PER_GRASP, "calibrated": {"type": "boolean"},
+            "ood": {"type": "array", "items": {"type": "array", "items": {"type": "string", "enum": [
+                "approach_away_from_camera", "z_outside_training_range", "center_on_missing_depth", "window_mostly_missing"]}}},
+            "ood_mask": {"type": "array", "items": {"type": "integer", "minimum": 0, "maximum": 15}},
+            "windows": {"type": "integer", "description": "crop windows the grasps fell in"},
+            "windows_encoded": {"type": "integer", "description": "of them, encoded by this request (the rest were cached)"},
+            "missing_fraction": {"type": "number", "description": "largest share of missing depth among those windows"},
+            **_CAMERA}},
+            "example": {"image_id": "3f1c0e9a5b7d4c2e8f6a1b3c5d7e9f01", "model_version": "fast_vgqcnn-0123456789ab",
+                        "p_success": [0.81, 0.07, 0.4], "raw_score": [0.81, 0.07, 0.4], "calibrated": False,
+                        "ood": [[], ["approach_away_from_camera"], ["z_outside_training_range", "center_on_missing_depth"]],
+                        "ood_mask": [0, 1, 6], "windows": 2, "windows_encoded": 1, "missing_fraction": 0.01}},
+        "application/octet-stream": {"schema": _BINARY, "description": "little-endian float32 p_success (k,), with Accept: "
+                                     "application/octet-stream; headers x-calibrated (true / false), x-ood-count (grasps with "
+                                     "a flag: ask for JSON to see which), x-windows-encoded, x-image-id"},
     },
 }
+STRICT = {"name": "strict", "in": "query", "required": False, "schema": {"type": "boolean", "default": False},
+          "description": "true: any grasp with an out-of-distribution flag makes the request a 422 listing grasps and reasons"}
 ONE_SHOT_BODY = {
     "required": True,
     "content": {
@@ -90,6 +135,7 @@ ONE_SHOT_BODY = {
                                          "description": 'JSON {"grasps": [[u, v, z, qw, qx, qy, qz], ...]}'},
             **{n.name: n.schema() for n in ONE_SHOT_NUMBERS}}},
             "encoding": {"depth": {"contentType": ", ".join(DEPTH_TYPES)}}},
-        "application/x-npz": {"schema": _BINARY, "description": "arrays depth (H, W) float32 m, grasps (k, 7), optional center (2,)"},
+        "application/x-npz": {"schema": _BINARY, "description": "arrays depth (H, W) float32 m, grasps (k, 7), optional "
+                                                                "intrinsics (4,) = fx, fy, cx, cy px and center (2,)"},
     },
 }

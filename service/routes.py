@@ -152,7 +152,7 @@ async def upload(request: Request, svc: Authorized):
 
 
 @router.post("/v1/images/{image_id}/scores", summary="Score k grasps against an uploaded image",
-             openapi_extra={"requestBody": doc.SCORE_BODY}, responses={200: doc.SCORE_RESPONSE, **doc.errors(doc.BODY_ERRORS)})
+             openapi_extra={"requestBody": doc.SCORE_BODY, "parameters": [doc.STRICT]}, responses={200: doc.SCORE_RESPONSE, **doc.errors(doc.BODY_ERRORS)})
 async def score(image_id: str, request: Request, svc: Authorized):
     """Body: JSON ``{"grasps": [[u, v, z, qw, qx, qy, qz], ...]}`` or little-endian float32 k x 7
     (``application/octet-stream``), u, v in the uploaded image's pixels. Returns per grasp, in the
@@ -176,7 +176,7 @@ async def score(image_id: str, request: Request, svc: Authorized):
 
 
 @router.post("/v1/score", summary="One-shot: upload + score in one request (fills the cache)",
-             openapi_extra={"requestBody": doc.ONE_SHOT_BODY}, responses={200: doc.SCORE_RESPONSE, **doc.errors(doc.BODY_ERRORS)})
+             openapi_extra={"requestBody": doc.ONE_SHOT_BODY, "parameters": [doc.STRICT]}, responses={200: doc.SCORE_RESPONSE, **doc.errors(doc.BODY_ERRORS)})
 async def score_once(request: Request, svc: Authorized):
     """``multipart/form-data`` with parts ``depth`` (a file: .npy, 16-bit PNG, or raw float32 with
     ``width``/``height`` fields) and ``grasps`` (JSON text or a float32 k x 7 file), optional fields
