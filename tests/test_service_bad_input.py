@@ -221,8 +221,8 @@ SCORES = [
     ("zero-quaternion", lambda: _bin(_g(r4c3=0, r4c4=0, r4c5=0, r4c6=0)), "application/octet-stream", 422, ["zero quaternion"]),
     ("tiny-quaternion", lambda: _json({"grasps": (_g() * [1, 1, 1, 1e-300, 1e-300, 1e-300, 1e-300]).tolist()}),
      "application/json", 422, ["zero quaternion"]),
-    ("outside-window-u", lambda: _bin(_g(r5c0=10.0)), "application/octet-stream", 422, ["outside the window"]),
-    ("outside-window-v", lambda: _bin(_g(r5c1=1e30)), "application/octet-stream", 422, ["outside the window"]),
+    ("outside-image-u", lambda: _bin(_g(r5c0=-10.0)), "application/octet-stream", 422, ["outside the 300x300 image"]),
+    ("outside-image-v", lambda: _bin(_g(r5c1=1e30)), "application/octet-stream", 422, ["outside the 300x300 image"]),
     ("text-plain", lambda: _bin(grasps_at(k=8)), "text/plain", 415, ["text/plain"]),
     ("no-content-type", lambda: _bin(grasps_at(k=8)), None, 415, ["content type"]),
 ]
