@@ -172,7 +172,8 @@ async def score(image_id: str, request: Request, svc: Authorized):
     else:
         raise ApiError(415, f"unsupported grasp content type {ct!r}; use {JSON} or {OCTET}")
     result = svc.score(image_id, entry, grasps, strict)
-    return _scores_response(request, svc, {"image_id": image_id, "model_version": svc.model.version}, result)
+    return _scores_response(request, svc, {"image_id": image_id, "model_version": svc.model.version,
+                                           **svc.camera_info(entry)}, result)
 
 
 @router.post("/v1/score", summary="One-shot: upload + score in one request (fills the cache)",

@@ -96,6 +96,7 @@ def test_the_service_path_scores_other_cameras_like_the_native_one(scene):
     cams = {fx: Intrinsics(fx=fx, fy=fx, cx=(s - 1) / 2, cy=(s - 1) / 2, width=s, height=s)
             for fx in (450.0, 525.0, 615.0) for s in [int(round(native.width * fx / native.fx))]}
     p = {fx: [] for fx in cams}
+    unsent = {fx: [] for fx in cams}  # control: the same uploads without intrinsics (the model's assumed)
     for n, T_wc in enumerate(T_wcs):
         proj = {fx: project_grasps(T_wg, T_wc, cam) for fx, cam in cams.items()}
         ok = np.logical_and.reduce([pr["in_image"] for pr in proj.values()]) & (proj[525.0]["psi"] < np.pi / 2)
@@ -103,13 +104,19 @@ def test_the_service_path_scores_other_cameras_like_the_native_one(scene):
             continue
         for fx, cam in cams.items():
             pr = proj[fx]
-            entry = svc.prepare_image(render_depth(mesh, T_wc, cam), {"fx": fx, "fy": fx, "cx": cam.cx, "cy": cam.cy})
+            depth = render_depth(mesh, T_wc, cam)
+            entry = svc.prepare_image(depth, {"fx": fx, "fy": fx, "cx": cam.cx, "cy": cam.cy})
             rows = np.column_stack([pr["u"], pr["v"], pr["z"], pr["q"]])[ok]
             p[fx].append(svc.score(f"{fx}-{n}", entry, rows).raw_score)
+            unsent[fx].append(svc.score(f"{fx}-{n}-unsent", svc.prepare_image(depth, {}), rows).raw_score)
     ref = np.concatenate(p[525.0])
     assert len(ref) >= 50
     for fx in (450.0, 615.0):
         d = np.abs(np.concatenate(p[fx]) - ref)
-        assert d.mean() <= 0.05, f"fx {fx}: mean |dp| {d.mean():.4f} over {len(d)} grasps"
+        control = np.abs(np.concatenate(unsent[fx]) - ref)
+        print(f"fx {fx}: mean |dp| {d.mean():.4f} over {len(d)} grasps; without intrinsics {control.mean():.4f}")
+        # measured: 0.0009 (450 px) and 0.0006 (615 px); without intrinsics 0.04-0.07 (issue 11 asks <= 0.05)
+        assert d.mean() <= 0.01, f"fx {fx}: mean |dp| {d.mean():.4f} over {len(d)} grasps"
+        assert control.mean() >= 4 * d.mean()
         # the same decisions at 0.5 for nearly every grasp
         assert np.mean((np.concatenate(p[fx]) > 0.5) == (ref > 0.5)) >= 0.95

@@ -114,6 +114,7 @@ def test_omitted_intrinsics_are_the_model_s_and_the_answer_says_so(url):
     assert up["intrinsics_assumed"] == ["fx", "fy", "cx", "cy"]
     assert up["intrinsics"] == {"fx": 525.0, "fy": 525.0, "cx": 319.5, "cy": 239.5}
     assert up["resampled"]["scale"] == [1.0, 1.0]
+    assert scores(url, up["image_id"], grasps_at(center=(320, 240), k=2))["intrinsics_assumed"] == ["fx", "fy", "cx", "cy"]
     r = httpx.post(f"{url}/v1/score", content=npz(depth=table_scene(), grasps=grasps_at(k=2)),
                    headers={"content-type": "application/x-npz"}).json()
     assert r["intrinsics_assumed"] == ["fx", "fy", "cx", "cy"]
