@@ -6,8 +6,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from vgq.camera import (FOCAL_RATIO_RANGE, CameraMismatch, Intrinsics, check_client_intrinsics, resample_depth,
-                        resampled_intrinsics)
+from vgq.camera import (
+    FOCAL_RATIO_RANGE,
+    CameraMismatch,
+    Intrinsics,
+    check_client_intrinsics,
+    resample_depth,
+    resampled_intrinsics,
+)
 
 from .errors import ApiError
 

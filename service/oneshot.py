@@ -25,7 +25,14 @@ from .depth_io import NPY_TYPES, decode_depth, parse_npy, read_npz, validate_dep
 from .errors import ApiError
 from .grasps import parse_binary, parse_json
 from .media import OCTET, media_type
-from .numbers import CENTER_U, CENTER_V, INTRINSICS, ONE_SHOT_NUMBERS, parse_all, request_key
+from .numbers import (
+    CENTER_U,
+    CENTER_V,
+    INTRINSICS,
+    ONE_SHOT_NUMBERS,
+    parse_all,
+    request_key,
+)
 
 MAX_PARTS = 12  # depth, grasps and up to 8 numeric fields (width, height, fx, fy, cx, cy, center_u, center_v)
 MAX_PART_HEADER_BYTES = 4096

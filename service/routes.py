@@ -21,11 +21,11 @@ from vgq.ood import OOD_FLAGS
 from . import openapi as doc
 from .body import read_body
 from .cache import image_id
+from .camera import focal_range
 from .depth_io import DEPTH_TYPES, decode_depth
 from .errors import ApiError, redact_paths
 from .grasps import parse_binary, parse_json
 from .media import JSON, MULTIPART, NPZ, OCTET, accepts, media_type
-from .camera import focal_range
 from .numbers import UPLOAD_NUMBERS, parse_all, parse_flag, request_key
 from .oneshot import parse_multipart, parse_npz
 from .scoring import Scores, Service

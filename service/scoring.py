@@ -12,7 +12,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from vgq.camera import map_pixels
-from vgq.crop import crop_window, grid_window_centers, in_training_range, window_center, window_origin
+from vgq.crop import (
+    crop_window,
+    grid_window_centers,
+    in_training_range,
+    window_center,
+    window_origin,
+)
 from vgq.grasps import GraspError, pose_rows
 from vgq.inpaint import missing_mask
 from vgq.ood import flag_names, ood_flags
@@ -102,7 +108,6 @@ class Service:
         model = self.model.card.intrinsics
         camera, assumed = client_camera(numbers, depth.shape, model)
         cu, cv = numbers.get("center_u"), numbers.get("center_v")
-        fixed = None
         if cu is not None or cv is not None:
             h, w = depth.shape
             cu = (w - 1) / 2 if cu is None else cu

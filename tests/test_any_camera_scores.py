@@ -12,15 +12,15 @@ pytest.importorskip("trimesh")
 
 from datagen.camera import CameraParams, sample_cameras
 from datagen.config import DatagenConfig
-from datagen.gripper import align_to_table, grasp_frames
 from datagen.grasps import sample_antipodal_grasps
+from datagen.gripper import align_to_table, grasp_frames
 from datagen.mesh import load_object, mesh_sources, stable_poses
 from datagen.project import project_grasps
 from datagen.render import render_depth
-from vgq.grasps import pose_rows
 from service.runtime import FastModel
 from vgq.camera import Intrinsics, map_pixels, resample_depth
 from vgq.crop import crop, grid_window_centers
+from vgq.grasps import pose_rows
 
 MODEL_DIR = "models/fast-vgqcnn-default"
 

@@ -98,7 +98,6 @@ def test_intrinsics_by_query_multipart_and_npz_score_alike(url):
 def test_resampled_upload_scores_as_the_same_scene_at_the_model_focal_length(url):
     """An image of a 630 px camera, made by upscaling a 525 px one (exact 6/5), scores like the original."""
     native = table_scene(300, 300)
-    cam = Intrinsics(fx=630.0, fy=630.0, cx=179.5, cy=179.5, width=360, height=360)
     big = np.kron(native, np.ones((6, 6), np.float32))[::5, ::5][:360, :360]  # nearest-neighbour x 1.2
     g_native = spread_grasps(300, 300, k=16, seed=3)
     g_native[:, :2] = np.clip(g_native[:, :2], 20, 279)
@@ -323,7 +322,7 @@ def heldout_balanced_accuracies(url: str) -> dict:
         return float((pred[y].mean() + (~pred[~y]).mean()) / 2)
 
     return {"grasps": len(held), "images": len(held.depth), "per_window": ba(per_window), "anywhere": ba(anywhere),
-            "uploads_per_window": int(len(np.unique(np.column_stack([held.image_index, held.center]), axis=0))),
+            "uploads_per_window": len(np.unique(np.column_stack([held.image_index, held.center]), axis=0)),
             "windows_anywhere": windows}
 
 

@@ -14,7 +14,13 @@ from service.cache import CachedImage, EncodedWindow, MemoryCache
 from service.config import Settings, from_env
 from service.depth_io import decode_depth, encode_npy, parse_npy, png_header, read_npz
 from service.errors import ApiError
-from service.redis_cache import pack_entry, pack_window, redacted, unpack_entry, unpack_window
+from service.redis_cache import (
+    pack_entry,
+    pack_window,
+    redacted,
+    unpack_entry,
+    unpack_window,
+)
 from vgq.camera import Intrinsics, resampled_intrinsics
 from vgq.crop import CropGeometry
 from vgq.grasps import MAX_Z_M, GraspError, pose_rows
