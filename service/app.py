@@ -1,9 +1,10 @@
 """The HTTP API (FastAPI), wired together: settings -> ``Service`` (scoring.py), the routes
 (routes.py), the limits middleware (limits.py), error handlers, offline docs. Endpoints:
 
-* ``POST /v1/images``: upload a depth image; it is cropped (vgq.crop), encoded once and cached
-  under a content-addressed id.
-* ``POST /v1/images/{image_id}/scores``: score k grasps against a cached image.
+* ``POST /v1/images``: upload a depth image (+ camera intrinsics); it is resampled to the
+  model's focal length (vgq.camera) and cached under a content-addressed id.
+* ``POST /v1/images/{image_id}/scores``: score k grasps anywhere in a cached image; the crop
+  windows they need (vgq.crop's grid) are encoded once, lazily, in one batch.
 * ``POST /v1/score``: one-shot, depth + grasps in one request (multipart or .npz).
 * ``GET /healthz``, ``/readyz``, ``/v1/model``, ``/v1/cache``, ``/metrics``, ``/docs``, ``/redoc``.
 
@@ -35,8 +36,10 @@ from .scoring import Service
 
 GUARDED = ("/v1/images", "/v1/images/{image_id}/scores", "/v1/score")
 DESCRIPTION = (
-    "Upload a depth image once (it is cropped and encoded by Fast-VGQ-CNN's encoder and cached), "
-    "then score batches of 6-DOF grasps (u, v, z, qw, qx, qy, qz) against it. "
+    "Upload a depth image once, with the camera's intrinsics (fx, fy, cx, cy; it is resampled to the model's focal "
+    "length and cached), then score batches of 6-DOF grasps (u, v, z, qw, qx, qy, qz) anywhere in it: each grasp's "
+    "crop window (on the grid the network was trained with) is encoded by Fast-VGQ-CNN's encoder once, when first "
+    "needed. Each score comes with its raw network output and out-of-distribution flags. "
     "Units: u, v image pixels (u = column), z metres in the camera frame, quaternion (w, x, y, z) in the camera frame."
 )
 
