@@ -344,3 +344,24 @@ if __name__ == "__main__":  # measure by hand: python tests/test_service_any_cam
     sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
     with running_service(BUNDLED) as u:
         print(heldout_balanced_accuracies(u))
+
+
+def test_python_client_sends_intrinsics_and_returns_flags(url):
+    depth, g = table_scene(360, 360), flagged_grasps()
+    g[:, :2] = g[:, :2] * 1.2 + 0.1  # the 300 px grasps in the 630 px camera's pixels
+    cam = Intrinsics(fx=630.0, fy=630.0, cx=179.5, cy=179.5, width=360, height=360)
+    with ServiceClient(url) as c:
+        iid = c.upload(depth, intrinsics=cam)
+        assert c.last_upload["intrinsics_assumed"] == [] and c.last_upload["resampled"]["image_shape"] == [300, 300]
+        assert c.upload(depth, intrinsics=(630.0, 630.0, 179.5, 179.5)) == iid
+        assert c.upload(depth, intrinsics={"fx": 630.0, "fy": 630.0, "cx": 179.5, "cy": 179.5}) == iid
+        r = c.score_details(iid, g)
+        assert r["ood_mask"].dtype == np.uint8 and r["ood"][1] == ["approach_away_from_camera"]
+        p = c.score(iid, g)
+        assert np.allclose(p, r["p_success"], atol=1e-6) and c.last_ood_count == int(np.count_nonzero(r["ood_mask"]))
+        once = c.score_once(depth, g, intrinsics=cam, details=True)
+        assert np.allclose(once["p_success"], p, atol=1e-6)
+        assert once["image_id"] == iid and once["cached"] is True  # the same .npy bytes and camera: the same id
+        with pytest.raises(ServiceError) as e:
+            c.score(iid, g, strict=True)
+        assert e.value.status == 422 and 1 in e.value.details["grasps"]
