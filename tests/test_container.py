@@ -103,3 +103,12 @@ def test_model_directory_comes_from_configuration(final_stage):
     copied = [shlex.split(a)[-1] for a in args(final_stage, "COPY")]
     workdir = args(final_stage, "WORKDIR")[-1]
     assert any(str(Path(workdir) / c).rstrip("/") == model_dir.rstrip("/") for c in copied)
+
+
+def test_copies_every_first_party_package_the_service_imports(final_stage):
+    first_party = {p.parent.name for p in ROOT.glob("*/__init__.py")}
+    imported = set()
+    for f in (ROOT / "service").glob("*.py"):
+        imported |= set(re.findall(r"^\s*(?:from|import) (\w+)", f.read_text(), re.M)) & first_party
+    copied = {shlex.split(a)[-1].strip("./").split("/")[0] for a in args(final_stage, "COPY")}
+    assert imported - {"service"} <= copied, f"the service imports {sorted(imported - copied)}, not copied into the image"

@@ -187,3 +187,12 @@ def test_client_plan(url, two_boxes, table_only):
 def test_an_image_id_is_not_a_depth_image(url):
     r = httpx.post(f"{url}/v1/plan", json={"image_id": "0" * 32})
     assert r.status_code == 415 and "image/png" in r.json()["error"]["message"]
+
+
+def test_plan_needs_the_api_key_when_one_is_set(two_boxes):
+    with running_service(MODEL_DIR, "--api-key", "s3cret") as u:
+        assert post_plan(u, two_boxes[0], {"k": 1}).status_code == 401
+        with ServiceClient(u, api_key="s3cret", timeout=60) as c:
+            assert len(c.plan(two_boxes[0], k=1).grasps) == 1
+        spec = httpx.get(f"{u}/openapi.json").json()
+        assert spec["paths"]["/v1/plan"]["post"]["security"] == [{"ApiKey": []}]
