@@ -1,8 +1,8 @@
 """``POST /v1/plan``: the best k grasps on an uploaded depth image (``planning.policy.plan``).
 
 The body is a depth image in any upload format (service/depth_io.py); every number comes
-from the query through service/numbers.py. Planning takes tenths of a second, so it runs in
-a worker thread, off the event loop (the in-flight bound of service/limits.py caps how many
+from the query through service/numbers.py. Planning takes tens of milliseconds on a 300 x 300
+image and about a second on a 2048 x 2048 one, so it runs in a worker thread, off the event loop (the in-flight bound of service/limits.py caps how many
 run at once). A :class:`planning.types.PlanningError` answers 422 naming its field; an image
 with nothing to grasp answers 200 with no grasps and a ``reason``.
 
@@ -13,7 +13,6 @@ encoded window, not its depth.
 from __future__ import annotations
 
 import dataclasses
-import time
 
 from fastapi import APIRouter, Request
 from starlette.concurrency import run_in_threadpool
@@ -101,12 +100,11 @@ async def plan_grasps(request: Request, svc: Authorized):
     k = 5 if n["k"] is None else n["k"]
     seed = 0 if n["seed"] is None else n["seed"]
     params = dataclasses.replace(PlanParams(), cem_iterations=n["cem"] or 0)
-    t = time.perf_counter()
     try:
         intr = camera_for(depth.shape, svc.model.card.intrinsics, n["fx"], n["fy"], n["cx"], n["cy"])
         result = await run_in_threadpool(plan, depth, intr, svc.model, k, roi, seed, params)
     except PlanningError as e:
         raise ApiError(422, f"{e.field}: {e}", {"field": e.field}) from None
-    svc.metrics.observe_plan(time.perf_counter() - t, len(result.grasps))
+    svc.metrics.observe_plan(result.seconds.get("total", 0.0), len(result.grasps))
     return json_response({**result.to_dict(), "k": k, "seed": seed, "cem": params.cem_iterations,
                           "intrinsics": intr.to_dict()})
