@@ -132,6 +132,26 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_labelstudy(args) -> int:
+    from .label_study import StudyParams, run_study, summarise, write_report
+
+    out = Path(args.out)
+    params = StudyParams(grasps=args.grasps, label_trials=args.label_trials, eval_trials=args.eval_trials,
+                         per_family=args.per_family, random_urdfs=args.random_urdfs, seed=args.seed)
+    cfg = _build_config(args)
+    results = run_study(out, params, cfg, workers=args.workers) if not args.summary_only else None
+    if results is None:
+        from .label_study import load_results
+
+        results = load_results(out)
+    if not any(r.get("status") == "done" for r in results):
+        raise CliError(f"{out}: no object produced study data")
+    summary = summarise(results, out / "plots", cfg.label_threshold)
+    write_report(out, summary)
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
 def cmd_recipe(args) -> int:
     from .parallel import default_workers
 
@@ -215,6 +235,19 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--json", action="store_true", help="also print the result as JSON")
     _add_config_args(b)
     b.set_defaults(func=cmd_bench)
+
+    ls = sub.add_parser("labelstudy", help="compare grasp labels against physics trials under noise (issue 17)")
+    ls.add_argument("--out", required=True, help="study folder (per-object results are cached: rerun to resume)")
+    ls.add_argument("--grasps", type=_positive_int("--grasps"), default=24, help="grasps per object")
+    ls.add_argument("--label-trials", type=_positive_int("--label-trials"), default=5)
+    ls.add_argument("--eval-trials", type=_positive_int("--eval-trials"), default=5)
+    ls.add_argument("--per-family", type=_nonneg_int, default=2, help="held-out objects per everyday family")
+    ls.add_argument("--random-urdfs", type=_nonneg_int, default=8, help="held-out random_urdfs objects (past #600)")
+    ls.add_argument("--workers", type=_positive_int("--workers"), default=1)
+    ls.add_argument("--seed", type=_nonneg_int, default=17)
+    ls.add_argument("--summary-only", action="store_true", help="only summarise the cached results")
+    _add_config_args(ls)
+    ls.set_defaults(func=cmd_labelstudy)
 
     r = sub.add_parser("recipe", help="build the shipped model's dataset (generate -> sample -> crops)")
     r.add_argument("--out", required=True)

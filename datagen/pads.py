@@ -56,7 +56,7 @@ def _patch_centre(v: np.ndarray, f: np.ndarray, x: np.ndarray, extreme: float, t
     return 0.5 * (pts.min(axis=0) + pts.max(axis=0))  # an edge's midpoint, or the corner itself
 
 
-def pad_contacts(mesh: trimesh.Trimesh, T_object_grasp: np.ndarray, gripper: GripperGeometry, tol: float = 1e-3):
+def pad_contacts(mesh: trimesh.Trimesh, T_object_grasp: np.ndarray, gripper: GripperGeometry, tol: float = 1e-4):
     """Pad contacts of n grasps ``T_object_grasp`` (n, 4, 4) on ``mesh`` (object frame).
 
     Returns ``(ok (n,) bool, contacts (n, 2, 3), normals (n, 2, 3) outward, object frame)``.
