@@ -138,15 +138,29 @@ def _quiet_stdout():
 
 
 def _quat_xyzw(R: np.ndarray) -> list[float]:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_quat().tolist()  # scipy: (x, y, z, w)
+    """Quaternion (x, y, z, w) of a rotation matrix (pybullet's order; no scipy: this runs per step)."""
+    R = np.asarray(R, dtype=np.float64)
+    t = R[0, 0] + R[1, 1] + R[2, 2]
+    if t > 0:
+        s = 2.0 * np.sqrt(t + 1.0)
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
+    q = np.asarray(q)
+    return (q / np.linalg.norm(q)).tolist()
 
 
 def _matrix(quat_xyzw) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
+    import pybullet as p
 
-    return Rotation.from_quat(quat_xyzw).as_matrix()
+    return np.asarray(p.getMatrixFromQuaternion(quat_xyzw), dtype=np.float64).reshape(3, 3)
 
 
 def _rotvec_matrices(rv: np.ndarray) -> np.ndarray:
@@ -462,14 +476,20 @@ class GraspSimulator:
         # lift
         T_top = T_g.copy()
         n_lift = max(1, int(np.ceil(prm.lift_height / prm.lift_speed / dt)))
+        lost = False
         for i in range(1, n_lift + 1):
             T_top[2, 3] = T_g[2, 3] + prm.lift_height * _smooth(i / n_lift)
             self._drive_to(T_top)
             self._step()
+            if i % 12 == 0 and not self._touching(self.gripper, self.obj):
+                lost = True  # the object is out of the jaws: it cannot be held at the end
+                break
         # shake: a horizontal circle
         n_shake = int(round(prm.shake_duration / dt))
         w = 2 * np.pi * prm.shake_frequency
-        for i in range(1, n_shake + 1):
+        for i in range(1, 0 if lost else n_shake + 1):
+            if i % 12 == 0 and not self._touching(self.gripper, self.obj):
+                break
             t = i * dt
             T = T_top.copy()
             a = prm.shake_amplitude * _smooth(min(1.0, 4.0 * i / n_shake))  # ramp in over the first quarter
@@ -484,9 +504,6 @@ class GraspSimulator:
             T_go = np.linalg.inv(self.gripper_pose()) @ T_obj
             firm = (np.linalg.norm(T_go[:3, 3] - T_go_closed[:3, 3]) <= prm.firm_translation
                     and _angle(T_go[:3, :3], T_go_closed[:3, :3]) <= prm.firm_rotation)
-            if os.environ.get("VGQ_PHYS_DEBUG"):
-                print("firm?", np.linalg.norm(T_go[:3, 3] - T_go_closed[:3, 3]), _angle(T_go[:3, :3], T_go_closed[:3, :3]),
-                      [s[0] for s in p.getJointStates(self.gripper, [0, 1], physicsClientId=c)])
         self._park_gripper()
         return ("held" if held else "dropped"), bool(firm), touch
 
