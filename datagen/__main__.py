@@ -126,7 +126,12 @@ def cmd_bench(args) -> int:
         args, source=str(Path(args.source).resolve()) if args.source else None, num_objects=args.objects,
         cameras_per_pose=args.cameras, seed=args.seed,
     )
-    res = run_bench(cfg, workers=args.workers)
+    if args.physics:
+        from .bench import run_physics_bench
+
+        res = run_physics_bench(cfg, workers=args.workers, grasps=args.grasps, trials=args.trials)
+    else:
+        res = run_bench(cfg, workers=args.workers)
     if args.json:
         print(json.dumps(res, indent=2))
     return 0
@@ -233,6 +238,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--source")
     b.add_argument("--seed", type=_nonneg_int)
     b.add_argument("--json", action="store_true", help="also print the result as JSON")
+    b.add_argument("--physics", action="store_true", help="measure physics grasp trials per second instead")
+    b.add_argument("--grasps", type=_positive_int("--grasps"), default=16, help="--physics: grasps per object")
+    b.add_argument("--trials", type=_positive_int("--trials"), default=4, help="--physics: noisy trials per grasp")
     _add_config_args(b)
     b.set_defaults(func=cmd_bench)
 
