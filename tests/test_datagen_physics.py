@@ -79,3 +79,27 @@ def test_execution_noise_has_the_configured_spread():
 def test_physics_params_reject_bad_values():
     with pytest.raises(ValueError, match="grip_force"):
         PhysicsParams(grip_force=0.0)
+
+
+def test_the_physics_label_labels_each_grasp_once_per_pose_for_all_cameras(tmp_path):
+    from datagen.config import DatagenConfig
+    from datagen.mesh import MeshSource
+    from datagen.pipeline import generate_object_with_info
+
+    box = trimesh.creation.box(extents=[0.035, 0.04, 0.10])  # lies on a 4 x 10 cm face, 3.5 cm wide on top
+    path = tmp_path / "box.stl"
+    box.export(str(path))
+    cfg = DatagenConfig().with_overrides({
+        "cameras_per_pose": 2, "max_stable_poses": 1, "antipodal.num_samples": 12, "quality.num_samples": 3,
+        "label.kind": "physics", "label.trials": 2, "mesh.rescale": "keep",
+    })
+    _, g, info = generate_object_with_info(MeshSource("box", path), cfg, 0, 1)
+    assert info["label"] == "physics" and info["physics"][0]["pose_stable"]
+    assert info["physics"][0]["trials"] > 0
+    rate = g["success_rate"]
+    assert np.all(np.isin(rate, [0.0, 0.5, 1.0]))
+    np.testing.assert_array_equal(g["quality"], np.where(g["collision_free"], rate, 0.0).astype(np.float32))
+    # every camera sees the same 6-DOF grasp: one omega per grasp id
+    for gid in np.unique(g["grasp_id"]):
+        assert np.unique(g["omega"][g["grasp_id"] == gid]).size == 1
+    assert cfg.label_threshold == 0.5
