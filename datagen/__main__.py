@@ -138,7 +138,7 @@ def cmd_bench(args) -> int:
 
 
 def cmd_labelstudy(args) -> int:
-    from .label_study import StudyParams, run_study, summarise, write_report
+    from .label_study import StudyParams, augment, run_study, summarise, write_report
 
     out = Path(args.out)
     params = StudyParams(grasps=args.grasps, label_trials=args.label_trials, eval_trials=args.eval_trials,
@@ -146,6 +146,10 @@ def cmd_labelstudy(args) -> int:
     cfg = _build_config(args)
     results = run_study(out, params, cfg, workers=args.workers) if not args.summary_only else None
     if results is None:
+        from .label_study import load_results
+
+        results = load_results(out)
+    if augment(out, cfg, params):  # cached objects from an older study: add the newer analytic scores
         from .label_study import load_results
 
         results = load_results(out)

@@ -111,19 +111,15 @@ def _timed(times: dict, key: str, fn, *a, **kw):
     return r
 
 
-def study_object(family: str, src, config: DatagenConfig, params: StudyParams, physics: PhysicsParams,
-                 robust: RobustCollisionParams, seed: int, cache_dir=None) -> dict:
-    """All per-grasp scores and trial outcomes of one object (arrays), with stage times (s)."""
-    from .collision import CollisionChecker, collision_free_probability
+def _select(src, config: DatagenConfig, params: StudyParams, seed: int, times: dict):
+    """The object, its most probable stable pose and up to ``params.grasps`` grasps with a
+    collision-free approach (deterministic in ``seed``): a dict, or a skip dict."""
+    from .collision import CollisionChecker
     from .grasps import sample_antipodal_grasps
     from .gripper import align_to_table, grasp_frames
     from .mesh import load_object, stable_poses
-    from .pads import pad_quality
-    from .physics import _worker_sim, run_trials
-    from .quality import resolve_torque_scaling, robust_ferrari_canny
 
     ss = np.random.SeedSequence(seed).spawn(8)
-    times: dict[str, float] = {}
     obj = load_object(src, config.mesh)
     T_poses, probs = stable_poses(obj, 0.0, 1)
     if len(T_poses) == 0:
@@ -156,24 +152,56 @@ def study_object(family: str, src, config: DatagenConfig, params: StudyParams, p
     times["collision"] *= len(keep) / max(n_checked, 1)  # cost of one check per labelled grasp
     n_sampled = len(grasps)
     grasps, T_wg = grasps[keep], T_wg[keep]
-    n = len(grasps)
-    if n == 0:
+    if len(grasps) == 0:
         return {"status": "skipped", "reason": f"none of {n_sampled} antipodal grasps has a collision-free approach"}
-    times["sample"] *= n / n_sampled
-    beta = np.arccos(np.clip(-T_wg[:, 2, 2], -1, 1))
+    times["sample"] *= len(grasps) / n_sampled
+    return {"status": "ok", "obj": obj, "T_wo": T_wo, "grasps": grasps, "T_wg": T_wg, "n_sampled": n_sampled,
+            "ss": ss, "mesh_world": mesh_world}
+
+
+def _analytic(sel: dict, config: DatagenConfig, robust: RobustCollisionParams, physics: PhysicsParams,
+              times: dict) -> dict:
+    """The analytic scores of the selected grasps (arrays), timing each stage into ``times``."""
+    from .collision import CollisionChecker, collision_free_probability
+    from .pads import pad_quality, robust_pad_quality
+    from .quality import resolve_torque_scaling, robust_ferrari_canny
+
+    obj, T_wo, grasps, T_wg, ss = sel["obj"], sel["T_wo"], sel["grasps"], sel["T_wg"], sel["ss"]
+    n = len(grasps)
     T_og = np.linalg.inv(T_wo) @ T_wg
-    cf_nominal = np.ones(n, bool)
     q = dataclasses.replace(config.quality, torque_scaling=resolve_torque_scaling(obj.mesh, config.quality))
     fc = _timed(times, "fc", robust_ferrari_canny, obj.mesh, grasps, q, np.random.default_rng(ss[1]))
     qf = dataclasses.replace(config.quality, torque_scaling=FIXED_TORQUE_SCALING)
     fc_fixed = robust_ferrari_canny(obj.mesh, grasps, qf, np.random.default_rng(ss[1]))
-    checker = CollisionChecker(mesh_world, config.gripper, clearance=robust.clearance)
+    checker = CollisionChecker(sel["mesh_world"], config.gripper, clearance=robust.clearance)
     p_cf = _timed(times, "robust_collision", collision_free_probability, checker, T_wg, robust,
                   np.random.default_rng(ss[3]))
-    cf_clear = ~checker.collides(T_wg)
     pad_q, pad_ok, pad_c = _timed(times, "pad", pad_quality, obj.mesh, T_og, config.gripper, q, q.torque_scaling)
     pad_q_fixed = pad_quality(obj.mesh, T_og, config.gripper, qf, FIXED_TORQUE_SCALING)[0]
+    noise = RobustCollisionParams(num_samples=robust.num_samples, sigma_translation=physics.sigma_translation,
+                                  sigma_rotation=physics.sigma_rotation, clearance=0.0)
+    rpad_q, rpad_ok = _timed(times, "robust_pad", robust_pad_quality, obj.mesh, T_og, config.gripper, qf,
+                             FIXED_TORQUE_SCALING, noise, np.random.default_rng(ss[6]))
+    return {
+        "torque_scaling": float(q.torque_scaling), "extents": np.sort(obj.mesh.extents).tolist(),
+        "fc": fc, "fc_fixed": fc_fixed, "cf_nominal": np.ones(n, bool), "cf_clear": ~checker.collides(T_wg),
+        "p_cf": p_cf, "pad_q": pad_q, "pad_q_fixed": pad_q_fixed, "pad_ok": pad_ok, "pad_contacts": pad_c,
+        "robust_pad_q": rpad_q, "robust_pad_ok": rpad_ok,
+        "contacts": grasps.contacts, "beta": np.arccos(np.clip(-T_wg[:, 2, 2], -1, 1)),
+    }
 
+
+def study_object(family: str, src, config: DatagenConfig, params: StudyParams, physics: PhysicsParams,
+                 robust: RobustCollisionParams, seed: int, cache_dir=None) -> dict:
+    """All per-grasp scores and trial outcomes of one object (arrays), with stage times (s)."""
+    from .physics import _worker_sim, run_trials
+
+    times: dict[str, float] = {}
+    sel = _select(src, config, params, seed, times)
+    if sel["status"] != "ok":
+        return sel
+    feats = _analytic(sel, config, robust, physics, times)
+    obj, T_wo, T_wg, ss, n = sel["obj"], sel["T_wo"], sel["T_wg"], sel["ss"], len(sel["grasps"])
     sim = _worker_sim(config.gripper, physics, cache_dir)
     pose = _timed(times, "physics_setup", sim.set_object, obj.mesh, T_wo)
     nominal = run_trials(sim, T_wg, 1, None)
@@ -181,11 +209,8 @@ def study_object(family: str, src, config: DatagenConfig, params: StudyParams, p
     times["physics_label"] = lab.seconds
     ev = run_trials(sim, T_wg, params.eval_trials, np.random.default_rng(ss[5]))
     return {
-        "status": "done", "family": family, "name": src.name, "n": n, "n_sampled": n_sampled, "pose": pose, "times": times,
-        "torque_scaling": float(q.torque_scaling), "extents": np.sort(obj.mesh.extents).tolist(),
-        "fc": fc, "fc_fixed": fc_fixed, "cf_nominal": cf_nominal, "cf_clear": cf_clear, "p_cf": p_cf,
-        "pad_q": pad_q, "pad_q_fixed": pad_q_fixed, "pad_ok": pad_ok, "pad_contacts": pad_c,
-        "contacts": grasps.contacts, "beta": beta,
+        "status": "done", "family": family, "name": src.name, "n": n, "n_sampled": sel["n_sampled"], "pose": pose,
+        "times": times, **feats,
         "nominal_held": nominal.held[:, 0], "label_reason": lab.reason, "nominal_reason": nominal.reason[:, 0],
         "first_touch": nominal.first_touch[:, 0], "label_held": lab.held, "label_firm": lab.firm,
         "eval_held": ev.held, "eval_firm": ev.firm, "eval_reason": ev.reason,
@@ -232,6 +257,39 @@ def run_study(out: str | Path, params: StudyParams = StudyParams(), config: Data
     return load_results(out)
 
 
+def augment(out: str | Path, config: DatagenConfig | None = None, params: StudyParams = StudyParams(),
+            physics: PhysicsParams = PhysicsParams(), robust: RobustCollisionParams = RobustCollisionParams(),
+            log=print) -> int:
+    """Recompute the analytic scores of cached objects (same grasps: the selection is
+    deterministic; checked against the cached ``fc``) and add new ones; trials are kept.
+    Returns the number of objects updated."""
+    from .pipeline import object_seed
+
+    out = Path(out)
+    config = config or DatagenConfig()
+    done = {r["name"]: r for r in load_results(out) if r.get("status") == "done"}
+    k = 0
+    for fam, src in study_sources(params, out):
+        r = done.get(src.name)
+        if r is None or "robust_pad_q" in r:
+            continue
+        times = dict(r["times"])
+        sel = _select(src, config, params, object_seed(params.seed, src.name), {})
+        feats = _analytic(sel, config, robust, physics, times)
+        if not np.allclose(feats["fc"], r["fc"]):
+            raise RuntimeError(f"{src.name}: the recomputed grasps differ from the cached ones")
+        r.update(feats)
+        r["times"] = times
+        meta = {kk: v for kk, v in r.items() if not isinstance(v, np.ndarray)}
+        arrays = {kk: v for kk, v in r.items() if isinstance(v, np.ndarray)}
+        buf = io.BytesIO()
+        np.savez(buf, meta=np.array(json.dumps(meta)), **arrays)
+        atomic.write_bytes(out / "objects" / f"{src.name}.npz", buf.getvalue())
+        k += 1
+    log(f"label study: recomputed the analytic scores of {k} cached objects")
+    return k
+
+
 def load_results(out: str | Path) -> list[dict]:
     res = []
     for f in sorted((Path(out) / "objects").glob("*.npz")):
@@ -276,6 +334,7 @@ def candidate_labels(r: dict, label_threshold: float = 0.002) -> dict[str, tuple
     """name -> (continuous score (n,), binary label (n,)) for one object's (or pooled) arrays."""
     fc, cf0, pcf = r["fc"], r["cf_nominal"].astype(bool), r["p_cf"]
     pad, padf = r["pad_q"], r["pad_q_fixed"]
+    rpad = r["robust_pad_q"]
     phys = r["label_held"].mean(axis=1)
     return {
         "paper (robust FC > 0.002, nominal collision)": (fc * cf0, (fc > label_threshold) & cf0),
@@ -284,12 +343,15 @@ def candidate_labels(r: dict, label_threshold: float = 0.002) -> dict[str, tuple
         "pad FC x nominal collision": (pad * cf0, (pad > label_threshold) & cf0),
         "pad FC (fixed scaling) x P(cf)": (padf * pcf, (padf > label_threshold) & (pcf >= 0.8)),
         "P(collision-free) alone": (pcf, pcf >= 0.8),
+        "robust pad FC (pads under noise)": (rpad, rpad > label_threshold),
+        "robust pad FC x P(cf)": (rpad * pcf, (rpad > label_threshold) & (pcf >= 0.8)),
         "physics (success rate of label trials)": (phys, phys >= 0.6),
     }
 
 
 def pooled(results: list[dict]) -> dict:
     keys = ("fc", "fc_fixed", "cf_nominal", "cf_clear", "p_cf", "pad_q", "pad_q_fixed", "pad_ok", "label_held",
+            "robust_pad_q", "robust_pad_ok",
             "eval_held", "eval_firm", "eval_reason", "nominal_held", "first_touch", "pad_contacts", "contacts")
     done = [r for r in results if r.get("status") == "done"]
     out = {k: np.concatenate([r[k] for r in done]) for k in keys}
@@ -328,6 +390,8 @@ def summarise(results: list[dict], out: str | Path | None = None, label_threshol
                  "pad FC x nominal collision": ("pad", "collision"),
                  "pad FC (fixed scaling) x P(cf)": ("pad", "robust_collision"),
                  "P(collision-free) alone": ("robust_collision",),
+                 "robust pad FC (pads under noise)": ("robust_pad",),
+                 "robust pad FC x P(cf)": ("robust_pad", "robust_collision"),
                  "physics (success rate of label trials)": ("physics_label", "physics_setup")}
     tot = {}
     for r in done:

@@ -110,6 +110,25 @@ def pad_quality(mesh: trimesh.Trimesh, T_object_grasp: np.ndarray, gripper: Grip
     ok, contacts, normals = pad_contacts(mesh, T, gripper)
     q = np.zeros(len(T))
     if ok.any():
-        m = params.friction_coef if mu is None else mu
-        q[ok] = ferrari_canny_batch(contacts[ok], normals[ok], m, params, torque_scaling, axes=T[ok, :3, 0])
+        m = np.broadcast_to(np.asarray(params.friction_coef if mu is None else mu, np.float64), (len(T),))
+        q[ok] = ferrari_canny_batch(contacts[ok], normals[ok], m[ok], params, torque_scaling, axes=T[ok, :3, 0])
     return q, ok, contacts
+
+
+def robust_pad_quality(mesh: trimesh.Trimesh, T_object_grasp: np.ndarray, gripper: GripperGeometry, params,
+                       torque_scaling: float, noise, rng: np.random.Generator):
+    """Pad quality under execution noise: the mean over ``noise.num_samples`` perturbed poses
+    (translation N(0, noise.sigma_translation) per axis, rotation vector N(0, noise.sigma_rotation)
+    about the TCP; :func:`datagen.collision.perturb_frames`) and friction N(friction_coef,
+    sigma_friction). Returns ``(mean quality (n,), fraction of poses whose pads close on the
+    object (n,))``."""
+    from .collision import perturb_frames
+
+    T = np.asarray(T_object_grasp, dtype=np.float64).reshape(-1, 4, 4)
+    n, K = len(T), noise.num_samples
+    if n == 0:
+        return np.zeros(0), np.zeros(0)
+    Tp = perturb_frames(T, noise, rng).reshape(-1, 4, 4)
+    mu = np.maximum(params.friction_coef + params.sigma_friction * rng.standard_normal(n * K), 0.0)
+    q, ok, _ = pad_quality(mesh, Tp, gripper, params, torque_scaling, mu=mu)
+    return q.reshape(n, K).mean(axis=1), ok.reshape(n, K).mean(axis=1)

@@ -76,7 +76,8 @@ class PhysicsParams:
     firm_translation: float = 0.005
     firm_rotation: float = float(np.radians(5.0))
     convex_tolerance: float = 0.02
-    vhacd_resolution: int = 50000
+    vhacd_resolution: int = 400000  # V-HACD voxels; with vhacd_concavity fine enough that pads touch the
+    vhacd_concavity: float = 0.0002  # decomposition within ~3 mm of the mesh (coarser: bottles lose their necks)
     settle_time: float = 0.5
     collision_margin: float = 0.0002  # pybullet's default 1 mm per body makes shapes touch ~2 mm early
     touch_steps: int = 6  # first touch: force-weighted contact points of a pad's first steps in contact
@@ -187,14 +188,15 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("VGQ_CACHE", Path.home() / ".cache" / "vgq")) / "vhacd"
 
 
-def vhacd_file(mesh: trimesh.Trimesh, client: int, resolution: int, cache_dir: str | Path | None = None) -> Path:
+def vhacd_file(mesh: trimesh.Trimesh, client: int, resolution: int, cache_dir: str | Path | None = None,
+               concavity: float = 0.0002) -> Path:
     """Path of the V-HACD decomposition (an .obj of convex parts) of ``mesh``, computed
     with pybullet's ``vhacd`` once per mesh and cached in ``cache_dir``."""
     import pybullet as p
 
     cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     cache.mkdir(parents=True, exist_ok=True)
-    out = cache / f"{mesh_key(mesh)}_{resolution}.obj"
+    out = cache / f"{mesh_key(mesh)}_{resolution}_{concavity:g}.obj"
     if out.is_file():
         return out
     with tempfile.TemporaryDirectory(prefix="vhacd-") as tmp:
@@ -202,10 +204,13 @@ def vhacd_file(mesh: trimesh.Trimesh, client: int, resolution: int, cache_dir: s
         mesh.export(str(src))
         dst = Path(tmp) / "out.obj"
         with _quiet_stdout():
-            p.vhacd(str(src), str(dst), str(Path(tmp) / "log.txt"), resolution=int(resolution), physicsClientId=client)
+            p.vhacd(str(src), str(dst), str(Path(tmp) / "log.txt"), resolution=int(resolution),
+                    concavity=float(concavity), physicsClientId=client)
         if not dst.is_file():
             raise RuntimeError("V-HACD produced no decomposition")
-        os.replace(dst, out)  # atomic within the cache's filesystem when tmp is on it; else a copy
+        from vgq import atomic
+
+        atomic.write_bytes(out, dst.read_bytes())
     return out
 
 
@@ -334,7 +339,7 @@ class GraspSimulator:
                 shape = p.createCollisionShape(p.GEOM_MESH, vertices=np.asarray(mesh.convex_hull.vertices).tolist(),
                                                physicsClientId=c)
             else:
-                f = vhacd_file(mesh, c, prm.vhacd_resolution, self.cache_dir)
+                f = vhacd_file(mesh, c, prm.vhacd_resolution, self.cache_dir, prm.vhacd_concavity)
                 shape = p.createCollisionShape(p.GEOM_MESH, fileName=str(f), physicsClientId=c)
             if shape < 0:
                 raise RuntimeError("pybullet could not build the object's collision shape")
