@@ -145,6 +145,12 @@ def cmd_labelstudy(args) -> int:
                          per_family=args.per_family, random_urdfs=args.random_urdfs, seed=args.seed)
     cfg = _build_config(args)
     results = run_study(out, params, cfg, workers=args.workers) if not args.summary_only else None
+    if args.more_label_trials:
+        from .label_study import add_label_trials, load_results
+
+        add_label_trials(out, args.more_label_trials, cfg, params, workers=args.workers,
+                         upto=args.label_trials + args.more_label_trials)
+        results = load_results(out)
     if results is None:
         from .label_study import load_results
 
@@ -155,7 +161,7 @@ def cmd_labelstudy(args) -> int:
         results = load_results(out)
     if not any(r.get("status") == "done" for r in results):
         raise CliError(f"{out}: no object produced study data")
-    summary = summarise(results, out / "plots", cfg.label_threshold)
+    summary = summarise(results, out / "plots", cfg.quality.label_threshold, cfg.label.success_threshold)
     write_report(out, summary)
     print(json.dumps(summary, indent=2))
     return 0
@@ -258,6 +264,8 @@ def build_parser() -> argparse.ArgumentParser:
     ls.add_argument("--workers", type=_positive_int("--workers"), default=1)
     ls.add_argument("--seed", type=_nonneg_int, default=17)
     ls.add_argument("--summary-only", action="store_true", help="only summarise the cached results")
+    ls.add_argument("--more-label-trials", type=_nonneg_int, default=0,
+                    help="add this many label trials per grasp to the cached objects (AUC vs label trials)")
     _add_config_args(ls)
     ls.set_defaults(func=cmd_labelstudy)
 

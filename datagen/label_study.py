@@ -290,6 +290,52 @@ def augment(out: str | Path, config: DatagenConfig | None = None, params: StudyP
     return k
 
 
+def _more_trials_task(family, src, config, params, physics, robust, seed, path: str, k: int) -> dict:
+    """Worker task: ``k`` more noisy label trials (seed stream 7) of a cached object's grasps,
+    appended to its ``label_held`` / ``label_firm`` / ``label_reason``."""
+    from .physics import _worker_sim, run_trials
+
+    with np.load(path) as z:
+        r = json.loads(str(z["meta"]))
+        r.update({kk: z[kk] for kk in z.files if kk != "meta"})
+    sel = _select(src, config, params, seed, {})
+    sim = _worker_sim(config.gripper, physics, Path(path).parent.parent / "vhacd")
+    sim.set_object(sel["obj"].mesh, sel["T_wo"])
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 7, r["label_held"].shape[1]]))
+    res = run_trials(sim, sel["T_wg"], k, rng)
+    r["label_held"] = np.concatenate([r["label_held"], res.held], axis=1)
+    r["label_firm"] = np.concatenate([r["label_firm"], res.firm], axis=1)
+    r["label_reason"] = np.concatenate([r["label_reason"], res.reason], axis=1)
+    r["times"]["physics_label"] += res.seconds
+    meta = {kk: v for kk, v in r.items() if not isinstance(v, np.ndarray)}
+    arrays = {kk: v for kk, v in r.items() if isinstance(v, np.ndarray)}
+    buf = io.BytesIO()
+    np.savez(buf, meta=np.array(json.dumps(meta)), **arrays)
+    atomic.write_bytes(Path(path), buf.getvalue())
+    return {"name": src.name, "status": "done"}
+
+
+def add_label_trials(out: str | Path, k: int, config: DatagenConfig | None = None, params: StudyParams = StudyParams(),
+                     physics: PhysicsParams = PhysicsParams(), robust: RobustCollisionParams = RobustCollisionParams(),
+                     workers: int = 1, upto: int | None = None) -> None:
+    """Run ``k`` more label trials per grasp on every cached object that has fewer than
+    ``upto`` (default: current + k) (resumable: objects already there are skipped)."""
+    from .parallel import run_tasks
+    from .pipeline import object_seed
+
+    out = Path(out)
+    config = config or DatagenConfig()
+    done = {r["name"]: r for r in load_results(out) if r.get("status") == "done"}
+    tasks = []
+    for fam, src in study_sources(params, out):
+        r = done.get(src.name)
+        if r is None or (upto is not None and r["label_held"].shape[1] >= upto):
+            continue
+        tasks.append((fam, src, config, params, physics, robust, object_seed(params.seed, src.name),
+                      str(out / "objects" / f"{src.name}.npz"), k))
+    run_tasks(_more_trials_task, tasks, workers=workers, desc="label trials")
+
+
 def load_results(out: str | Path) -> list[dict]:
     res = []
     for f in sorted((Path(out) / "objects").glob("*.npz")):
@@ -330,8 +376,11 @@ def roc_curve(score, y):
     return np.r_[0.0, fpr, 1.0], np.r_[0.0, tpr, 1.0]
 
 
-def candidate_labels(r: dict, label_threshold: float = 0.002) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """name -> (continuous score (n,), binary label (n,)) for one object's (or pooled) arrays."""
+def candidate_labels(r: dict, label_threshold: float = 0.002, success_threshold: float = 0.5,
+                     ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """name -> (continuous score (n,), binary label (n,)) for one object's (or pooled) arrays:
+    analytic labels are positive above ``label_threshold``, the physics label above
+    ``success_threshold`` (as datagen's ``label`` setting)."""
     fc, cf0, pcf = r["fc"], r["cf_nominal"].astype(bool), r["p_cf"]
     pad, padf = r["pad_q"], r["pad_q_fixed"]
     rpad = r["robust_pad_q"]
@@ -345,7 +394,7 @@ def candidate_labels(r: dict, label_threshold: float = 0.002) -> dict[str, tuple
         "P(collision-free) alone": (pcf, pcf >= 0.8),
         "robust pad FC (pads under noise)": (rpad, rpad > label_threshold),
         "robust pad FC x P(cf)": (rpad * pcf, (rpad > label_threshold) & (pcf >= 0.8)),
-        "physics (success rate of label trials)": (phys, phys >= 0.6),
+        "physics (success rate of label trials)": (phys, phys > success_threshold),
     }
 
 
@@ -374,7 +423,8 @@ def _bootstrap_auc(score, y_trials, objects, rng, reps=200) -> tuple[float, floa
     return (float(np.percentile(vals, 2.5)), float(np.percentile(vals, 97.5))) if vals else (float("nan"),) * 2
 
 
-def summarise(results: list[dict], out: str | Path | None = None, label_threshold: float = 0.002) -> dict:
+def summarise(results: list[dict], out: str | Path | None = None, label_threshold: float = 0.002,
+              success_threshold: float = 0.5) -> dict:
     """AUC (trial level, against held in the evaluation trials), precision of positives,
     positivity and cost per grasp of every candidate label; pad-contact error; plots in
     ``out`` when given."""
@@ -398,7 +448,7 @@ def summarise(results: list[dict], out: str | Path | None = None, label_threshol
         for key, v in r["times"].items():
             tot[key] = tot.get(key, 0.0) + v
     rows = {}
-    for name, (score, lab) in candidate_labels(P, label_threshold).items():
+    for name, (score, lab) in candidate_labels(P, label_threshold, success_threshold).items():
         s_t = np.repeat(score, k)
         a = auc(s_t, y.reshape(-1))
         lo, hi = _bootstrap_auc(score, y, P["object"], rng)
@@ -413,6 +463,10 @@ def summarise(results: list[dict], out: str | Path | None = None, label_threshol
             "cost_ms_per_grasp": 1000.0 * sum(tot.get(c, 0.0) for c in cost_keys[name]) / n,
             "auc_by_family": fam_auc,
         }
+    m_all = P["label_held"].shape[1]
+    curve = {}
+    for m in sorted({1, 2, 4, 8, m_all} & set(range(1, m_all + 1))):
+        curve[m] = auc(np.repeat(P["label_held"][:, :m].mean(axis=1), k), y.reshape(-1))
     reasons = np.bincount(P["eval_reason"].reshape(-1).astype(int), minlength=5)
     from .physics import REASONS
 
@@ -429,6 +483,7 @@ def summarise(results: list[dict], out: str | Path | None = None, label_threshol
         "eval_success_rate": float(y.mean()),
         "eval_outcomes": {REASONS[i]: int(c) for i, c in enumerate(reasons)},
         "candidates": rows,
+        "physics_auc_by_label_trials": curve,
         "pad_contact_error_mm": {"pads_touched": int(both.sum()), "median_pad_model": 1000 * float(np.median(err_pad)),
                                  "median_grasp_line": 1000 * float(np.median(err_line)),
                                  "p90_pad_model": 1000 * float(np.percentile(err_pad, 90))},
@@ -437,11 +492,12 @@ def summarise(results: list[dict], out: str | Path | None = None, label_threshol
         "unstable_poses": [r["name"] for r in done if not r["pose"]["stable"]],
     }
     if out is not None:
-        _plots(Path(out), P, summary, label_threshold, err_pad, err_line)
+        _plots(Path(out), P, summary, label_threshold, err_pad, err_line, success_threshold)
     return summary
 
 
-def _plots(out: Path, P: dict, summary: dict, label_threshold: float, err_pad, err_line) -> None:
+def _plots(out: Path, P: dict, summary: dict, label_threshold: float, err_pad, err_line,
+           success_threshold: float = 0.5) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -451,7 +507,7 @@ def _plots(out: Path, P: dict, summary: dict, label_threshold: float, err_pad, e
     y = P["eval_held"]
     k = y.shape[1]
     fig, ax = plt.subplots(figsize=(6.5, 5.5))
-    for name, (score, _) in candidate_labels(P, label_threshold).items():
+    for name, (score, _) in candidate_labels(P, label_threshold, success_threshold).items():
         fpr, tpr = roc_curve(np.repeat(score, k), y.reshape(-1))
         ax.plot(fpr, tpr, label=f"{name}: {summary['candidates'][name]['auc']:.2f}")
     ax.plot([0, 1], [0, 1], "k:", lw=1)
@@ -492,8 +548,21 @@ def _plots(out: Path, P: dict, summary: dict, label_threshold: float, err_pad, e
     plt.close(fig)
 
 
+def markdown(summary: dict) -> str:
+    """The candidates table (markdown) of a summary."""
+    lines = ["| label | AUC (95% CI, by object) | AUC vs firm | positives | precision of positives | "
+             "success of negatives | cost per grasp (ms) |", "|---|---|---|---|---|---|---|"]
+    for name, v in summary["candidates"].items():
+        lo, hi = v["auc_ci95"]
+        lines.append(f"| {name} | {v['auc']:.2f} ({lo:.2f}-{hi:.2f}) | {v['auc_firm']:.2f} | "
+                     f"{100 * v['positivity']:.0f}% | {100 * v['precision']:.0f}% | "
+                     f"{100 * v['success_of_negatives']:.0f}% | {v['cost_ms_per_grasp']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
 def write_report(out: str | Path, summary: dict) -> Path:
-    """``<out>/summary.json`` (atomic)."""
+    """``<out>/summary.json`` and ``<out>/summary.md`` (atomic)."""
     p = Path(out) / "summary.json"
     atomic.write_bytes(p, json.dumps(summary, indent=2, default=float).encode())
+    atomic.write_bytes(Path(out) / "summary.md", markdown(summary).encode())
     return p

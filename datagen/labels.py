@@ -29,7 +29,7 @@ KINDS = ("paper", "robust", "pad", "physics")
 class LabelParams:
     """Which label a dataset stores as ``quality`` (see the module doc)."""
 
-    kind: str = "paper"
+    kind: str = "physics"  # the label study (docs/labels.md): the only label near AUC 0.8 vs physical success
     trials: int = 5  # physics: noisy trials per grasp and stable pose
     success_threshold: float = 0.5  # physics: positive when the success rate exceeds this
 
