@@ -110,10 +110,13 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
             else:
                 T_wg, omega, beta = align_to_table(T_wo @ T_object_grasp0, rng)
                 collides = np.asarray(checker.collides(T_wg), dtype=bool)
-            p_cf = collision_free_probability(checker_c, T_wg, config.collision, rng_robust)
-            pad_q = np.zeros(len(grasps))
-            free = np.flatnonzero(~collides)
+            # robust collision and pad quality of the rows whose nominal approach is free (NaN elsewhere:
+            # those rows are negatives under every label); not computed for the paper's label (its cost)
+            p_cf = np.full(len(grasps), np.nan)
+            pad_q = np.full(len(grasps), np.nan)
+            free = np.flatnonzero(~collides) if kind != "paper" else np.zeros(0, np.int64)
             if len(free):
+                p_cf[free] = collision_free_probability(checker_c, T_wg[free], config.collision, rng_robust)
                 pad_q[free] = pad_quality(obj.mesh, np.linalg.inv(T_wo) @ T_wg[free], config.gripper, qparams,
                                           qparams.torque_scaling)[0]
             score = label_score(kind, quality, ~collides, p_cf, pad_q, success)

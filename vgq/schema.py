@@ -65,8 +65,10 @@ GRASP_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
 #: return the ones a shard has, and a shard that has one must have it with this dtype and shape.
 GRASP_LABEL_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
     "fc_quality": ("float32", (), "robust Ferrari-Canny at the grasp-line contacts, not gated by collision"),
-    "p_collision_free": ("float32", (), "fraction of noisy approaches that keep the clearance (robust collision)"),
-    "pad_quality": ("float32", (), "Ferrari-Canny at the pad contacts; 0 where the pads find none"),
+    "p_collision_free": ("float32", (), "fraction of noisy approaches that keep the clearance (robust collision); "
+                         "NaN where the nominal approach collides"),
+    "pad_quality": ("float32", (), "Ferrari-Canny at the pad contacts; 0 where the pads find none, NaN where the "
+                    "nominal approach collides"),
     "success_rate": ("float32", (), "fraction of noisy physics trials that held; NaN where none ran"),
 }
 
