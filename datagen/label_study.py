@@ -121,7 +121,7 @@ def _select(src, config: DatagenConfig, params: StudyParams, seed: int, times: d
 
     ss = np.random.SeedSequence(seed).spawn(8)
     obj = load_object(src, config.mesh)
-    T_poses, probs = stable_poses(obj, 0.0, 1)
+    T_poses, _ = stable_poses(obj, 0.0, 1)
     if len(T_poses) == 0:
         return {"status": "skipped", "reason": "no stable pose"}
     T_wo = T_poses[0]
@@ -360,7 +360,7 @@ def auc(score: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None) -> f
         return float("nan")
     order = np.argsort(s, kind="mergesort")
     s, wp, wn = s[order], wp[order], wn[order]
-    uniq, start = np.unique(s, return_index=True)
+    _, start = np.unique(s, return_index=True)
     pos = np.add.reduceat(wp, start)
     neg = np.add.reduceat(wn, start)
     neg_below = np.cumsum(neg) - neg
@@ -550,8 +550,9 @@ def _plots(out: Path, P: dict, summary: dict, label_threshold: float, err_pad, e
 
 def markdown(summary: dict) -> str:
     """The candidates table (markdown) of a summary."""
-    lines = ["| label | AUC (95% CI, by object) | AUC vs firm | positives | precision of positives | "
-             "success of negatives | cost per grasp (ms) |", "|---|---|---|---|---|---|---|"]
+    header = ("| label | AUC (95% CI, by object) | AUC vs firm | positives | precision of positives | "
+              "success of negatives | cost per grasp (ms) |")
+    lines = [header, "|---|---|---|---|---|---|---|"]
     for name, v in summary["candidates"].items():
         lo, hi = v["auc_ci95"]
         lines.append(f"| {name} | {v['auc']:.2f} ({lo:.2f}-{hi:.2f}) | {v['auc_firm']:.2f} | "

@@ -38,7 +38,7 @@ import hashlib
 import os
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -538,7 +538,7 @@ def perturbed_frames(T_world_grasp: np.ndarray, dt: np.ndarray, R: np.ndarray) -
     """Grasp frames (n, k, 4, 4): each frame (n, 4, 4) rotated about its TCP by R (n, k, 3, 3)
     (world-frame rotation) and translated by dt (n, k, 3), world frame."""
     T = np.asarray(T_world_grasp, dtype=np.float64)
-    n, k = dt.shape[:2]
+    k = dt.shape[1]
     out = np.tile(T[:, None], (1, k, 1, 1))
     out[:, :, :3, :3] = R @ T[:, None, :3, :3]
     out[:, :, :3, 3] = T[:, None, :3, 3] + dt
