@@ -88,3 +88,177 @@ def test_bad_family_parameters_are_a_mesh_error_for_the_pipeline(tmp_path):
     src = MeshSource("box_0000", tmp_path / "family:box_0000", 1.0, "box", {"size": [0.1, 0.02, 7.0]})
     with pytest.raises(MeshError, match="box: size"):
         load_object(src)
+
+
+# ----------------------------------------------------------------------------- family-aware split
+
+
+def test_split_within_every_family_puts_each_family_in_every_split():
+    from datagen.sampling import split_by_family, split_objects
+
+    fams = {i: f for i, f in enumerate(["random_urdfs"] * 20 + ["mug"] * 3 + ["box"] * 7 + ["metaball"] * 4)}
+    split = split_by_family(list(fams), fams, (0.8, 0.1, 0.1), seed=1)
+    assert set(split) == set(fams)
+    for fam in set(fams.values()):
+        got = {split[i] for i, f in fams.items() if f == fam}
+        assert got == {"train", "val", "test"}, fam
+    assert split == split_by_family(list(fams), fams, (0.8, 0.1, 0.1), seed=1)
+    # one family (or data without families): the split of the single-family code path
+    one = {i: "random_urdfs" for i in range(12)}
+    assert split_by_family(list(one), one, (0.8, 0.1, 0.1), 3) == split_objects(list(one), (0.8, 0.1, 0.1), 3)
+    assert split_by_family(range(12), {}, (0.8, 0.1, 0.1), 3) == split_objects(range(12), (0.8, 0.1, 0.1), 3)
+
+
+def test_holdout_families_go_only_to_test():
+    from datagen.sampling import split_by_family
+
+    fams = {i: f for i, f in enumerate(["box"] * 10 + ["mug"] * 5)}
+    split = split_by_family(list(fams), fams, (0.8, 0.1, 0.1), 0, holdout=("mug",))
+    assert {split[i] for i in range(10, 15)} == {"test"}
+    assert {split[i] for i in range(10)} == {"train", "val", "test"}
+    with pytest.raises(ValueError, match="holdout family 'torus'"):
+        split_by_family(list(fams), fams, (0.8, 0.1, 0.1), 0, holdout=("torus",))
+
+
+def test_sample_dataset_splits_within_families_and_keeps_family_records(tmp_path):
+    import json
+
+    from datagen import storage
+    from datagen.sampling import SamplingParams, sample_dataset
+    from datagen_fakes import fake_dataset
+
+    fake_dataset(tmp_path / "raw", n_objects=12, n_grasps=60, n_images=1)
+    mp = tmp_path / "raw" / "manifest.json"
+    m = json.loads(mp.read_text())
+    for o in m["objects"]:  # 6 random_urdfs, 3 mugs, 3 boxes
+        o["family"] = "random_urdfs" if o["object_id"] < 6 else ("mug" if o["object_id"] < 9 else "box")
+        o["params"] = {} if o["family"] == "random_urdfs" else {"index": o["object_id"]}
+    storage.write_manifest(tmp_path / "raw", m)
+    logs: list[str] = []
+    stats = sample_dataset(tmp_path / "raw", tmp_path / "s", SamplingParams(uniform=False), log=logs.append, plot=False)
+    out = storage.open_dataset(tmp_path / "s").manifest
+    assert stats["families"] == {f: {"train": n - 2, "val": 1, "test": 1} for f, n in
+                                 (("box", 3), ("mug", 3), ("random_urdfs", 6))}
+    for o, src in zip(out["objects"], m["objects"]):
+        assert o["family"] == src["family"] and o["params"] == src["params"]
+    assert any("objects per family" in line for line in logs)
+
+
+# ----------------------------------------------------------------------------- config and CLI
+
+
+@pytest.mark.parametrize(
+    "overrides, needle",
+    [
+        ({"families": {"teapot": 2}}, "unknown object family 'teapot'"),
+        ({"families": {"mug": -1}}, "families.mug"),
+        ({"families": {"mug": 1.5}}, "families.mug"),
+        ({"families": "mug"}, "families must be a JSON object"),
+        ({"num_objects": 0}, "no objects"),
+    ],
+)
+def test_bad_family_settings_are_named(overrides, needle):
+    from datagen.config import ConfigError, DatagenConfig
+
+    with pytest.raises(ConfigError, match=needle):
+        DatagenConfig().with_overrides(overrides)
+
+
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["objects", "--family", "teapot", "--out", "{tmp}/o"], "unknown object family 'teapot'"),
+        (["objects", "--family", "mug", "--count", "0", "--out", "{tmp}/o"], "--count must be >= 1"),
+        (["objects", "--family", "mug"], "--out"),
+        (["generate", "--out", "{tmp}/g", "--families", "mug"], "FAMILY=COUNT"),
+        (["generate", "--out", "{tmp}/g", "--families", "mug=-2"], "FAMILY=COUNT"),
+        (["generate", "--out", "{tmp}/g", "--families", "teapot=2"], "unknown object family 'teapot'"),
+        (["generate", "--out", "{tmp}/g", "--objects", "0"], "no objects"),
+    ],
+)
+def test_cli_bad_family_input_exits_2(tmp_path, capsys, argv, needle):
+    """Exit code 2, the last stderr line names the problem, nothing written."""
+    from datagen.__main__ import main
+
+    try:
+        rc = main([a.format(tmp=tmp_path) for a in argv])
+    except SystemExit as e:  # argparse's own usage errors
+        rc = e.code
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert needle in err.strip().splitlines()[-1]
+    assert not (tmp_path / "o").exists() and not (tmp_path / "g").exists()
+
+
+def test_cli_unknown_family_subprocess(tmp_path):
+    """The real entry point: one line on stderr, no traceback."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    p = subprocess.run([sys.executable, "-m", "datagen", "objects", "--family", "teapot", "--out", str(tmp_path / "o")],
+                       cwd=root, capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2
+    assert p.stderr.strip().splitlines() == [p.stderr.strip()] and "teapot" in p.stderr
+
+
+def test_cli_objects_writes_meshes_parameters_and_a_contact_sheet(tmp_path):
+    import json
+
+    import trimesh
+    from PIL import Image
+
+    from datagen.__main__ import main
+
+    assert main(["objects", "--family", "mug,box", "--count", "2", "--seed", "3", "--out", str(tmp_path)]) == 0
+    rec = json.loads((tmp_path / "objects.json").read_text())
+    assert [o["name"] for o in rec["objects"]] == ["mug_0000", "mug_0001", "box_0000", "box_0001"]
+    for o in rec["objects"]:
+        assert o["params"] == sample_params(o["family"], o["index"], 3)
+        mesh = trimesh.load(tmp_path / o["file"], force="mesh")
+        assert mesh.is_watertight
+        np.testing.assert_allclose(mesh.extents, o["extents_m"], atol=1e-5)  # metres, physical size
+    for name in ("mug.png", "box.png", "families.png"):
+        img = np.asarray(Image.open(tmp_path / name).convert("L"), dtype=float)
+        assert img.shape[0] > 100 and img.std() > 10  # rendered content, not a blank page
+
+
+# ----------------------------------------------------------------------------- generation
+
+
+TINY = {"cameras_per_pose": 1, "max_stable_poses": 1, "antipodal.num_samples": 8, "quality.num_samples": 3,
+        "num_objects": 0, "families": {"box": 1, "torus": 1}}
+
+
+def test_tiny_generation_records_family_and_params_and_resumes(tmp_path):
+    import json
+
+    from datagen import storage
+    from datagen.config import DatagenConfig
+    from datagen.pipeline import run_generate
+
+    cfg = DatagenConfig().with_overrides(TINY)
+    ref = tmp_path / "ref"
+    m = run_generate(ref, cfg, workers=1, progress=False, log=lambda s: None)
+    assert [o["name"] for o in m["objects"]] == ["box_0000", "torus_0000"]
+    for o in m["objects"]:
+        assert o["status"] == "done" and o["mesh_scale"] == 1.0
+        assert o["params"] == sample_params(o["family"], 0, cfg.seed)
+        assert o["family"] in ("box", "torus")
+
+    # a run that stopped after its first object (the second still pending) resumes to the same data
+    out = tmp_path / "cut"
+    m2 = run_generate(out, cfg, workers=1, progress=False, log=lambda s: None)
+    storage.record_skip(m2, 1, "placeholder")
+    m2["objects"][1]["status"] = "pending"
+    m2["shards"] = [s for s in m2["shards"] if s["object_id"] != 1]
+    m2["complete"] = False
+    storage.update_counts(m2)
+    storage.write_manifest(out, m2)
+    logs: list[str] = []
+    m3 = run_generate(out, cfg, workers=1, progress=False, log=logs.append)
+    assert any("resuming" in s for s in logs)
+    assert m3["complete"]
+    ref_m = json.loads((ref / "manifest.json").read_text())
+    assert [s["sha256"] for s in m3["shards"]] == [s["sha256"] for s in ref_m["shards"]]

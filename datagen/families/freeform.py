@@ -21,7 +21,7 @@ PRIMITIVES = ("box", "cylinder", "sphere")
 
 
 def _primitive(rng: np.random.Generator) -> dict:
-    """One primitive, every one graspable by itself (a dimension below 4.4 cm)."""
+    """One primitive, each graspable by itself (a dimension below 4.4 cm)."""
     kind = PRIMITIVES[int(rng.integers(len(PRIMITIVES)))]
     if kind == "box":
         size = [uniform(rng, 0.012, 0.07), uniform(rng, 0.012, 0.07), uniform(rng, 0.012, 0.04)]
@@ -96,15 +96,17 @@ def build_composite(p: dict) -> trimesh.Trimesh:
 
 # ----------------------------------------------------------------------------- metaball
 
-EDGE_LENGTH = 0.0035  # level-set grid: ~3.5 mm triangles
+EDGE_LENGTH = 0.004  # level-set grid: ~4 mm triangles
+SIMPLIFY_TOLERANCE = 0.0002  # then merge triangles where the surface moves < 0.2 mm
 
 
 def sample_metaball(rng: np.random.Generator) -> dict:
-    """2-6 balls of radius 8-16 mm; ball i > 0 is centred inside the sphere of a random
-    earlier ball (0.5-0.9 of its radius away), so the blob is one smooth body
-    (potatoes, peanuts, pebbles, bent sausages); the blob is then squashed along y and z
-    (factors 0.7-1 and 0.5-0.85) so it rests in a few distinct poses, not on any facet of a
-    near-sphere."""
+    """2-6 balls of radius 8-16 mm, mostly in a chain; ball i > 0 sits 0.45-0.85 of the
+    blending reach (ri^(2/3) + rj^(2/3))^(3/2) from a random earlier ball j, the distance up
+    to which the field stays >= 1 along the segment between them, so the blob is one smooth
+    body (potatoes, peanuts, pebbles, bent sausages). It is then squashed along y and z
+    (factors 0.75-1 and 0.6-0.9) so it rests in a few distinct poses, not on any facet of
+    a near-sphere."""
     n = int(rng.integers(2, 7))
     radii = [uniform(rng, 0.008, 0.016)]
     centers = [np.zeros(3)]
@@ -112,9 +114,11 @@ def sample_metaball(rng: np.random.Generator) -> dict:
         j = len(radii) - 1 if rng.random() < 0.7 else int(rng.integers(len(radii)))  # mostly chains
         d = rng.normal(size=3)
         d /= np.linalg.norm(d)
-        centers.append(centers[j] + d * rng.uniform(0.5, 0.9) * radii[j])
-        radii.append(uniform(rng, 0.008, 0.016))
-    squash = [1.0, uniform(rng, 0.7, 1.0), uniform(rng, 0.5, 0.85)]
+        r = uniform(rng, 0.008, 0.016)
+        reach = (radii[j] ** (2 / 3) + r ** (2 / 3)) ** 1.5  # farthest centre distance that still blends
+        centers.append(centers[j] + d * rng.uniform(0.45, 0.85) * reach)
+        radii.append(r)
+    squash = [1.0, uniform(rng, 0.75, 1.0), uniform(rng, 0.6, 0.9)]
     return {"centers": rounded(np.array(centers)), "radii": radii, "squash": squash}
 
 
@@ -138,5 +142,5 @@ def build_metaball(p: dict) -> trimesh.Trimesh:
         return float((r2 / np.maximum(d2, 1e-12)).sum()) - 1.0
 
     squash = lengths(p, "squash", "metaball", 3, lo=0.1, hi=1.0)
-    solid = m3d.Manifold.level_set(field, bounds, EDGE_LENGTH).scale(tuple(squash))
+    solid = m3d.Manifold.level_set(field, bounds, EDGE_LENGTH).simplify(SIMPLIFY_TOLERANCE).scale(tuple(squash))
     return to_trimesh(solid, "metaball")

@@ -14,8 +14,8 @@ import manifold3d as m3d
 import numpy as np
 import trimesh
 
-from .geometry import (FamilyError, choice, length, lengths, log_uniform, points, revolve, rounded, segments, to_trimesh,
-                       uniform)
+from .geometry import (FamilyError, choice, length, lengths, log_uniform, points, revolve, rounded, segments,
+                       to_trimesh, uniform)
 
 # ----------------------------------------------------------------------------- box
 
@@ -40,7 +40,7 @@ def sample_cylinder(rng: np.random.Generator) -> dict:
     """Discs (coasters, lids), rods (pens, dowels) and cans."""
     kind = ("disc", "rod", "can")[int(rng.integers(3))]
     if kind == "disc":
-        r, h = log_uniform(rng, 0.015, 0.07), uniform(rng, 0.006, 0.03)
+        r, h = log_uniform(rng, 0.015, 0.06), uniform(rng, 0.01, 0.035)
     elif kind == "rod":
         r, h = log_uniform(rng, 0.004, 0.02), uniform(rng, 0.06, 0.25)
     else:
@@ -78,10 +78,12 @@ def build_cone(p: dict) -> trimesh.Trimesh:
 
 
 def sample_ellipsoid(rng: np.random.Generator) -> dict:
-    """Eggs, pebbles, soap bars: semi-axes a < b < c, a 10-22 mm (graspable across)."""
-    a = uniform(rng, 0.01, 0.022)
-    b = uniform(rng, 1.2 * a, max(1.25 * a, 0.04))
-    c = uniform(rng, 1.2 * b, max(1.25 * b, 0.08))
+    """Eggs, pebbles, bars of soap: semi-axes a < b < c with a 12-19 mm and b at most
+    23 mm, so the object rests 2.4-3.8 cm high and is at most 4.6 cm across (graspable
+    from above; a flatter pebble leaves no room for the fingertips above the table)."""
+    a = uniform(rng, 0.012, 0.019)
+    b = uniform(rng, 1.1 * a, 0.023)
+    c = uniform(rng, 1.2 * b, 0.08)
     return {"semi_axes": [a, b, c]}
 
 
@@ -95,12 +97,14 @@ def build_ellipsoid(p: dict) -> trimesh.Trimesh:
 
 
 def sample_torus(rng: np.random.Generator) -> dict:
-    """Tori (rings, donuts, tubes) and flat rings (washers, tape rolls, bangles)."""
+    """Tori (donuts, bagels, handles; tube 1.6-4 cm thick) and flat rings (tape rolls,
+    pipe sections, bangles; 1.5-5 cm high, walls 3-20 mm, holes 4-10 cm across). Mostly tall enough to grasp
+    lying on the table: a tube or ring below ~2 cm leaves no room for the fingertips."""
     if rng.random() < 0.5:
-        R = uniform(rng, 0.015, 0.06)
-        return {"kind": "torus", "major_radius": R, "minor_radius": uniform(rng, 0.004, min(0.015, 0.5 * R))}
-    ri = uniform(rng, 0.006, 0.05)
-    return {"kind": "ring", "inner_radius": ri, "wall": uniform(rng, 0.003, 0.02), "height": uniform(rng, 0.004, 0.04)}
+        R = uniform(rng, 0.022, 0.06)
+        return {"kind": "torus", "major_radius": R, "minor_radius": uniform(rng, 0.008, min(0.02, 0.6 * R))}
+    ri = uniform(rng, 0.02, 0.05)  # the 5 cm-open jaws fit inside for a grasp across the wall
+    return {"kind": "ring", "inner_radius": ri, "wall": uniform(rng, 0.003, 0.02), "height": uniform(rng, 0.015, 0.05)}
 
 
 def build_torus(p: dict) -> trimesh.Trimesh:

@@ -1,0 +1,361 @@
+"""Planning benchmark: speed, and precision judged by datagen's oracle.
+
+``python -m planning.bench timing``: p50 / p99 of :func:`planning.policy.plan` on a
+300 x 300 rendered scene (256 candidates, encoder included), with the stages' medians.
+
+``python -m planning.bench precision``: scenes of held-out test objects of the bundled
+model's recipe (the ``object_id``s of examples/heldout_test_crops.npz index datagen's
+default mesh list), each on a stable pose drawn by probability under a camera drawn from
+the recipe's ranges, rendered by datagen. The planner sees only the depth image. Every
+candidate it scored is judged by the oracle: robust Ferrari-Canny on the true mesh
+(datagen.quality, the recipe's parameters) > the label threshold, and no collision of the
+swept gripper with the true mesh or the table (datagen.collision) at the known camera
+pose. Reported: precision@1 and @5 of the plan (top-k after NMS), of a random
+collision-free candidate of the same sampler (its expectation: the positive share of the
+candidates), and of the pose-only baseline's ranking when its model file exists.
+
+Needs the datagen extra (trimesh, python-fcl, embree); the planner itself does not.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .types import PlanParams
+
+MODEL_DIR = "models/fast-vgqcnn-default"
+HELDOUT = "examples/heldout_test_crops.npz"
+
+
+def _model(model_dir: str, threads: int, head_precision: str = "auto"):
+    from service.runtime import FastModel
+
+    m = FastModel(model_dir, threads=threads, head_precision=head_precision)
+    m.warm_up(5)
+    return m
+
+
+def _recipe_config(model):
+    from datagen.config import DatagenConfig
+
+    try:
+        return DatagenConfig.from_dict(model.card.dataset["source"]["config"])
+    except Exception:  # an older card without the full config: the defaults are the recipe's
+        return DatagenConfig()
+
+
+def heldout_object_ids(path: str = HELDOUT) -> list[int]:
+    return sorted(int(i) for i in np.unique(np.load(path)["object_id"]))
+
+
+@dataclasses.dataclass
+class BenchScene:
+    object_id: int
+    mesh_object: object  # trimesh, object frame (centre of mass at the origin)
+    mesh_world: object
+    T_world_object: np.ndarray
+    T_world_camera: np.ndarray
+    depth: np.ndarray
+    torque_scaling: float
+
+
+def make_scene(object_id: int, config, rng: np.random.Generator) -> BenchScene:
+    """One held-out object on a stable pose (drawn by probability), seen by a recipe camera."""
+    from datagen.camera import sample_cameras
+    from datagen.mesh import load_object, mesh_sources, stable_poses
+    from datagen.quality import resolve_torque_scaling
+    from datagen.render import render_depth
+
+    obj = load_object(mesh_sources(config.source)[object_id], config.mesh)
+    T_poses, probs = stable_poses(obj, config.stable_pose_min_probability, config.max_stable_poses)
+    T_wo = T_poses[rng.choice(len(probs), p=probs / probs.sum())]
+    mesh_world = obj.mesh.copy()
+    mesh_world.apply_transform(T_wo)
+    T_wc = sample_cameras(1, config.camera, rng).T_world_camera[0]
+    depth = render_depth(mesh_world, T_wc, config.intrinsics)
+    return BenchScene(object_id, obj.mesh, mesh_world, T_wo, T_wc, depth, resolve_torque_scaling(obj.mesh, config.quality))
+
+
+def judge(scene: BenchScene, frames_cam: np.ndarray, config, rng: np.random.Generator) -> dict:
+    """Oracle verdicts for grasp frames (n, 4, 4) in the camera frame: ``quality`` robust
+    Ferrari-Canny on the true mesh, ``collides`` (swept gripper vs true mesh and table),
+    ``positive`` = quality > label threshold and no collision."""
+    from datagen.collision import CollisionChecker
+    from datagen.grasps import AntipodalGrasps
+    from datagen.quality import robust_ferrari_canny
+
+    n = len(frames_cam)
+    if n == 0:
+        z = np.zeros(0)
+        return {"quality": z, "collides": z.astype(bool), "positive": z.astype(bool)}
+    T_wg = scene.T_world_camera @ frames_cam
+    T_og = np.linalg.inv(scene.T_world_object) @ T_wg
+    grasps = AntipodalGrasps(T_og[:, :3, 3], T_og[:, :3, 0], np.zeros((n, 2, 3)), np.zeros((n, 2, 3)), np.zeros(n))
+    qp = dataclasses.replace(config.quality, torque_scaling=scene.torque_scaling)
+    quality = robust_ferrari_canny(scene.mesh_object, grasps, qp, rng)
+    collides = CollisionChecker(scene.mesh_world, config.gripper).collides(T_wg)
+    return {"quality": quality, "collides": collides, "positive": (quality > config.label_threshold) & ~collides}
+
+
+def pose_only_model(model_dir: str):
+    """The pose-only baseline's model file, or None (it is not bundled)."""
+    for name in ("baseline_mlp.onnx", "baseline.onnx", "pose_only.onnx"):
+        p = Path(model_dir) / name
+        if p.exists():
+            return p
+    return None
+
+
+def run_precision(args) -> dict:
+    from .policy import nms, plan
+
+    model = _model(args.model, args.threads)
+    config = _recipe_config(model)
+    params = dataclasses.replace(PlanParams(), cem_iterations=args.cem, windows=args.windows,
+                                 max_centre_offset=args.centre_offset, min_width=args.min_width)
+    ids = heldout_object_ids(args.heldout)
+    rng = np.random.default_rng(args.seed)
+    picked = rng.choice(ids, size=args.scenes, replace=args.scenes > len(ids))
+    baseline_file = pose_only_model(args.model)
+    rows = []
+    for i, oid in enumerate(picked):
+        t = time.perf_counter()
+        scene = make_scene(int(oid), config, rng)
+        res = plan(scene.depth, config.intrinsics, model, k=5, seed=int(args.seed) + i, params=params)
+        cand = res.candidates or {"frames": np.zeros((0, 4, 4)), "scores": np.zeros(0)}
+        verdict = judge(scene, cand["frames"], config, np.random.default_rng(1000 + i))
+        pos = verdict["positive"]
+        top = nms(cand["frames"], cand["scores"], 5, params.nms_distance, params.nms_angle) if len(pos) else np.zeros(0, int)
+        row = {
+            "object_id": int(oid), "candidates": int(len(pos)), "reason": res.reason,
+            "top1": bool(pos[top[0]]) if len(top) else False,
+            "top5": float(pos[top].mean()) if len(top) else 0.0,
+            "n_top": int(len(top)),
+            "random": float(pos.mean()) if len(pos) else 0.0,
+            "top1_score": float(cand["scores"][top[0]]) if len(top) else None,
+            "top1_quality": float(verdict["quality"][top[0]]) if len(top) else None,
+            "top1_collides": bool(verdict["collides"][top[0]]) if len(top) else None,
+            "oracle_best_exists": bool(pos.any()),
+            "plan_ms": 1e3 * res.seconds.get("total", 0.0),
+            "seconds": time.perf_counter() - t,
+        }
+        rows.append(row)
+        print(f"scene {i:2d} object {oid:3d}: {row['candidates']:3d} candidates, {100 * row['random']:5.1f}% positive; "
+              f"top-1 {'ok ' if row['top1'] else 'BAD'} (p={row['top1_score'] if row['top1_score'] is None else round(row['top1_score'], 3)}, "
+              f"q={row['top1_quality'] if row['top1_quality'] is None else round(row['top1_quality'], 4)}, coll={row['top1_collides']}), "
+              f"top-5 {100 * row['top5']:5.1f}%  [{row['seconds']:.1f} s]", flush=True)
+    planned = [r for r in rows if r["candidates"]]
+    summary = {
+        "scenes": len(rows), "scenes_with_candidates": len(planned),
+        "precision_at_1": float(np.mean([r["top1"] for r in rows])) if rows else 0.0,
+        "precision_at_5": float(np.mean([r["top5"] for r in rows])) if rows else 0.0,
+        "random_candidate_precision": float(np.mean([r["random"] for r in rows])) if rows else 0.0,
+        "scenes_with_a_positive_candidate": int(sum(r["oracle_best_exists"] for r in rows)),
+        "pose_only_baseline": str(baseline_file) if baseline_file else "not available: no model file is bundled",
+        "params": {"cem_iterations": args.cem, "windows": args.windows, "num_candidates": params.num_candidates,
+                   "max_centre_offset": args.centre_offset, "min_width": args.min_width},
+        "seed": args.seed, "model": model.version, "rows": rows,
+    }
+    print()
+    print("| ranking | precision@1 | precision@5 |")
+    print("|---|---|---|")
+    print(f"| Fast-VGQ-CNN planner (top-k after NMS) | {100 * summary['precision_at_1']:.1f}% | {100 * summary['precision_at_5']:.1f}% |")
+    r = 100 * summary["random_candidate_precision"]
+    print(f"| random collision-free candidate (expectation) | {r:.1f}% | {r:.1f}% |")
+    print(f"| pose-only baseline | {summary['pose_only_baseline']} | |")
+    print(f"scenes: {len(rows)} ({summary['scenes_with_a_positive_candidate']} with at least one positive candidate)")
+    return summary
+
+
+def run_trials_bench(args) -> dict:
+    """pybullet lift-and-shake trials (datagen.physics) of the plan's top-1 grasp and of a
+    random collision-free candidate, on the first ``--scenes`` scenes of the precision
+    benchmark's draw (same seed: the same objects, poses and cameras)."""
+    try:
+        from datagen.physics import GraspSimulator, PhysicsParams, run_trials
+    except ImportError as e:
+        raise SystemExit(f"physical trials need datagen.physics (pybullet grasp trials): {e}")
+    from datagen.gripper import GripperGeometry as DatagenGripper
+
+    from .policy import plan
+
+    model = _model(args.model, args.threads)
+    config = _recipe_config(model)
+    params = dataclasses.replace(PlanParams(), cem_iterations=args.cem, windows=args.windows,
+                                 max_centre_offset=args.centre_offset, min_width=args.min_width)
+    ids = heldout_object_ids(args.heldout)
+    rng = np.random.default_rng(args.seed)
+    picked = rng.choice(ids, size=args.scenes, replace=args.scenes > len(ids))
+    rows = []
+    gripper = DatagenGripper(**dataclasses.asdict(config.gripper))
+    with GraspSimulator(gripper, PhysicsParams()) as sim:
+        for i, oid in enumerate(picked):
+            t = time.perf_counter()
+            scene = make_scene(int(oid), config, rng)
+            res = plan(scene.depth, config.intrinsics, model, k=5, seed=int(args.seed) + i, params=params)
+            if not res.grasps:
+                rows.append({"object_id": int(oid), "planned": False, "top1_held": 0, "random_held": 0, "trials": 0})
+                print(f"scene {i:2d} object {oid:3d}: no grasp ({res.reason})", flush=True)
+                continue
+            sim.set_object(scene.mesh_object, scene.T_world_object)
+            top = scene.T_world_camera @ res.grasps[0].pose
+            cand = res.candidates["frames"]
+            rand = scene.T_world_camera @ cand[np.random.default_rng(2000 + i).integers(len(cand))]
+            tr = run_trials(sim, np.stack([top, rand]), args.trials, np.random.default_rng(3000 + i))
+            row = {"object_id": int(oid), "planned": True, "trials": args.trials,
+                   "top1_held": int(tr.held[0].sum()), "random_held": int(tr.held[1].sum()),
+                   "top1_firm": int(tr.firm[0].sum()), "seconds": time.perf_counter() - t}
+            rows.append(row)
+            print(f"scene {i:2d} object {oid:3d}: top-1 held {row['top1_held']}/{args.trials}, random candidate held "
+                  f"{row['random_held']}/{args.trials}  [{row['seconds']:.1f} s]", flush=True)
+    n = sum(r["trials"] for r in rows)
+    top_held = sum(r["top1_held"] for r in rows)
+    rand_held = sum(r["random_held"] for r in rows)
+    summary = {"scenes": len(rows), "trials_per_grasp": args.trials, "trials": n,
+               "top1_held": top_held, "random_held": rand_held,
+               "top1_success": top_held / n if n else 0.0, "random_success": rand_held / n if n else 0.0,
+               "scenes_without_grasp": int(sum(not r["planned"] for r in rows)), "seed": args.seed, "rows": rows}
+    print(f"\ntop-1 lift success {top_held}/{n} ({100 * summary['top1_success']:.1f}%), random collision-free candidate "
+          f"{rand_held}/{n} ({100 * summary['random_success']:.1f}%); scenes without a grasp count as no trials")
+    return summary
+
+
+def run_ranker(args) -> dict:
+    """The ranker alone, on the precision benchmark's scenes: grasps sampled on the TRUE mesh
+    by datagen's antipodal sampler (the training distribution), 12 rotations omega each,
+    kept when collision-free (oracle), approaching from the camera side and inside the image;
+    precision@1 / @5 of the network's ranking (NMS as the planner) against a random pick.
+    Isolates the network from the depth-image sampler."""
+    from datagen.grasps import sample_antipodal_grasps
+    from datagen.gripper import align_to_table, grasp_frames
+
+    from .policy import WindowScorer, grasp_rows, nms
+
+    model = _model(args.model, args.threads)
+    config = _recipe_config(model)
+    params = PlanParams()
+    ids = heldout_object_ids(args.heldout)
+    rng = np.random.default_rng(args.seed)
+    picked = rng.choice(ids, size=args.scenes, replace=args.scenes > len(ids))
+    rows = []
+    n_om = 12
+    for i, oid in enumerate(picked):
+        scene = make_scene(int(oid), config, rng)
+        g = sample_antipodal_grasps(scene.mesh_object, config.antipodal, np.random.default_rng(5000 + i))
+        if len(g) == 0:
+            rows.append({"object_id": int(oid), "grasps": 0, "top1": False, "top5": 0.0, "random": 0.0})
+            continue
+        G = np.repeat(scene.T_world_object @ grasp_frames(g.centers, g.axes, 0.0), n_om, axis=0)
+        T_wg, _, _ = align_to_table(G, omega=np.tile(2 * np.pi * np.arange(n_om) / n_om, len(g)))
+        F = np.linalg.inv(scene.T_world_camera) @ T_wg
+        r = grasp_rows(F, config.intrinsics)
+        keep = (F[:, 2, 2] > 0) & (r[:, 0] >= 0) & (r[:, 0] <= config.intrinsics.width - 1) & \
+               (r[:, 1] >= 0) & (r[:, 1] <= config.intrinsics.height - 1)
+        F, r = F[keep], r[keep]
+        v = judge(scene, F, config, np.random.default_rng(1000 + i))
+        free = ~v["collides"]
+        F, r, pos = F[free], r[free], v["positive"][free]
+        if len(F) == 0:
+            rows.append({"object_id": int(oid), "grasps": 0, "top1": False, "top5": 0.0, "random": 0.0})
+            continue
+        s, _ = WindowScorer(model, scene.depth.astype(np.float32)).score(r)
+        top = nms(F, s, 5, params.nms_distance, params.nms_angle)
+        rows.append({"object_id": int(oid), "grasps": int(len(F)), "top1": bool(pos[top[0]]),
+                     "top5": float(pos[top].mean()), "random": float(pos.mean())})
+        print(f"scene {i:2d} object {oid:3d}: {len(F):4d} collision-free true-mesh grasps, {100 * pos.mean():5.1f}% "
+              f"positive; network top-1 {'ok ' if pos[top[0]] else 'BAD'}, top-5 {100 * pos[top].mean():5.1f}%", flush=True)
+    out = {"scenes": len(rows), "precision_at_1": float(np.mean([x["top1"] for x in rows])),
+           "precision_at_5": float(np.mean([x["top5"] for x in rows])),
+           "random": float(np.mean([x["random"] for x in rows])), "rows": rows, "seed": args.seed}
+    print(f"\nnetwork ranking of true-mesh grasps: precision@1 {100 * out['precision_at_1']:.1f}%, "
+          f"precision@5 {100 * out['precision_at_5']:.1f}%, random {100 * out['random']:.1f}%")
+    return out
+
+
+def run_timing(args) -> dict:
+    from .policy import plan
+
+    model = _model(args.model, args.threads)
+    config = _recipe_config(model)
+    rng = np.random.default_rng(args.seed)
+    ids = heldout_object_ids(args.heldout)
+    scenes = []
+    while len(scenes) < args.scenes:
+        s = make_scene(int(rng.choice(ids)), config, rng)
+        scenes.append(s.depth)
+    params = dataclasses.replace(PlanParams(), num_candidates=256, windows=args.windows)
+    totals, cpu, stages, counts, checked = [], [], {}, [], []
+    for r in range(args.repeats):
+        for j, d in enumerate(scenes):
+            c0 = time.process_time()
+            res = plan(d, config.intrinsics, model, k=5, seed=r * 1000 + j, params=params)
+            c1 = time.process_time()
+            if r == 0:
+                continue  # warm-up pass
+            cpu.append(c1 - c0)
+            totals.append(res.seconds.get("total", np.nan))
+            counts.append(res.counts.get("collision_free", 0))
+            checked.append(res.counts.get("checked", 0))
+            for k, v in res.seconds.items():
+                stages.setdefault(k, []).append(v)
+    t = 1e3 * np.asarray(totals)
+    c = 1e3 * np.asarray(cpu)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    out = {
+        "runs": len(t), "p50_ms": float(np.nanpercentile(t, 50)), "p99_ms": float(np.nanpercentile(t, 99)),
+        "cpu_p50_ms": float(np.percentile(c, 50)), "cpu_p99_ms": float(np.percentile(c, 99)),
+        "load_average_1min": load, "cpu_cores": os.cpu_count(),
+        "mean_candidates": float(np.mean(counts)),
+        "collision_checks": [int(np.min(checked)), int(np.median(checked)), int(np.max(checked))],
+        "stage_median_ms": {k: float(1e3 * np.median(v)) for k, v in stages.items()},
+        "threads": args.threads, "model": model.version, "head": model.head_precision,
+    }
+    print(f"plan {out['runs']} runs on {args.scenes} scenes (300 x 300, up to 256 candidates, mean "
+          f"{out['mean_candidates']:.0f}), onnxruntime threads={args.threads}, head {model.head_precision}:")
+    print(f"  wall: p50 {out['p50_ms']:.1f} ms   p99 {out['p99_ms']:.1f} ms   (load average {load:.1f} on {os.cpu_count()} cores)")
+    print(f"  CPU time of the process (all threads): p50 {out['cpu_p50_ms']:.1f} ms   p99 {out['cpu_p99_ms']:.1f} ms")
+    print("  collision checks per plan: min {} / median {} / max {}".format(*out["collision_checks"]))
+    print("  stage medians (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in out["stage_median_ms"].items()))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m planning.bench", description=__doc__.splitlines()[0])
+    ap.add_argument("what", choices=["timing", "precision", "trials", "ranker"])
+    ap.add_argument("--model", default=MODEL_DIR)
+    ap.add_argument("--heldout", default=HELDOUT)
+    ap.add_argument("--scenes", type=int, default=None, help="timing: 4, precision: 20")
+    ap.add_argument("--repeats", type=int, default=26, help="timing: passes over the scenes (the first is warm-up)")
+    ap.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--trials", type=int, default=5, help="trials: pybullet trials per grasp (with execution noise)")
+    ap.add_argument("--cem", type=int, default=0, help="CEM iterations over omega (0: off)")
+    ap.add_argument("--windows", choices=["cover", "grid"], default="cover")
+    ap.add_argument("--centre-offset", type=float, default=PlanParams().max_centre_offset,
+                    help="max distance (m) of the jaw line from the estimated centre of mass; <= 0: off")
+    ap.add_argument("--min-width", type=float, default=PlanParams().min_width, help="min contact distance (m)")
+    ap.add_argument("--json", help="write the results here")
+    args = ap.parse_args(argv)
+    if args.centre_offset is not None and args.centre_offset <= 0:
+        args.centre_offset = None
+    if args.scenes is None:
+        args.scenes = {"timing": 4, "precision": 20, "trials": 10, "ranker": 20}[args.what]
+    run = {"timing": run_timing, "precision": run_precision, "trials": run_trials_bench, "ranker": run_ranker}[args.what]
+    out = run(args)
+    if args.json:
+        from vgq import atomic
+
+        atomic.write_bytes(Path(args.json), json.dumps(out, indent=1).encode())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,68 @@
+"""The depth image as an organised point cloud with surface normals (camera frame, metres).
+
+Pixel (u, v) back-projects through the pinhole model of :mod:`vgq.camera`; a pixel with
+depth 0 or non-finite has no reading (``valid`` False, point and normal zero).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import uniform_filter
+
+from vgq.camera import Intrinsics
+
+
+def valid_mask(depth: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels with a reading (finite, > 0)."""
+    d = np.asarray(depth)
+    return np.isfinite(d) & (d > 0)
+
+
+def backproject(depth: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Points (H, W, 3) float64 in the camera frame and the (H, W) valid mask."""
+    d = np.asarray(depth, dtype=np.float64)
+    valid = valid_mask(d)
+    d = np.where(valid, d, 0.0)
+    h, w = d.shape
+    x = (np.arange(w, dtype=np.float64) - intr.cx) / intr.fx
+    y = (np.arange(h, dtype=np.float64) - intr.cy) / intr.fy
+    pts = np.empty((h, w, 3))
+    pts[..., 0] = x[None, :] * d
+    pts[..., 1] = y[:, None] * d
+    pts[..., 2] = d
+    return pts, valid
+
+
+def estimate_normals(points: np.ndarray, valid: np.ndarray, window: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """Unit surface normals (H, W, 3) of an organised cloud, pointing towards the camera,
+    and where they are defined (H, W) bool.
+
+    The normal at a pixel is the cross product of the central differences to its left /
+    right and upper / lower neighbours, averaged over a ``window`` x ``window`` box. Where
+    the neighbours straddle a depth edge the differences follow the edge, so a silhouette
+    pixel gets the normal of the side the camera grazes (perpendicular to its ray): the
+    direction a jaw closing on that side pushes against."""
+    p = points
+    dx = np.zeros_like(p)
+    dy = np.zeros_like(p)
+    dx[:, 1:-1] = p[:, 2:] - p[:, :-2]
+    dy[1:-1] = p[2:] - p[:-2]
+    ok = np.zeros_like(valid)
+    ok[1:-1, 1:-1] = valid[1:-1, 1:-1] & valid[1:-1, 2:] & valid[1:-1, :-2] & valid[2:, 1:-1] & valid[:-2, 1:-1]
+    # n = -(dx x dy), written out (np.cross is slow on image-sized arrays)
+    n = np.empty_like(p)
+    n[..., 0] = dx[..., 2] * dy[..., 1] - dx[..., 1] * dy[..., 2]
+    n[..., 1] = dx[..., 0] * dy[..., 2] - dx[..., 2] * dy[..., 0]
+    n[..., 2] = dx[..., 1] * dy[..., 0] - dx[..., 0] * dy[..., 1]
+    n /= np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-12)
+    n[~ok] = 0.0
+    if window > 1:
+        n = np.stack([uniform_filter(n[..., i], size=window, mode="nearest") for i in range(3)], axis=2)
+    norm = np.linalg.norm(n, axis=2)
+    ok &= norm > 1e-6
+    n /= np.maximum(norm, 1e-12)[..., None]
+    # towards the camera: n . p < 0
+    flip = (n * p).sum(axis=2) > 0
+    n[flip] *= -1.0
+    n[~ok] = 0.0
+    return n, ok

@@ -1,0 +1,345 @@
+"""Plan grasps: sample, score with Fast-VGQ-CNN on cached windows, refine, suppress, rank.
+
+:func:`plan` is the entry point an endpoint or the CLI calls. The image is first resampled
+to the model's focal lengths (:func:`vgq.camera.resample_depth`); grasps are planned and
+scored there and returned in the caller's pixels (the camera frame, z, q, the pose and
+the contacts do not depend on the pixel grid).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from PIL import Image
+
+from vgq.camera import CameraMismatch, Intrinsics, map_pixels, project, resample_depth
+from vgq.crop import crop, grid_window_centers, pose_uv, window_center, window_origin
+from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT
+from vgq.ood import flag_names, ood_flags
+from vgq.pose import quaternion_from_matrix
+
+from .cloud import valid_mask
+from .sampler import Candidates, analyse_scene, collision_checker, feasible_approach, frames_about_axis, sample_grasps
+from .types import MAX_K, PlanParams, PlannedGrasp, PlanningError, PlanResult
+
+
+# ----------------------------------------------------------------------------- inputs
+
+
+def check_depth(depth, intr: Intrinsics) -> np.ndarray:
+    """``depth`` as (H, W) float32 metres matching ``intr``; PlanningError naming the problem."""
+    d = np.asarray(depth)
+    if d.ndim != 2 or d.size == 0:
+        raise PlanningError("depth", f"depth must be a 2-D image (H, W), got shape {d.shape}")
+    if not np.issubdtype(d.dtype, np.number):
+        raise PlanningError("depth", f"depth must be numeric, got dtype {d.dtype}")
+    d = d.astype(np.float32)
+    if d.shape != (intr.height, intr.width):
+        raise PlanningError("intrinsics", f"the image is {d.shape[1]}x{d.shape[0]} px but the intrinsics say "
+                                          f"{intr.width}x{intr.height}")
+    if (np.isfinite(d) & (d < 0)).any():
+        raise PlanningError("depth", "depth has negative pixels; depth is in metres, >= 0 (0 = no reading)")
+    if not valid_mask(d).any():
+        raise PlanningError("depth", "the image has no valid depth (every pixel is 0 or non-finite)")
+    return d
+
+
+def check_k(k) -> int:
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= int(k) <= MAX_K:
+        raise PlanningError("k", f"k must be an integer in [1, {MAX_K}], got {k!r}")
+    return int(k)
+
+
+def roi_mask(roi, shape: tuple[int, int]) -> np.ndarray | None:
+    """The region of interest as an (H, W) bool mask: None (the whole image), a box
+    (u0, v0, u1, v1) in pixels (inclusive corners, clipped to the image) or a mask of the
+    image's shape. PlanningError for a malformed or empty region."""
+    if roi is None:
+        return None
+    h, w = shape
+    a = np.asarray(roi)
+    if a.shape == (h, w):
+        m = a.astype(bool)
+    elif a.shape == (4,) and np.issubdtype(a.dtype, np.number) and np.isfinite(a.astype(float)).all():
+        u0, v0, u1, v1 = a.astype(float)
+        if u1 < u0 or v1 < v0:
+            raise PlanningError("roi", f"roi box (u0, v0, u1, v1) = {tuple(a.tolist())} needs u0 <= u1 and v0 <= v1")
+        c0, c1 = int(np.ceil(max(u0, 0))), int(np.floor(min(u1, w - 1)))
+        r0, r1 = int(np.ceil(max(v0, 0))), int(np.floor(min(v1, h - 1)))
+        m = np.zeros((h, w), bool)
+        if c0 <= c1 and r0 <= r1:
+            m[r0 : r1 + 1, c0 : c1 + 1] = True
+    else:
+        raise PlanningError("roi", f"roi must be a box (u0, v0, u1, v1) or a {h}x{w} mask, got shape {a.shape}")
+    if not m.any():
+        raise PlanningError("roi", "the region of interest is empty (it covers no pixel of the image)")
+    return m
+
+
+# ----------------------------------------------------------------------------- scoring
+
+
+def grasp_rows(frames: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """Grasp rows (n, 7) (u, v, z, qw, qx, qy, qz) of frames (n, 4, 4) camera <- grasp."""
+    uvz = project(frames[:, :3, 3], intr)
+    q = quaternion_from_matrix(frames[:, :3, :3]) if len(frames) else np.zeros((0, 4))
+    return np.column_stack([uvz, q])
+
+
+def frame_from_row(row: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """The 4 x 4 grasp frame (camera frame) of a grasp row (u, v, z, qw, qx, qy, qz)."""
+    from vgq.camera import deproject
+    from vgq.pose import matrix_from_quaternion
+
+    r = np.asarray(row, dtype=np.float64)
+    T = np.eye(4)
+    T[:3, :3] = matrix_from_quaternion(r[3:7])
+    T[:3, 3] = deproject(r[None, :3], intr)[0]
+    return T
+
+
+def cover_windows(uv: np.ndarray, geom) -> np.ndarray:
+    """Window centres (n, 2) for grasps at pixels ``uv`` (n, 2): few windows, each grasp
+    within +-kappa (per axis) of its window's centre, as in the training crops. Greedy set
+    cover: the window (centred on a grasp, or on a grasp shifted by kappa / 2 diagonally,
+    snapped to the pixel grid as :func:`vgq.crop.crop` does) holding the most grasps not yet
+    covered, until all are. Usually one or two windows per object, against up to four of the
+    fixed grid."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    k = geom.kappa_px
+    shifts = np.array([[0, 0], [1, 1], [1, -1], [-1, 1], [-1, -1]]) * (k / 2)
+    cand = window_center(window_origin((uv[None] + shifts[:, None]).reshape(-1, 2), geom), geom)
+    cand = np.unique(cand, axis=0)
+    covers = np.all(np.abs(cand[:, None, :] - uv[None]) <= k + 1e-9, axis=2)  # (c, n)
+    out = np.empty_like(uv)
+    left = np.ones(len(uv), bool)
+    while left.any():
+        best = int(np.argmax((covers & left).sum(axis=1)))
+        take = covers[best] & left
+        if not take.any():  # cannot happen: every grasp's own window covers it
+            raise RuntimeError("window cover failed")
+        out[take] = cand[best]
+        left &= ~take
+    return out
+
+
+class WindowScorer:
+    """Scores grasp rows on one image: each grasp goes to a window (``windows``: "cover",
+    :func:`cover_windows` of the first batch scored, later grasps to the nearest of those
+    that holds them; or "grid", :func:`vgq.crop.grid_window_centers`); each window is
+    cropped and encoded once (all new windows in one batched encoder call) and cached for
+    later calls (the CEM refinement)."""
+
+    def __init__(self, model, depth: np.ndarray, windows: str = "cover"):
+        if windows not in ("cover", "grid"):
+            raise ValueError(f"windows must be 'cover' or 'grid', got {windows!r}")
+        self.windows = windows
+        self.model = model
+        self.depth = depth
+        self.geom = model.geometry
+        self.terms: dict[tuple[float, float], np.ndarray] = {}
+        self.actual: dict[tuple[float, float], np.ndarray] = {}
+        self.missing: dict[tuple[float, float], float] = {}
+        self.encode_seconds = 0.0
+        self.score_seconds = 0.0
+
+    def _encode(self, keys: list[tuple[float, float]]) -> None:
+        new = [k for k in keys if k not in self.terms]
+        if not new:
+            return
+        t = time.perf_counter()
+        imgs = []
+        for k in new:
+            img, actual = crop(self.depth, k, self.geom)
+            imgs.append(img)
+            self.actual[k] = actual
+            o = np.floor(np.asarray(k) - self.geom.window / 2 + 1).astype(int)
+            win = self.depth[max(o[1], 0) : o[1] + self.geom.window, max(o[0], 0) : o[0] + self.geom.window]
+            self.missing[k] = float(1.0 - valid_mask(win).mean()) if win.size else 1.0
+        x = np.ascontiguousarray(np.stack(imgs)[:, None], dtype=np.float32)
+        terms = self.model.encoder.run([ENCODER_OUTPUT], {ENCODER_INPUT: x})[0]
+        for k, term in zip(new, terms):
+            self.terms[k] = term
+        self.encode_seconds += time.perf_counter() - t
+
+    def _centres(self, uv: np.ndarray) -> np.ndarray:
+        if self.windows == "grid":
+            return grid_window_centers(uv, self.depth.shape, self.geom)
+        out = np.empty_like(uv)
+        left = np.ones(len(uv), bool)
+        if self.actual:
+            known = np.array(list(self.actual))  # keys are actual centres (cover mode)
+            d = np.abs(known[:, None] - uv[None]).max(axis=2)  # (w, n)
+            ok = d <= self.geom.kappa_px + 1e-9
+            has = ok.any(axis=0)
+            out[has] = known[np.argmin(np.where(ok, d, np.inf), axis=0)[has]]
+            left = ~has
+        if left.any():
+            out[left] = cover_windows(uv[left], self.geom)
+        return out
+
+    def score(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(P(success) (n,), fraction of missing depth in each grasp's window (n,))."""
+        if len(rows) == 0:
+            return np.zeros(0), np.zeros(0)
+        centres = self._centres(rows[:, :2])
+        keys = [tuple(c) for c in centres.tolist()]
+        self._encode(list(dict.fromkeys(keys)))
+        t = time.perf_counter()
+        actual = np.array([self.actual[k] for k in keys])
+        poses = np.empty((len(rows), 7), np.float32)
+        poses[:, :2] = pose_uv(rows[:, :2], actual, self.geom)
+        poses[:, 2:] = rows[:, 2:]
+        terms = np.stack([self.terms[k] for k in keys]).astype(np.float32)
+        p = self.model.head.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: terms, HEAD_INPUTS[1]: poses})[0]
+        self.score_seconds += time.perf_counter() - t
+        return np.asarray(p, np.float64).reshape(-1), np.array([self.missing[k] for k in keys])
+
+
+# ----------------------------------------------------------------------------- selection
+
+
+def nms(frames: np.ndarray, scores: np.ndarray, k: int, distance: float, angle: float) -> np.ndarray:
+    """Indices of at most ``k`` grasps, best score first, none of which is within
+    ``distance`` (TCP, metres) and ``angle`` (jaw axis, radians, sign ignored) of a better
+    kept one."""
+    order = np.argsort(-scores, kind="stable")
+    c, a = frames[:, :3, 3], frames[:, :3, 0]
+    cos_lim = np.cos(angle)
+    kept: list[int] = []
+    for i in order:
+        if kept:
+            kk = np.asarray(kept)
+            same = (np.linalg.norm(c[kk] - c[i], axis=1) < distance) & (np.abs(a[kk] @ a[i]) > cos_lim)
+            if same.any():
+                continue
+        kept.append(int(i))
+        if len(kept) >= k:
+            break
+    return np.asarray(kept, dtype=np.int64)
+
+
+def cem_refine(cands: Candidates, scores: np.ndarray, missing: np.ndarray, scorer: WindowScorer, scene, checker,
+               params: PlanParams, rng: np.random.Generator, intr: Intrinsics):
+    """Cross-entropy refinement of the approach (rotation omega about the jaw axis, which
+    keeps the contacts): each iteration draws ``cem_samples`` rotations of the
+    ``cem_elites`` best grasps from N(0, sigma) (sigma the spread of the elites' last
+    gains, at first ``cem_sigma``), keeps the feasible collision-free ones and adds them to
+    the pool. Returns the grown (candidates, scores, missing)."""
+    sigma = params.cem_sigma
+    for _ in range(params.cem_iterations):
+        elite = np.argsort(-scores)[: params.cem_elites]
+        pick = elite[rng.integers(0, len(elite), params.cem_samples)]
+        om = rng.normal(0.0, sigma, params.cem_samples)
+        frames = frames_about_axis(cands.frames[pick], om)
+        ok = feasible_approach(frames, scene, params)
+        ok[ok] = ~checker.collides(frames[ok])
+        if not ok.any():
+            sigma *= 0.5
+            continue
+        new = Candidates(frames[ok], cands.contacts[pick[ok]], cands.widths[pick[ok]], cands.seen[pick[ok]])
+        p, miss = scorer.score(grasp_rows(new.frames, intr))
+        better = p > scores[pick[ok]]
+        sigma = float(np.std(om[ok][better])) if better.sum() >= 2 else 0.5 * sigma
+        sigma = max(sigma, np.radians(2.0))
+        cands = Candidates.concat([cands, new])
+        scores, missing = np.concatenate([scores, p]), np.concatenate([missing, miss])
+    return cands, scores, missing
+
+
+def z_training_range(model) -> tuple[float, float]:
+    """TCP depths (metres) the model was trained on: its dataset's camera distances widened
+    by 0.1 m (objects are ~0.1 m tall), else the mean +- 3 std of its z normalisation."""
+    try:
+        d = model.card.dataset["source"]["config"]["camera"]["d_range"]
+        return float(d[0]) - 0.1, float(d[1]) + 0.1
+    except (AttributeError, KeyError, TypeError, IndexError):
+        norm = model.card.normalization
+        i = list(norm.pose_columns).index("z")
+        return norm.pose_mean[i] - 3 * norm.pose_std[i], norm.pose_mean[i] + 3 * norm.pose_std[i]
+
+
+# ----------------------------------------------------------------------------- plan
+
+
+def plan(depth, intrinsics: Intrinsics | None, model, k: int = 5, roi=None, seed: int | None = 0,
+         params: PlanParams | None = None) -> PlanResult:
+    """The best ``k`` distinct grasps on ``depth`` (H, W, metres, 0 = no reading) taken with
+    ``intrinsics`` (None: the model's camera), scored by ``model`` (a
+    :class:`service.runtime.FastModel`); ``roi`` a box (u0, v0, u1, v1) or (H, W) mask of
+    the caller's image where grasps may lie; ``seed`` makes the sampling repeatable.
+
+    Raises :class:`PlanningError` (field ``depth``, ``intrinsics``, ``k``, ``roi`` or
+    ``seed``) for input it cannot plan on. When no grasp is found the result has no grasps
+    and a ``reason``."""
+    params = params or PlanParams()
+    t0 = time.perf_counter()
+    model_intr = model.card.intrinsics
+    cam = intrinsics or model_intr
+    k = check_k(k)
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
+        raise PlanningError("seed", f"seed must be a non-negative integer or None, got {seed!r}")
+    d = check_depth(depth, cam)
+    roi_m = roi_mask(roi, d.shape)
+    if roi_m is not None and not (roi_m & valid_mask(d)).any():
+        raise PlanningError("roi", "the region of interest has no valid depth")
+    rng = np.random.default_rng(seed)
+    try:
+        d_model, intr = resample_depth(np.where(np.isfinite(d), d, 0.0).astype(np.float32), cam, model_intr)
+    except CameraMismatch as e:
+        raise PlanningError("intrinsics", str(e)) from None
+    if roi_m is not None and intr is not cam:
+        img = Image.fromarray(roi_m.astype(np.uint8) * 255).resize((intr.width, intr.height), Image.Resampling.NEAREST)
+        roi_m = np.asarray(img) > 127
+    seconds = {"resample": time.perf_counter() - t0}
+
+    t = time.perf_counter()
+    scene = analyse_scene(d_model, intr, params, rng, roi_m)
+    seconds["scene"] = time.perf_counter() - t
+    counts = {"object_pixels": int(scene.objects.sum()), "table": scene.table is not None}
+    version = getattr(model, "version", "")
+    if counts["object_pixels"] == 0:
+        where = " in the region of interest" if roi_m is not None else ""
+        return PlanResult((), f"no object points above the table{where}", counts, seconds, version)
+
+    t = time.perf_counter()
+    checker = collision_checker(scene, params, rng)
+    cands, c = sample_grasps(scene, params, rng, checker)
+    counts.update(c)
+    seconds["sample"] = time.perf_counter() - t
+    if len(cands) == 0:
+        reason = ("no antipodal contact pair within the jaw opening and friction cone" if c["pairs"] == 0 else
+                  "no feasible approach (every one from under the table or behind the object)" if c["approaches"] == 0
+                  else "every candidate grasp collides with the table or the observed points")
+        return PlanResult((), reason, counts, seconds, version)
+
+    scorer = WindowScorer(model, d_model, params.windows)
+    scores, missing = scorer.score(grasp_rows(cands.frames, intr))
+    if params.cem_iterations:
+        t = time.perf_counter()
+        cands, scores, missing = cem_refine(cands, scores, missing, scorer, scene, checker, params, rng, intr)
+        seconds["cem"] = time.perf_counter() - t
+        counts["after_cem"] = len(cands)
+    seconds["encode"] = scorer.encode_seconds
+    seconds["score"] = scorer.score_seconds
+    counts["windows"] = len(scorer.terms)
+
+    t = time.perf_counter()
+    keep = nms(cands.frames, scores, k, params.nms_distance, params.nms_angle)
+    top = cands[keep]
+    rows = grasp_rows(top.frames, intr)
+    flags = ood_flags(rows, d_model, z_training_range(model), missing[keep] > params.window_missing_fraction)
+    uv = map_pixels(rows[:, :2], intr, cam) if intr is not cam else rows[:, :2]
+    grasps = tuple(
+        PlannedGrasp(
+            u=float(uv[i, 0]), v=float(uv[i, 1]), z=float(rows[i, 2]), q=tuple(float(x) for x in rows[i, 3:7]),
+            pose=top.frames[i].copy(), width=float(top.widths[i]), contacts=top.contacts[i].copy(),
+            score=float(scores[keep[i]]), ood_flags=int(flags[i]), ood=tuple(flag_names(int(flags[i]))),
+        )
+        for i in range(len(keep))
+    )
+    seconds["select"] = time.perf_counter() - t
+    seconds["total"] = time.perf_counter() - t0
+    everything = {"frames": cands.frames, "contacts": cands.contacts, "scores": scores}
+    return PlanResult(grasps, None, counts, seconds, version, everything)

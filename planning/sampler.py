@@ -1,0 +1,307 @@
+"""6-DOF antipodal grasp candidates from a depth image (camera frame, metres, radians).
+
+1. Back-project the image and estimate normals (:mod:`planning.cloud`); find the table as
+   the dominant plane (RANSAC); the points above it (in the region of interest) are the
+   objects.
+2. Contact pairs: a seed contact on the objects (silhouette and side pixels, whose normals
+   are not vertical, are drawn more often); a jaw axis inside the friction cone of its
+   inward normal; the opposite contact where that line leaves the object. The depth image
+   is read as a height field seen from the camera: space behind an observed surface is
+   taken as solid, space in front of it as free, so the line leaves the object where it
+   first comes out in front of the observed surface. A line that meets the table first,
+   never leaves within the jaw opening, or leaves through a visible surface whose normal is
+   outside the friction cone is dropped. Contact 1 may lie on a surface the camera does not
+   see; then only contact 0's cone is checked (the network judges the rest).
+3. Approaches: rotations omega about each jaw axis, around the straight-down approach
+   (or the camera ray where the axis is near vertical), never from under the table or from
+   behind the object as the camera sees it.
+4. Collisions: the swept gripper may not enter the table or hold an observed point
+   (:mod:`planning.collision`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from vgq.camera import Intrinsics
+
+from .cloud import backproject, estimate_normals
+from .collision import GripperCollision, TablePlane, fit_table, voxel_downsample
+from .types import PlanParams
+
+
+@dataclass
+class Scene:
+    """What the sampler knows of the image: points and normals (H, W, 3), their masks,
+    the table (None when no plane holds ``min_table_fraction`` of the points) and the
+    object mask (valid, above the table, inside the region of interest)."""
+
+    depth: np.ndarray
+    intr: Intrinsics
+    points: np.ndarray
+    valid: np.ndarray
+    normals: np.ndarray
+    normal_ok: np.ndarray
+    table: TablePlane | None
+    objects: np.ndarray
+    labels: np.ndarray | None = None
+    centres: np.ndarray | None = None
+
+    @property
+    def up(self) -> np.ndarray:
+        """Unit 'up' (3,): the table normal, or towards the camera along the principal ray."""
+        return self.table.normal if self.table is not None else np.array([0.0, 0.0, -1.0])
+
+
+@dataclass
+class Candidates:
+    """n grasps: frames (n, 4, 4) camera <- grasp, contacts (n, 2, 3), widths (n,) and
+    whether contact 1 was seen (n,) bool."""
+
+    frames: np.ndarray
+    contacts: np.ndarray
+    widths: np.ndarray
+    seen: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, idx) -> "Candidates":
+        return Candidates(self.frames[idx], self.contacts[idx], self.widths[idx], self.seen[idx])
+
+    @classmethod
+    def empty(cls) -> "Candidates":
+        return cls(np.zeros((0, 4, 4)), np.zeros((0, 2, 3)), np.zeros(0), np.zeros(0, bool))
+
+    @classmethod
+    def concat(cls, parts: list["Candidates"]) -> "Candidates":
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return cls.empty()
+        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("frames", "contacts", "widths", "seen")))
+
+
+def analyse_scene(depth: np.ndarray, intr: Intrinsics, params: PlanParams, rng: np.random.Generator,
+                  roi: np.ndarray | None = None) -> Scene:
+    """Points, normals, table and object mask of ``depth`` (H, W, metres) seen with ``intr``;
+    ``roi`` (H, W) bool restricts the objects (None: the whole image). Normals are computed
+    only around the objects."""
+    pts, valid = backproject(depth, intr)
+    flat = np.flatnonzero(valid.ravel())
+    sub = pts.reshape(-1, 3)[flat[rng.integers(0, len(flat), size=min(params.ransac_points, len(flat)))]]
+    table = fit_table(sub, rng, params.ransac_iterations, params.table_inlier_distance)
+    if table is not None and table.inlier_fraction < params.min_table_fraction:
+        table = None
+    objects = valid.copy()
+    if table is not None:
+        objects &= table.height(pts) > params.object_height
+    if roi is not None:
+        objects &= roi
+    normals = np.zeros_like(pts)
+    nok = np.zeros_like(valid)
+    if objects.any():
+        rows, cols = np.flatnonzero(objects.any(axis=1)), np.flatnonzero(objects.any(axis=0))
+        m = params.normal_window // 2 + 2
+        r0, r1 = max(rows[0] - m, 0), min(rows[-1] + m + 1, valid.shape[0])
+        c0, c1 = max(cols[0] - m, 0), min(cols[-1] + m + 1, valid.shape[1])
+        n, ok = estimate_normals(pts[r0:r1, c0:c1], valid[r0:r1, c0:c1], params.normal_window)
+        normals[r0:r1, c0:c1], nok[r0:r1, c0:c1] = n, ok
+    labels, centres = object_centres(pts, objects, table) if params.max_centre_offset is not None else (None, None)
+    return Scene(np.asarray(depth, np.float64), intr, pts, valid, normals, nok, table, objects, labels, centres)
+
+
+def object_centres(points: np.ndarray, objects: np.ndarray, table: TablePlane | None) -> tuple[np.ndarray, np.ndarray]:
+    """Connected object regions (H, W) int (0 = none, region i is label i) and a guess of
+    each one's centre of mass (n + 1, 3), camera frame: the mean of its points dropped to
+    half their height above the table (objects rest on it; without a table, the mean of
+    its points). Row 0 is unused."""
+    labels, n = ndimage.label(objects, structure=np.ones((3, 3)))
+    centres = np.zeros((n + 1, 3))
+    if n == 0:
+        return labels, centres
+    p = points[objects]
+    lab = labels[objects]
+    if table is not None:
+        h = table.height(p)
+        top = ndimage.maximum(h, lab, index=np.arange(1, n + 1))
+        # each point dropped onto the table, then raised to half its region's height
+        p = p - h[:, None] * table.normal + 0.5 * np.asarray(top)[lab - 1][:, None] * table.normal
+    cnt = np.bincount(lab, minlength=n + 1).astype(float)
+    for i in range(3):
+        centres[:, i] = np.bincount(lab, weights=p[:, i], minlength=n + 1) / np.maximum(cnt, 1)
+    return labels, centres
+
+
+def _lookup(scene: Scene, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest pixel of points x (..., 3): (rows, cols, inside the image and in front)."""
+    z = x[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = scene.intr.fx * x[..., 0] / z + scene.intr.cx
+        v = scene.intr.fy * x[..., 1] / z + scene.intr.cy
+    h, w = scene.valid.shape
+    inside = (z > 1e-6) & (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
+    cols = np.clip(np.floor(np.where(inside, u, 0) + 0.5).astype(np.int64), 0, w - 1)
+    rows = np.clip(np.floor(np.where(inside, v, 0) + 0.5).astype(np.int64), 0, h - 1)
+    return rows, cols, inside
+
+
+def _cone_axes(inward: np.ndarray, half_angle_tan: float, rng: np.random.Generator) -> np.ndarray:
+    """Unit directions (n, 3) drawn uniformly (by area) inside cones of half-angle
+    atan(``half_angle_tan``) around the unit ``inward`` (n, 3)."""
+    ref = np.where(np.abs(inward[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(inward, ref)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(inward, t1)
+    r = half_angle_tan * np.sqrt(rng.random(len(inward)))
+    th = rng.uniform(0, 2 * np.pi, len(inward))
+    a = inward + r[:, None] * (np.cos(th)[:, None] * t1 + np.sin(th)[:, None] * t2)
+    return a / np.linalg.norm(a, axis=1, keepdims=True)
+
+
+def sample_contact_pairs(scene: Scene, n_seeds: int, params: PlanParams, rng: np.random.Generator):
+    """Antipodal contact pairs from ``n_seeds`` seed contacts (see the module docstring).
+
+    Returns ``(contacts (m, 2, 3), axes (m, 3) unit contact 0 -> 1, widths (m,), seen (m,))``."""
+    cand = np.flatnonzero((scene.objects & scene.normal_ok).ravel())
+    empty = (np.zeros((0, 2, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, bool))
+    if len(cand) == 0:
+        return empty
+    n_all = scene.normals.reshape(-1, 3)[cand]
+    # seeds on sides and silhouettes (normal away from 'up') are likelier to have an opposite contact
+    weight = 0.1 + (1.0 - np.abs(n_all @ scene.up))
+    seeds = rng.choice(len(cand), size=n_seeds, replace=True, p=weight / weight.sum())
+    p1 = scene.points.reshape(-1, 3)[cand[seeds]]
+    n1 = n_all[seeds]
+    mu = params.friction_coef
+    axes = _cone_axes(-n1, mu * params.cone_fraction, rng)
+
+    step = params.march_step
+    ts = step * np.arange(1, int(np.ceil(params.max_opening / step)) + 2)
+    x = p1[:, None, :] + ts[None, :, None] * axes[:, None, :]  # (S, T, 3)
+    rows, cols, inside = _lookup(scene, x)
+    d = scene.depth[rows, cols]
+    tol = params.surface_tolerance
+    occupied = inside & (d > 0) & (x[..., 2] >= d - tol)
+    below = (scene.table.height(x) < -params.table_inlier_distance) if scene.table is not None else np.zeros_like(occupied)
+    free = ~occupied
+    has_exit = free.any(axis=1)
+    e = np.argmax(free, axis=1)  # first free step
+    idx = np.arange(len(ts))[None, :]
+    hits_table = (below & (idx <= e[:, None])).any(axis=1)
+    width = ts[e] - 0.5 * step
+    ok = occupied[:, 0] & has_exit & ~hits_table & (width >= params.min_width) & (width <= params.max_opening)
+    p2 = p1 + width[:, None] * axes
+    # contact 1 on a visible surface: its normal must hold the push (friction cone)
+    r2, c2, in2 = _lookup(scene, p2)
+    d2 = scene.depth[r2, c2]
+    seen = in2 & (d2 > 0) & (np.abs(p2[:, 2] - d2) <= tol) & scene.normal_ok[r2, c2] & scene.objects[r2, c2]
+    cos_lim = np.cos(np.arctan(mu))
+    n2 = scene.normals[r2, c2]
+    ok &= ~seen | (np.einsum("ij,ij->i", n2, axes) >= cos_lim)
+    if params.max_centre_offset is not None and scene.centres is not None:
+        # the jaw line should pass near the object's centre of mass (torques it must resist)
+        lab = scene.labels.reshape(-1)[cand[seeds]]
+        off = np.linalg.norm(np.cross(scene.centres[lab] - p1, axes), axis=1)
+        ok &= off <= params.max_centre_offset
+    contacts = np.stack([p1[ok], p2[ok]], axis=1)
+    return contacts, axes[ok], width[ok], seen[ok]
+
+
+def approach_frames(centers: np.ndarray, axes: np.ndarray, scene: Scene, params: PlanParams):
+    """Grasp frames (m, 4, 4) for each TCP (n, 3) and unit jaw axis (n, 3): the
+    ``num_approaches`` rotations omega in [-max_approach_tilt, +max_approach_tilt] about
+    the axis around the straight-down approach (the camera ray where the axis is within
+    ~17 deg of vertical); only those with beta < 90 deg and psi < ``max_psi``. Returns
+    ``(frames, pair index (m,))``."""
+    up = scene.up
+    down = np.broadcast_to(-up, axes.shape)
+    z0 = down - np.einsum("ij,ij->i", down, axes)[:, None] * axes
+    nz = np.linalg.norm(z0, axis=1)
+    ray = centers / np.linalg.norm(centers, axis=1, keepdims=True)
+    zr = ray - np.einsum("ij,ij->i", ray, axes)[:, None] * axes
+    use_ray = nz < 0.3
+    z0 = np.where(use_ray[:, None], zr, z0)
+    z0 /= np.maximum(np.linalg.norm(z0, axis=1, keepdims=True), 1e-12)
+    y0 = np.cross(z0, axes)
+    om = np.linspace(-params.max_approach_tilt, params.max_approach_tilt, params.num_approaches)
+    c, s = np.cos(om), np.sin(om)
+    # R = [x, y0, z0] Rx(omega): y = c y0 + s z0, z = -s y0 + c z0
+    y = c[None, :, None] * y0[:, None] + s[None, :, None] * z0[:, None]
+    z = -s[None, :, None] * y0[:, None] + c[None, :, None] * z0[:, None]
+    n, a = len(axes), len(om)
+    frames = np.zeros((n, a, 4, 4))
+    frames[:, :, :3, 0] = axes[:, None]
+    frames[:, :, :3, 1] = y
+    frames[:, :, :3, 2] = z
+    frames[:, :, :3, 3] = centers[:, None]
+    frames[:, :, 3, 3] = 1.0
+    ok = (z @ up < -1e-6) & (np.einsum("naj,nj->na", z, ray) > np.cos(params.max_psi))
+    pair = np.broadcast_to(np.arange(n)[:, None], (n, a))
+    return frames[ok], pair[ok]
+
+
+def frames_about_axis(frames: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    """``frames`` (n, 4, 4) rotated about their own x-axes by ``omega`` (n,) radians."""
+    c, s = np.cos(omega)[:, None], np.sin(omega)[:, None]
+    out = frames.copy()
+    y0, z0 = frames[:, :3, 1], frames[:, :3, 2]
+    out[:, :3, 1] = c * y0 + s * z0
+    out[:, :3, 2] = -s * y0 + c * z0
+    return out
+
+
+def feasible_approach(frames: np.ndarray, scene: Scene, params: PlanParams) -> np.ndarray:
+    """(n,) bool: beta < 90 deg (not from under the table) and psi < ``max_psi``."""
+    z = frames[:, :3, 2]
+    ray = frames[:, :3, 3] / np.linalg.norm(frames[:, :3, 3], axis=1, keepdims=True)
+    return (z @ scene.up < -1e-6) & (np.einsum("ij,ij->i", z, ray) > np.cos(params.max_psi))
+
+
+def collision_checker(scene: Scene, params: PlanParams, rng: np.random.Generator) -> GripperCollision:
+    """The scene's gripper collision model: the table and the observed points above it,
+    inside or outside the region of interest (one per ``collision_voxel`` cube, at most
+    ``max_collision_points``)."""
+    above = scene.valid.copy()
+    if scene.table is not None:
+        above &= scene.table.height(scene.points) > params.table_inlier_distance
+    pts = voxel_downsample(scene.points[above], params.collision_voxel)
+    if len(pts) > params.max_collision_points:
+        pts = pts[rng.choice(len(pts), size=params.max_collision_points, replace=False)]
+    return GripperCollision(params.gripper, scene.table, pts, params.table_clearance, params.point_clearance)
+
+
+def sample_grasps(scene: Scene, params: PlanParams, rng: np.random.Generator,
+                  checker: GripperCollision) -> tuple[Candidates, dict]:
+    """Up to ``params.num_candidates`` collision-free candidates and the counts of each
+    stage (``pairs``, ``approaches``, ``checked``, ``collision_free``)."""
+    counts = {"pairs": 0, "approaches": 0, "checked": 0, "collision_free": 0}
+    found: list[Candidates] = []
+    n_found = 0
+    for _ in range(params.max_rounds):
+        contacts, axes, widths, seen = sample_contact_pairs(scene, params.max_seeds, params, rng)
+        counts["pairs"] += len(axes)
+        if len(axes) == 0:
+            continue
+        centers = contacts.mean(axis=1)
+        frames, pair = approach_frames(centers, axes, scene, params)
+        counts["approaches"] += len(frames)
+        order = rng.permutation(len(frames))
+        chunk = max(params.num_candidates - n_found, 32)
+        for s in range(0, len(order), chunk):
+            idx = order[s : s + chunk]
+            free = ~checker.collides(frames[idx])
+            counts["checked"] += len(idx)
+            idx = idx[free]
+            p = pair[idx]
+            found.append(Candidates(frames[idx], contacts[p], widths[p], seen[p]))
+            n_found += len(idx)
+            if n_found >= params.num_candidates:
+                break
+        if n_found >= params.num_candidates:
+            break
+    out = Candidates.concat(found)[: params.num_candidates]
+    counts["collision_free"] = len(out)
+    return out, counts

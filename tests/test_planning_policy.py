@@ -1,0 +1,152 @@
+"""plan(): scored, distinct, ROI-bound grasps in the service's row convention; bad input
+raises PlanningError naming it; nothing to grasp gives an empty answer with a reason."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("trimesh")
+
+from planning.policy import frame_from_row, nms, plan
+from planning.types import PlanningError, PlanParams
+from service.runtime import FastModel
+from tests.planning_scenes import boxes_scene
+from vgq.camera import DEFAULT_INTRINSICS, Intrinsics, project
+from vgq.pose import canonical_quaternion
+
+MODEL_DIR = "models/fast-vgqcnn-default"
+FAST = PlanParams(num_candidates=96)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return FastModel(MODEL_DIR, threads=1, head_precision="fp32")
+
+
+@pytest.fixture(scope="module")
+def two_boxes():
+    return boxes_scene(extents=((0.03, 0.04, 0.05), (0.035, 0.03, 0.04)), at=((-0.07, 0.0), (0.07, 0.02)))
+
+
+def test_plan_returns_k_distinct_scored_grasps_in_the_service_row_convention(model, two_boxes):
+    depth, _, _ = two_boxes
+    res = plan(depth, DEFAULT_INTRINSICS, model, k=5, seed=0, params=FAST)
+    assert res.reason is None and len(res.grasps) == 5
+    scores = [g.score for g in res.grasps]
+    assert scores == sorted(scores, reverse=True) and all(0 <= s <= 1 for s in scores)
+    for g in res.grasps:
+        row = g.row
+        assert row.shape == (7,) and np.allclose(row[3:], canonical_quaternion(row[3:])) and row[3] >= 0
+        T = frame_from_row(row, DEFAULT_INTRINSICS)  # row -> pose
+        assert np.allclose(T, g.pose, atol=1e-9)
+        uvz = project(g.pose[None, :3, 3], DEFAULT_INTRINSICS)[0]  # pose -> row
+        assert np.allclose(uvz, row[:3])
+        assert np.allclose(g.pose[:3, 3], np.mean(g.contacts, axis=0))  # TCP midway
+        x = g.contacts[1] - g.contacts[0]
+        assert np.allclose(g.pose[:3, 0], x / np.linalg.norm(x))  # x = jaw axis
+        assert np.isclose(g.width, np.linalg.norm(x), atol=1e-9)
+        assert g.pose[2, 2] > 0  # approaches from the camera side
+        assert g.ood_flags == 0 and g.ood == ()
+    d = res.to_dict()
+    assert len(d["grasps"]) == 5 and d["counts"]["collision_free"] == 96
+
+
+def test_nms_keeps_only_distinct_grasps():
+    def frame(c, a):
+        T = np.eye(4)
+        T[:3, 0] = a / np.linalg.norm(a)
+        T[:3, 3] = c
+        return T
+
+    frames = np.stack([
+        frame([0, 0, 0.6], np.array([1.0, 0, 0])),
+        frame([0.003, 0, 0.6], np.array([1.0, 0.1, 0])),  # same place, same axis: suppressed
+        frame([0.003, 0, 0.6], np.array([0.0, 1.0, 0])),  # same place, crossed axis: kept
+        frame([0.05, 0, 0.6], np.array([1.0, 0, 0])),  # elsewhere: kept
+        frame([0.0, 0, 0.6], np.array([-1.0, 0, 0])),  # reversed axis is the same line: suppressed
+    ])
+    scores = np.array([0.9, 0.95, 0.5, 0.4, 0.3])
+    assert nms(frames, scores, 10, 0.01, np.radians(30)).tolist() == [1, 2, 3]
+    assert nms(frames, scores, 2, 0.01, np.radians(30)).tolist() == [1, 2]
+
+
+def test_roi_restricts_the_grasps_to_the_boxed_object(model, two_boxes):
+    depth, T_wc, meshes = two_boxes
+    # the image box around the second object's projection
+    v = meshes[1].vertices @ np.linalg.inv(T_wc)[:3, :3].T + np.linalg.inv(T_wc)[:3, 3]
+    uv = project(v, DEFAULT_INTRINSICS)[:, :2]
+    (u0, v0), (u1, v1) = uv.min(axis=0) - 3, uv.max(axis=0) + 3
+    res = plan(depth, DEFAULT_INTRINSICS, model, k=5, roi=(u0, v0, u1, v1), seed=0, params=FAST)
+    assert len(res.grasps) >= 1
+    for g in res.grasps:
+        c0 = project(g.contacts[:1], DEFAULT_INTRINSICS)[0]
+        assert u0 <= c0[0] <= u1 and v0 <= c0[1] <= v1
+    # without the ROI the first object is grasped too
+    everywhere = plan(depth, DEFAULT_INTRINSICS, model, k=20, seed=0, params=FAST)
+    us = [project(g.contacts[:1], DEFAULT_INTRINSICS)[0, 0] for g in everywhere.grasps]
+    assert min(us) < u0 - 10 or max(us) > u1 + 10
+
+
+def test_another_camera_gets_grasps_in_its_own_pixels(model, two_boxes):
+    depth, _, _ = two_boxes
+    from PIL import Image
+
+    # the same view at 0.8 x the focal length: a 240 px image
+    cam = Intrinsics(fx=420.0, fy=420.0, cx=119.5, cy=119.5, width=240, height=240)
+    small = np.asarray(Image.fromarray(depth).resize((240, 240), Image.Resampling.NEAREST))
+    res = plan(small, cam, model, k=3, seed=0, params=FAST)
+    assert len(res.grasps) == 3
+    for g in res.grasps:
+        assert np.allclose(project(g.pose[None, :3, 3], cam)[0, :2], [g.u, g.v], atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        ({"depth": np.zeros((300, 300), np.float32)}, "depth"),
+        ({"depth": np.full((300, 300), np.nan, np.float32)}, "depth"),
+        ({"depth": np.ones((300, 300, 2), np.float32)}, "depth"),
+        ({"depth": np.ones((200, 300), np.float32)}, "intrinsics"),
+        ({"k": 0}, "k"),
+        ({"k": 101}, "k"),
+        ({"k": 2.5}, "k"),
+        ({"roi": (400, 400, 500, 500)}, "roi"),
+        ({"roi": (50, 50, 10, 10)}, "roi"),
+        ({"roi": np.zeros((300, 300), bool)}, "roi"),
+        ({"roi": (1, 2, 3)}, "roi"),
+        ({"seed": -1}, "seed"),
+    ],
+)
+def test_bad_input_names_the_field(model, two_boxes, kwargs, field):
+    args = {"depth": two_boxes[0], "k": 5, "roi": None, "seed": 0, **kwargs}
+    with pytest.raises(PlanningError) as e:
+        plan(args["depth"], DEFAULT_INTRINSICS, model, k=args["k"], roi=args["roi"], seed=args["seed"], params=FAST)
+    assert e.value.field == field and str(e.value)
+
+
+def test_nothing_to_grasp_gives_no_grasps_and_a_reason(model):
+    from datagen.camera import look_at_table_origin
+    from datagen.render import render_depth
+
+    table = render_depth(None, look_at_table_origin(0.6, 0.3, 0.2)[0], DEFAULT_INTRINSICS)
+    res = plan(table, DEFAULT_INTRINSICS, model, k=5, seed=0, params=FAST)
+    assert res.grasps == () and "no object" in res.reason
+    assert res.to_dict()["grasps"] == []
+
+
+def test_the_same_seed_plans_the_same_grasps(model, two_boxes):
+    depth, _, _ = two_boxes
+    a = plan(depth, DEFAULT_INTRINSICS, model, k=3, seed=7, params=FAST)
+    b = plan(depth, DEFAULT_INTRINSICS, model, k=3, seed=7, params=FAST)
+    c = plan(depth, DEFAULT_INTRINSICS, model, k=3, seed=8, params=FAST)
+    assert [g.row.tolist() for g in a.grasps] == [g.row.tolist() for g in b.grasps]
+    assert [g.row.tolist() for g in a.grasps] != [g.row.tolist() for g in c.grasps]
+
+
+def test_cem_adds_collision_free_rotations_and_never_lowers_the_best_score(model, two_boxes):
+    import dataclasses
+
+    depth, _, _ = two_boxes
+    plain = plan(depth, DEFAULT_INTRINSICS, model, k=1, seed=3, params=FAST)
+    cem = plan(depth, DEFAULT_INTRINSICS, model, k=1, seed=3, params=dataclasses.replace(FAST, cem_iterations=2))
+    assert cem.counts["after_cem"] > cem.counts["collision_free"]
+    assert cem.grasps[0].score >= plain.grasps[0].score
