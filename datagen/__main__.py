@@ -112,7 +112,9 @@ def cmd_generate(args) -> int:
     if args.resume:
         if not (out / MANIFEST).is_file():
             raise CliError(f"--resume: no {MANIFEST} in {out}")
-        base = DatagenConfig.from_dict(read_manifest(out, GRASP_FORMAT)["config"])
+        from .config import recorded_config
+
+        base = DatagenConfig.from_dict(recorded_config(read_manifest(out, GRASP_FORMAT)["config"]))
     cfg = _build_config(
         args, base, source=str(Path(args.source).resolve()) if args.source else None, num_objects=args.objects,
         cameras_per_pose=args.cameras, seed=args.seed,

@@ -82,6 +82,14 @@ class DatagenConfig:
         return float(self.quality.label_threshold)
 
 
+def recorded_config(d: dict) -> dict:
+    """A config dict recorded in a dataset manifest, upgraded for settings added since: a
+    dataset without a ``label`` section predates the label setting and has the paper's label."""
+    if isinstance(d, dict) and "label" not in d:
+        return {**d, "label": {"kind": "paper"}}
+    return d
+
+
 def load_config(path: str | Path) -> DatagenConfig:
     """Load a config from a JSON file; missing keys keep their defaults."""
     p = Path(path)

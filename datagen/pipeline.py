@@ -260,8 +260,10 @@ def run_sources(config: DatagenConfig) -> list:
 
 def _recorded_config(d) -> dict | None:
     """A manifest's config with the defaults of fields added since it was written."""
+    from .config import recorded_config
+
     try:
-        return _normalised(DatagenConfig.from_dict(d).to_dict())
+        return _normalised(DatagenConfig.from_dict(recorded_config(d)).to_dict())
     except (ConfigError, TypeError):
         return d
 

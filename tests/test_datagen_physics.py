@@ -103,3 +103,14 @@ def test_the_physics_label_labels_each_grasp_once_per_pose_for_all_cameras(tmp_p
     for gid in np.unique(g["grasp_id"]):
         assert np.unique(g["omega"][g["grasp_id"] == gid]).size == 1
     assert cfg.label_threshold == 0.5
+
+
+def test_a_dataset_recorded_before_the_label_setting_resumes_with_the_papers_label():
+    from datagen.config import DatagenConfig, recorded_config
+
+    old = DatagenConfig().to_dict()
+    for key in ("label", "collision", "physics"):
+        old.pop(key)
+    cfg = DatagenConfig.from_dict(recorded_config(old))
+    assert cfg.label.kind == "paper" and cfg.label_threshold == 0.002
+    assert recorded_config(DatagenConfig().to_dict())["label"]["kind"] == "physics"
