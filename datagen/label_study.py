@@ -467,8 +467,9 @@ def summarise(results: list[dict], out: str | Path | None = None, label_threshol
     curve = {}
     for m in sorted({1, 2, 4, 8, m_all} & set(range(1, m_all + 1))):
         curve[m] = auc(np.repeat(P["label_held"][:, :m].mean(axis=1), k), y.reshape(-1))
-    reasons = np.bincount(P["eval_reason"].reshape(-1).astype(int), minlength=5)
     from .physics import REASONS
+
+    reasons = np.bincount(P["eval_reason"].reshape(-1).astype(int), minlength=len(REASONS))
 
     # pad contacts vs the noise-free trial's first pad touches (both in the object frame)
     ft, pc, ac = P["first_touch"], P["pad_contacts"], P["contacts"]

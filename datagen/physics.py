@@ -47,7 +47,7 @@ import trimesh
 from .gripper import GripperGeometry, gripper_boxes
 
 #: trial outcome reasons (TrialResults.reason)
-REASONS = ("held", "dropped", "start_collision", "table", "unstable_pose")
+REASONS = ("held", "dropped", "start_collision", "table")
 
 
 @dataclass(frozen=True)
