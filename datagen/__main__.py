@@ -11,16 +11,34 @@ import json
 import sys
 from pathlib import Path
 
-# The dataset the shipped model is trained on (``datagen recipe``): generate -> sample -> crops.
-RECIPE = {
-    "objects": 600,  # first 600 of pybullet_data's random_urdfs (sorted by name)
-    "cameras": 10,  # camera poses per stable pose
-    "seed": 0,
-    "arch": "fast_vgqcnn",
-    "kappa": 36.0,  # px in the 96 px window (the authors' default)
-    "sampling": {"uniform_quantile": 0.1},  # small dataset: cap bins at the 10% quantile, not the minimum
-    "sensor": "clean",  # the shipped model saw clean renders (the crops CLI default is the realistic sensor)
+# The datasets of the bundled models (``datagen recipe --version V``): generate -> sample -> crops.
+RECIPES = {
+    # v1: the model bundled today (fast_vgqcnn-60b272a5a797): random_urdfs only, the paper's label, clean renders
+    "v1": {
+        "objects": 600,  # first 600 of pybullet_data's random_urdfs (sorted by name)
+        "families": None,
+        "cameras": 10,  # camera poses per stable pose
+        "seed": 0,
+        "arch": "fast_vgqcnn",
+        "kappa": 36.0,  # px in the 96 px window (the authors' default)
+        "sampling": {"uniform_quantile": 0.1},  # small dataset: cap bins at the 10% quantile, not the minimum
+        "sensor": "clean",
+        "set": {"label.kind": "paper"},
+    },
+    # v2 (issue 10): everyday families + random_urdfs, the physics label (docs/labels.md), the depth-sensor model
+    "v2": {
+        "objects": 600,
+        "families": "all=40",  # 40 objects of each of the 11 families, split object-wise within every family
+        "cameras": 50,  # Dex-Net 2.0's 50: labels are per grasp and stable pose, so more views cost only rendering
+        "seed": 0,
+        "arch": "fast_vgqcnn",
+        "kappa": 36.0,
+        "sampling": {"uniform_quantile": 0.1},
+        "sensor": "realistic",
+        "set": {"label.kind": "physics", "max_stable_poses": 6},  # round objects have up to 34 poses
+    },
 }
+RECIPE = RECIPES["v1"]  # the bundled model's recipe until v2 is trained
 
 
 class CliError(Exception):
@@ -210,16 +228,19 @@ def cmd_labelstudy(args) -> int:
 def cmd_recipe(args) -> int:
     from .parallel import default_workers
 
+    recipe = RECIPES[args.version]
     out = Path(args.out)
-    objects = args.objects or RECIPE["objects"]
+    objects = args.objects or recipe["objects"]
     workers = args.workers or default_workers()
-    sets = [f"--set sampling.{k}={json.dumps(v)}" for k, v in RECIPE["sampling"].items()]
+    sets = " ".join(f"--set {k}={json.dumps(v)}" for k, v in recipe["set"].items())
+    samp = " ".join(f"--set sampling.{k}={json.dumps(v)}" for k, v in recipe["sampling"].items())
+    fams = f" --families {recipe['families']}" if recipe["families"] else ""
     steps = [
-        f"python -m datagen generate --out {out / 'grasps'} --objects {objects} --cameras {RECIPE['cameras']} "
-        f"--seed {RECIPE['seed']} --workers {workers}",
-        f"python -m datagen sample --in {out / 'grasps'} --out {out / 'sampled'} --seed {RECIPE['seed']} " + " ".join(sets),
-        f"python -m datagen crops --in {out / 'sampled'} --out {out / 'crops'} --arch {RECIPE['arch']} "
-        f"--kappa {RECIPE['kappa']:g} --seed {RECIPE['seed']} --sensor {RECIPE['sensor']}",
+        f"python -m datagen generate --out {out / 'grasps'} --objects {objects}{fams} --cameras {recipe['cameras']} "
+        f"--seed {recipe['seed']} --workers {workers} {sets}",
+        f"python -m datagen sample --in {out / 'grasps'} --out {out / 'sampled'} --seed {recipe['seed']} {samp}",
+        f"python -m datagen crops --in {out / 'sampled'} --out {out / 'crops'} --arch {recipe['arch']} "
+        f"--kappa {recipe['kappa']:g} --seed {recipe['seed']} --sensor {recipe['sensor']}",
     ]
     for s in steps:
         print(s)
@@ -350,9 +371,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(ls)
     ls.set_defaults(func=cmd_labelstudy)
 
-    r = sub.add_parser("recipe", help="build the shipped model's dataset (generate -> sample -> crops)")
+    r = sub.add_parser("recipe", help="build a bundled model's dataset (generate -> sample -> crops)")
     r.add_argument("--out", required=True)
-    r.add_argument("--objects", type=_positive_int("--objects"), help=f"default {RECIPE['objects']}")
+    r.add_argument("--version", choices=sorted(RECIPES), default="v2",
+                   help="v1: the model bundled today (random_urdfs, paper label, clean); v2 (default): families, "
+                        "physics label, sensor model")
+    r.add_argument("--objects", type=_positive_int("--objects"), help="random_urdfs objects (default: the recipe's)")
     r.add_argument("--workers", type=_positive_int("--workers"))
     r.add_argument("--dry-run", action="store_true", help="only print the commands")
     r.set_defaults(func=cmd_recipe)
