@@ -175,7 +175,7 @@ def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs
     """Measure everything (see the module doc); returns the JSON-able report."""
     import onnxruntime as ort
 
-    from service.loadtest import load_workload
+    from tools.loadtest.workload import load_workload
     from service.runtime import FastModel, session_options
     from vgq.model_card import ENCODER_INPUT, HEAD_INPUTS, VGQ_INPUTS, VGQ_OUTPUT
 

@@ -1,4 +1,4 @@
-"""service.loadtest against the real service on loopback, and its guards."""
+"""tools.loadtest (the load-test package) against the real service on loopback, and its guards."""
 
 from __future__ import annotations
 
@@ -7,7 +7,10 @@ import os
 
 import pytest
 
-from service.loadtest import Mix, check_target, main, server_latency_totals, server_rss_bytes
+from tools.loadtest.cli import main
+from tools.loadtest.client import check_target
+from tools.loadtest.report import server_latency_totals, server_rss_bytes
+from tools.loadtest.workload import Mix
 from servers import running_service
 
 
