@@ -101,13 +101,13 @@ class Service:
         try:
             if self.model is None:
                 self.model = FastModel(self.settings.model_dir, threads=self.settings.ort_threads,
-                                       head_precision=self.settings.head_precision)
+                                       head_precision=self.settings.head_precision, encoder_precision=self.settings.encoder_precision)
             self.model.warm_up()
             gc.collect()
             gc.freeze()  # start-up objects out of the collector's way: no GC pauses on them later
             self.ready = True
             self.metrics.ready.set(1)
-            logs.event(self.log, "ready", model_version=self.model.version, head=self.model.head_precision,
+            logs.event(self.log, "ready", model_version=self.model.version, head=self.model.head_precision, encoder=self.model.encoder_info,
                        threads=self.settings.ort_threads,
                        cache=self.cache.backend)
         except Exception as e:  # reported by /readyz and the log; the process stays up for diagnosis
@@ -266,7 +266,7 @@ def create_app(settings: Settings | None = None, model: FastModel | None = None,
     async def model_info():
         if not svc.ready:
             raise ApiError(503, "model not ready")
-        return _json({"model_card": svc.model.card.to_dict(), "head_precision": svc.model.head_precision, "limits": {
+        return _json({"model_card": svc.model.card.to_dict(), "head_precision": svc.model.head_precision, "encoder": svc.model.encoder_info, "limits": {
             "max_grasps": settings.max_grasps, "max_body_bytes": settings.max_body_bytes,
             "max_image_side": settings.max_image_side, "request_timeout_s": settings.request_timeout_s},
             "depth_content_types": list(DEPTH_TYPES)})
