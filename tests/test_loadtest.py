@@ -81,3 +81,26 @@ def test_server_latency_totals_sum_over_status_labels():
         'vgq_request_seconds_sum{endpoint="upload"} 0.005',
     ])
     assert server_latency_totals(text) == {"score": (0.008, 4.0), "upload": (0.005, 1.0)}
+
+
+def test_locustfile_runs_the_same_cycle_headless(url, tmp_path):
+    """tools/loadtest/locustfile.py with Locust (optional extra ``locust``): every request type
+    is sent and none fails."""
+    import csv
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import importlib.util
+
+    if importlib.util.find_spec("locust") is None:  # not imported here: gevent would patch this process
+        pytest.skip("locust not installed (pip install 'vgq-cnn[locust]')")
+    root = Path(__file__).resolve().parent.parent
+    prefix = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "locust", "-f", str(root / "tools" / "loadtest" / "locustfile.py"), "--host", url,
+                        "--headless", "--users", "2", "--spawn-rate", "2", "--run-time", "3s", "--csv", str(prefix),
+                        "--only-summary"], cwd=root, env={**os.environ, "VGQ_LOADTEST_K": "16", "VGQ_LOADTEST_MIX": "upload=1,score=2,once=1"},
+                       capture_output=True, text=True, timeout=60)
+    rows = {row["Name"]: row for row in csv.DictReader(open(f"{prefix}_stats.csv"))}
+    assert {"upload", "score", "score_once"} <= set(rows), r.stderr[-2000:]
+    assert all(int(rows[n]["Request Count"]) > 0 and int(rows[n]["Failure Count"]) == 0 for n in ("upload", "score", "score_once"))
