@@ -104,3 +104,14 @@ def test_locustfile_runs_the_same_cycle_headless(url, tmp_path):
     rows = {row["Name"]: row for row in csv.DictReader(open(f"{prefix}_stats.csv"))}
     assert {"upload", "score", "score_once"} <= set(rows), r.stderr[-2000:]
     assert all(int(rows[n]["Request Count"]) > 0 and int(rows[n]["Failure Count"]) == 0 for n in ("upload", "score", "score_once"))
+
+
+def test_sweep_measures_each_setting_and_plots(model_dir, tmp_path):
+    from tools.loadtest.sweep import main as sweep_main
+
+    png = tmp_path / "sweep.png"
+    points = sweep_main(["--clients", "1,2", "--workers", "1", "--threads", "1", "--duration", "0.5", "--k", "16",
+                         "--model-dir", str(model_dir), "--plot", str(png), "--json", str(tmp_path / "s.json")])
+    assert [(p["workers"], p["threads"], p["clients"]) for p in points] == [(1, 1, 1), (1, 1, 2)]
+    assert all(p["errors"] == 0 and p["endpoints"]["score_once"]["requests"] > 0 for p in points)
+    assert png.read_bytes()[:4] == b"\x89PNG" and json.loads((tmp_path / "s.json").read_text())[1]["clients"] == 2
