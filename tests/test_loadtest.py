@@ -110,7 +110,7 @@ def test_sweep_measures_each_setting_and_plots(model_dir, tmp_path):
     from tools.loadtest.sweep import main as sweep_main
 
     png = tmp_path / "sweep.png"
-    points = sweep_main(["--clients", "1,2", "--workers", "1", "--threads", "1", "--duration", "0.5", "--k", "16",
+    points = sweep_main(["--clients", "1,2", "--workers", "1", "--threads", "1", "--duration", "1.5", "--k", "16", "--mix", "upload=1,score=1,once=1",
                          "--model-dir", str(model_dir), "--plot", str(png), "--json", str(tmp_path / "s.json")])
     assert [(p["workers"], p["threads"], p["clients"]) for p in points] == [(1, 1, 1), (1, 1, 2)]
     assert all(p["errors"] == 0 and p["endpoints"]["score_once"]["requests"] > 0 for p in points)

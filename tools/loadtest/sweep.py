@@ -75,6 +75,10 @@ def stop(proc: subprocess.Popen) -> None:
             proc.wait(5)
 
 
+def _ms(x: float | None) -> str:
+    return "-" if x is None else f"{x:.2f}"
+
+
 def sweep(clients: list[int], workers: list[int], threads: list[int], duration: float, k: int, mix: Mix,
           model_dir: str | None = None, log=print) -> list[dict]:
     """One point per (workers, threads, clients): the load test's summary plus its settings."""
@@ -91,7 +95,7 @@ def sweep(clients: list[int], workers: list[int], threads: list[int], duration: 
                     points.append(s)
                     e = s["endpoints"]
                     log(f"workers {w} threads {t} clients {c}: {s['grasps_per_s']:.0f} grasps/s, score p50/p99 "
-                        f"{e['score']['p50_ms']:.2f}/{e['score']['p99_ms']:.2f} ms, one-shot p50 {e['score_once']['p50_ms']:.2f} ms, "
+                        f"{_ms(e['score']['p50_ms'])}/{_ms(e['score']['p99_ms'])} ms, one-shot p50 {_ms(e['score_once']['p50_ms'])} ms, "
                         f"{s['errors']} errors, load {os.getloadavg()[0]:.1f}")
             finally:
                 stop(proc)
