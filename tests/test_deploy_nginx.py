@@ -7,12 +7,9 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
-import subprocess
-import sys
 import threading
 import time
-from contextlib import ExitStack, contextmanager
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
@@ -21,8 +18,9 @@ import pytest
 import yaml
 
 from conftest import table_scene
-from servers import free_port, grasps_at
+from servers import grasps_at
 from service.client import ServiceClient
+from tools.loadtest import topology as topo_mod
 
 ROOT = Path(__file__).resolve().parent.parent
 DEPLOY = ROOT / "deploy"
@@ -31,107 +29,19 @@ IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
 def need(binary: str, package: str) -> str:
     """Path of ``binary``; in CI (CI=true) a missing one fails the test, elsewhere it skips."""
-    path = shutil.which(binary) or next((p for p in (f"/usr/sbin/{binary}", f"/usr/local/sbin/{binary}") if os.access(p, os.X_OK)), None)
+    path = topo_mod.find_binary(binary)
     if path is None:
         msg = f"{binary} not installed (apt-get install -y {package}; .ci/run installs it)"
         pytest.fail(msg) if IN_CI else pytest.skip(msg)
     return path
 
 
-def wait_until(ok, what: str, timeout: float = 60.0, proc: subprocess.Popen | None = None) -> None:
-    deadline = time.monotonic() + timeout
-    while True:
-        if proc is not None and proc.poll() is not None:
-            out = proc.stdout.read().decode(errors="replace")[-2000:] if proc.stdout else ""
-            raise RuntimeError(f"{what}: process exited with {proc.returncode}: {out}")
-        try:
-            if ok():
-                return
-        except (httpx.HTTPError, OSError):
-            pass
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"{what} not ready within {timeout} s")
-        time.sleep(0.1)
-
-
-def stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
-
-
-@contextmanager
-def process(cmd: list[str], **kw):
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, **kw)
-    try:
-        yield proc
-    finally:
-        stop(proc)
-
-
-def replica(stack: ExitStack, model_dir, redis_url: str) -> tuple[str, subprocess.Popen]:
-    port = free_port()
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "VGQ_CACHE_BACKEND": "redis", "VGQ_REDIS_URL": redis_url}
-    proc = stack.enter_context(process([sys.executable, "-m", "service", "--model-dir", str(model_dir), "--port", str(port),
-                                        "--threads", "1"], cwd=ROOT, env=env))
-    url = f"http://127.0.0.1:{port}"
-    wait_until(lambda: httpx.get(url + "/readyz", timeout=1).status_code == 200, "service replica", proc=proc)
-    return url, proc
-
-
-def nginx_conf(tmp: Path, port: int, upstreams: list[str]) -> str:
-    """nginx.conf of the test: the upstream block of deploy/nginx/nginx.conf with loopback
-    replicas, the deployed proxy settings (included), state and logs under ``tmp``."""
-    servers = "\n".join(f"        server {u.removeprefix('http://')} max_fails=1 fail_timeout=2s;" for u in upstreams)
-    temp = "\n".join(f"    {name}_temp_path {tmp / name};" for name in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"))
-    # as root, keep the worker root too: it must reach the temp folders under pytest's 0700 tmp dir
-    user = "user root root;\n" if os.geteuid() == 0 else ""
-    return f"""{user}daemon off;
-worker_processes 1;
-pid {tmp / 'nginx.pid'};
-error_log {tmp / 'error.log'} warn;
-events {{ worker_connections 512; }}
-http {{
-{temp}
-    log_format upstreams '$request_method $uri $status upstream=$upstream_addr status=$upstream_status';
-    access_log {tmp / 'access.log'} upstreams;
-    upstream vgq {{
-        least_conn;
-{servers}
-        keepalive 16;
-    }}
-    server {{
-        listen 127.0.0.1:{port};
-        location / {{
-            proxy_pass http://vgq;
-            include {DEPLOY / 'nginx' / 'proxy.conf'};
-        }}
-    }}
-}}
-"""
-
-
 @contextmanager
 def topology(model_dir, tmp: Path):
-    """redis-server + 2 replicas + nginx; yields (balancer url, [(replica url, process)] x 2, access log)."""
-    nginx = need("nginx", "nginx-light")
-    need("redis-server", "redis-server")
-    from test_service_redis import redis_server
-
-    with ExitStack() as stack:
-        rurl, _ = stack.enter_context(redis_server())
-        reps = [replica(stack, model_dir, rurl) for _ in range(2)]
-        port = free_port()
-        tmp.mkdir(parents=True, exist_ok=True)
-        (tmp / "nginx.conf").write_text(nginx_conf(tmp, port, [u for u, _ in reps]))
-        proc = stack.enter_context(process([nginx, "-p", str(tmp), "-c", str(tmp / "nginx.conf")]))
-        lb = f"http://127.0.0.1:{port}"
-        wait_until(lambda: httpx.get(lb + "/readyz", timeout=1).status_code == 200, "nginx", timeout=20, proc=proc)
-        yield lb, reps, tmp / "access.log"
+    """redis-server + 2 replicas (1 thread each) + nginx; yields (balancer url, [(replica url, process)] x 2, access log)."""
+    nginx, redis_server = need("nginx", "nginx-light"), need("redis-server", "redis-server")
+    with topo_mod.topology(model_dir, tmp, 2, ("--threads", "1"), nginx=nginx, redis_server=redis_server) as t:
+        yield t
 
 
 @pytest.fixture(scope="module")
@@ -190,7 +100,7 @@ def test_killing_a_replica_mid_load_loses_no_request_silently(model_dir, tmp_pat
         lines = [line for line in log.read_text().splitlines() if line.startswith("POST ")]
     assert len(lines) == report["requests"] + report["errors"]  # no request vanished between client and nginx
     assert report["errors"] == 0, report["error_messages"]
-    retried = [line for line in lines if ", " in line.partition("upstream=")[2]]
+    retried = topo_mod.retried(log)
     assert retried, "no request was retried on the other replica after the kill"
     assert all(line.split()[2] == "200" for line in retried)
     assert a.removeprefix("http://") in retried[0]
