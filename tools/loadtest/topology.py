@@ -192,7 +192,7 @@ def main(argv=None) -> dict:
         except (FileNotFoundError, RuntimeError) as e:
             print(f"topology: {e}", file=sys.stderr)
             sys.exit(2)
-    print(f"nginx: {posts} POST requests logged (client: {report['requests']} answered + {report['errors']} errors); "
+    print(f"nginx: {posts} POST requests logged, warm-up included (client, measured: {report['requests']} answered + {report['errors']} errors); "
           f"{n_retried} resent to another replica")
     report["balancer"] = {"posts_logged": posts, "retried": n_retried}
     return report
