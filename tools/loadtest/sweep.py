@@ -102,6 +102,12 @@ def sweep(clients: list[int], workers: list[int], threads: list[int], duration: 
     return points
 
 
+def title(points: list[dict], k: int, mix: str, duration: float) -> str:
+    loads = [p["load_average"][0] for p in points]
+    return (f"{os.cpu_count()} cores, k = {k}, mix {mix}, {duration:g} s per point, raw HTTP clients, load average "
+            f"{min(loads):.1f}-{max(loads):.1f}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
+
+
 def plot(points: list[dict], path: str | Path, title: str) -> None:
     import matplotlib
 
@@ -151,8 +157,7 @@ def main(argv=None) -> list[dict]:
     if a.json:
         Path(a.json).write_text(json.dumps(points, indent=2) + "\n")
     if a.plot:
-        plot(points, a.plot, f"{os.cpu_count()} cores, k = {a.k}, mix {a.mix}, {a.duration:g} s per point, raw HTTP clients, "
-                             f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
+        plot(points, a.plot, title(points, a.k, a.mix, a.duration))
     return points
 
 
