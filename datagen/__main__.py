@@ -1,4 +1,4 @@
-"""Command line: ``python -m datagen {generate,sample,crops,bench,recipe,config} ...``.
+"""Command line: ``python -m datagen {generate,sample,crops,bench,recipe,config,objects} ...``.
 
 Bad input (missing folders, unreadable meshes, nonsense config values) exits with code 2
 and one line naming the problem; an interrupted ``generate`` resumes when rerun.
@@ -19,6 +19,7 @@ RECIPE = {
     "arch": "fast_vgqcnn",
     "kappa": 36.0,  # px in the 96 px window (the authors' default)
     "sampling": {"uniform_quantile": 0.1},  # small dataset: cap bins at the 10% quantile, not the minimum
+    "sensor": "clean",  # the shipped model saw clean renders (the crops CLI default is the realistic sensor)
 }
 
 
@@ -37,6 +38,40 @@ def _positive_int(name):
         return v
 
     return parse
+
+
+def _count(name):
+    def parse(s):
+        try:
+            v = int(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be an integer, got {s!r}") from None
+        if v < 0:
+            raise argparse.ArgumentTypeError(f"{name} must be >= 0, got {v}")
+        return v
+
+    return parse
+
+
+def parse_family_counts(text: str) -> dict[str, int]:
+    """``"mug=5,box=3"`` (or ``"all=5"``) -> {family: count}; CliError naming a bad entry."""
+    from .families import family_names, get_family
+
+    out: dict[str, int] = {}
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        name, sep, n = part.partition("=")
+        name = name.strip()
+        try:
+            count = int(n)
+        except ValueError:
+            count = -1
+        if not sep or count < 0:
+            raise CliError(f"--families entry {part!r} must look like FAMILY=COUNT with COUNT >= 0, e.g. mug=5")
+        for fam in family_names() if name == "all" else [get_family(name).name]:
+            out[fam] = count
+    if not out:
+        raise CliError("--families is empty; give FAMILY=COUNT entries, e.g. mug=5,box=5 or all=5")
+    return out
 
 
 def _nonneg_int(s):
@@ -81,6 +116,7 @@ def cmd_generate(args) -> int:
     cfg = _build_config(
         args, base, source=str(Path(args.source).resolve()) if args.source else None, num_objects=args.objects,
         cameras_per_pose=args.cameras, seed=args.seed,
+        families=parse_family_counts(args.families) if args.families else None,
     )
     if args.source and not Path(args.source).exists():
         raise CliError(f"--source {args.source} does not exist")
@@ -114,8 +150,10 @@ def cmd_sample(args) -> int:
 
 def cmd_crops(args) -> int:
     from .crops import make_crops
+    from .sensor import parse_override
 
-    make_crops(args.inp, args.out, args.arch, args.kappa, seed=args.seed, progress=not args.quiet)
+    make_crops(args.inp, args.out, args.arch, args.kappa, seed=args.seed, progress=not args.quiet,
+               sensor=args.sensor, sensor_overrides=dict(parse_override(o) for o in args.sensor_set))
     return 0
 
 
@@ -144,7 +182,7 @@ def cmd_recipe(args) -> int:
         f"--seed {RECIPE['seed']} --workers {workers}",
         f"python -m datagen sample --in {out / 'grasps'} --out {out / 'sampled'} --seed {RECIPE['seed']} " + " ".join(sets),
         f"python -m datagen crops --in {out / 'sampled'} --out {out / 'crops'} --arch {RECIPE['arch']} "
-        f"--kappa {RECIPE['kappa']:g} --seed {RECIPE['seed']}",
+        f"--kappa {RECIPE['kappa']:g} --seed {RECIPE['seed']} --sensor {RECIPE['sensor']}",
     ]
     for s in steps:
         print(s)
@@ -166,6 +204,42 @@ def cmd_recipe(args) -> int:
     return 0
 
 
+def cmd_objects(args) -> int:
+    from .families import FAMILIES, family_names, get_family, make_object
+    from .families.sheet import contact_sheet
+    from vgq import atomic
+
+    if args.list:
+        for f in FAMILIES.values():
+            print(f"{f.name:<10} {f.summary} (extents {100 * f.extent_range[0]:g}-{100 * f.extent_range[1]:g} cm)")
+        return 0
+    if not args.family or not args.out:
+        raise CliError("give --family NAME (or all) and --out DIR, or --list")
+    names = family_names() if args.family == "all" else [get_family(n.strip()).name for n in args.family.split(",")]
+    out = Path(args.out)
+    entries, rows, views = [], [], {}
+    for fam in names:
+        objs = [make_object(fam, i, args.seed) for i in range(args.count)]
+        for i, o in enumerate(objs):
+            rel = f"{fam}/{o.name}.stl"
+            atomic.write_bytes(out / rel, o.mesh.export(file_type="stl"))
+            entries.append({"name": o.name, "family": fam, "index": i, "seed": args.seed, "params": o.params, "file": rel,
+                            "extents_m": [round(float(x), 5) for x in o.mesh.extents], "volume_m3": float(o.mesh.volume),
+                            "watertight": bool(o.mesh.is_watertight)})
+        if not args.no_sheet:
+            sheet = contact_sheet([(fam, objs)], out / f"{fam}.png", f"{fam}: {FAMILIES[fam].summary} (seed {args.seed})", cols=5,
+                                  cache=views)
+            print(f"{sheet}: {len(objs)} objects")
+        rows.append((fam, objs))
+    atomic.write_json(out / "objects.json", {"seed": args.seed, "objects": entries})
+    if len(names) > 1 and not args.no_sheet:
+        sheet = contact_sheet([(f, o[:6]) for f, o in rows], out / "families.png", f"object families (seed {args.seed})",
+                              cache=views)
+        print(f"{sheet}: {len(names)} families")
+    print(f"{out}: {len(entries)} meshes (.stl, metres) and objects.json (family, parameters)")
+    return 0
+
+
 def cmd_config(args) -> int:
     cfg = _build_config(args)
     print(json.dumps(cfg.to_dict(), indent=2, sort_keys=True))
@@ -179,7 +253,8 @@ def build_parser() -> argparse.ArgumentParser:
     g = sub.add_parser("generate", help="render a grasp dataset (vgq-grasps) from meshes; rerun to resume")
     g.add_argument("--out", required=True, help="output folder")
     g.add_argument("--source", help="mesh folder or file (default: pybullet_data random_urdfs)")
-    g.add_argument("--objects", type=_positive_int("--objects"), help="use the first N objects (sorted by name)")
+    g.add_argument("--objects", type=_count("--objects"), help="use the first N objects of --source (sorted by name; 0: none)")
+    g.add_argument("--families", metavar="FAMILY=N,...", help="add N procedural objects per family, e.g. mug=5,box=5 or all=5")
     g.add_argument("--cameras", type=_positive_int("--cameras"), help="camera poses per stable pose (default 10)")
     g.add_argument("--workers", type=_positive_int("--workers"), help="worker processes (default: CPU cores)")
     g.add_argument("--ray", action="store_true", help="run the per-object tasks on Ray (pip install vgq-cnn[ray])")
@@ -202,7 +277,11 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True, help="output folder")
     c.add_argument("--arch", required=True, choices=("fast_vgqcnn", "vgqcnn", "gqcnn"))
     c.add_argument("--kappa", type=float, help="Fast-VGQ-CNN offset range, source px (default 36)")
-    c.add_argument("--seed", type=_nonneg_int, default=0)
+    c.add_argument("--seed", type=_nonneg_int, default=0, help="window offsets and the sensor model's noise (default 0)")
+    c.add_argument("--sensor", default="realistic",
+                   help="depth-sensor model: a preset (clean, realistic; default realistic) or a .json file of settings")
+    c.add_argument("--sensor-set", metavar="NAME=VALUE", action="append", default=[],
+                   help="override one sensor setting, e.g. --sensor-set baseline_m=0.05 --sensor-set blob_rate=4")
     c.add_argument("--quiet", action="store_true")
     c.set_defaults(func=cmd_crops)
 
@@ -222,6 +301,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--workers", type=_positive_int("--workers"))
     r.add_argument("--dry-run", action="store_true", help="only print the commands")
     r.set_defaults(func=cmd_recipe)
+
+    o = sub.add_parser("objects", help="write example meshes of the object families and contact sheets")
+    o.add_argument("--family", help="family name, comma-separated names, or all")
+    o.add_argument("--count", type=_positive_int("--count"), default=5, help="objects per family (default 5)")
+    o.add_argument("--out", help="output folder")
+    o.add_argument("--seed", type=_nonneg_int, default=0, help="run seed (default 0)")
+    o.add_argument("--list", action="store_true", help="list the families and exit")
+    o.add_argument("--no-sheet", action="store_true", help="skip the contact-sheet PNGs")
+    o.set_defaults(func=cmd_objects)
 
     k = sub.add_parser("config", help="print the (default or given) config as JSON")
     _add_config_args(k)

@@ -48,7 +48,9 @@ class DatagenConfig:
     max_stable_poses: int | None = None  # keep at most this many (most probable first)
     seed: int = 0  # run seed; per-object seeds derive from (seed, object name)
     source: str | None = None  # mesh folder; None -> pybullet_data random_urdfs
-    num_objects: int | None = None  # first N mesh sources (sorted); None -> all
+    num_objects: int | None = None  # first N mesh sources (sorted); None -> all; 0 -> none (families only)
+    # procedural objects per family (datagen.families), after the source's objects, e.g. {"mug": 60}
+    families: dict[str, int] = field(default_factory=dict, hash=False)
 
     def to_dict(self) -> dict:
         return _to_jsonable(dataclasses.asdict(self))
@@ -191,6 +193,11 @@ def _coerce(tp, value, name: str):
         if not isinstance(value, str):
             raise ConfigError(f"{name} must be a string, got {value!r}")
         return value
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{name} must be a JSON object, got {value!r}")
+        kt, vt = args or (None, None)
+        return {_coerce(kt, k, f"{name} key {k!r}"): _coerce(vt, v, f"{name}.{k}") for k, v in value.items()}
     if origin is tuple or tp is tuple:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{name} must be a list, got {value!r}")
@@ -217,7 +224,8 @@ def _leaves(d: dict, prefix: str = ""):
 
 
 def _check_leaf(path: str, name: str, v) -> None:
-    """Generic checks by field name: finite numbers; counts (num_*, max_*, *_factor) >= 1;
+    """Generic checks by field name: finite numbers; counts (num_*, max_*, *_factor) >= 1
+    (num_objects >= 0);
     sizes and sigmas >= 0; ranges (*_range) as (low, high) with low <= high."""
     vals = v if isinstance(v, (list, tuple)) else [v]
     for x in vals:
@@ -225,8 +233,9 @@ def _check_leaf(path: str, name: str, v) -> None:
             raise ConfigError(f"{path} must be finite, got {x}")
     if isinstance(v, bool) or v is None:
         return
-    if isinstance(v, int) and (name.startswith(("num_", "max_")) or name.endswith("_factor")) and v < 1:
-        raise ConfigError(f"{path} must be >= 1, got {v}")
+    counts_from = 0 if path == "num_objects" else 1  # num_objects 0: families only
+    if isinstance(v, int) and (name.startswith(("num_", "max_")) or name.endswith("_factor")) and v < counts_from:
+        raise ConfigError(f"{path} must be >= {counts_from}, got {v}")
     if isinstance(v, (int, float)) and any(w in name for w in _NONNEG_WORDS) and v < 0:
         raise ConfigError(f"{path} must be >= 0, got {v}")
     if name.endswith("_range"):
@@ -246,8 +255,18 @@ def validate(cfg: DatagenConfig) -> None:
         raise ConfigError(f"stable_pose_min_probability must be in [0, 1], got {cfg.stable_pose_min_probability}")
     if cfg.max_stable_poses is not None and cfg.max_stable_poses < 1:
         raise ConfigError(f"max_stable_poses must be >= 1 or null, got {cfg.max_stable_poses}")
-    if cfg.num_objects is not None and cfg.num_objects < 1:
-        raise ConfigError(f"num_objects must be >= 1 or null, got {cfg.num_objects}")
+    if cfg.num_objects is not None and cfg.num_objects < 0:
+        raise ConfigError(f"num_objects must be >= 0 or null, got {cfg.num_objects}")
+    if cfg.families:
+        from .families import FAMILIES
+
+        for fam, n in cfg.families.items():
+            if fam not in FAMILIES:
+                raise ConfigError(f"unknown object family {fam!r} in families (known: {', '.join(FAMILIES)})")
+            if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+                raise ConfigError(f"families.{fam} must be an object count >= 0, got {n!r}")
+    if cfg.num_objects == 0 and not any(cfg.families.values()):
+        raise ConfigError("num_objects is 0 and no families are given: the run would have no objects")
     if cfg.seed < 0:
         raise ConfigError(f"seed must be >= 0, got {cfg.seed}")
     d_lo, _ = cfg.camera.d_range

@@ -7,6 +7,13 @@ service); this module only chooses the windows.
   offset from the window centre in crop px (``vgq.crop.pose_uv``).
 * ``vgqcnn``: window centred on the grasp (nearest integer window), pose u = v = 0.
 * ``gqcnn``: ``vgq.crop.rotated_crop`` about the grasp by its ``jaw_angle``, u = v = 0.
+
+Before cropping, each rendered depth image passes through the depth-sensor model
+(:mod:`datagen.sensor`, the ``sensor`` setting: a preset such as ``clean`` or ``realistic``,
+seeded per image by (seed, object id, image row)). Missing pixels are then filled by the
+shared contract (:mod:`vgq.inpaint`): the window plus a margin for ``fast_vgqcnn`` and
+``vgqcnn``, exactly as the service fills an upload; the whole image for ``gqcnn`` (which the
+service does not serve).
 """
 
 from __future__ import annotations
@@ -16,11 +23,12 @@ from typing import Callable
 
 import numpy as np
 
-from vgq import atomic
 from vgq import crop as vcrop
-from vgq.pose import FULL_POSE_COLUMNS
-from vgq.schema import CROP_FORMAT, FORMAT_VERSION, SPLITS
+from vgq import inpaint
+from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
+from vgq.schema import SPLITS, crop_counts, write_crop_manifest
 
+from . import sensor as sensor_model
 from . import storage
 from .sampling import SamplingParams, split_objects
 
@@ -61,38 +69,49 @@ def fast_window_origins(grasp_uv: np.ndarray, geom: vcrop.CropGeometry, rng: np.
 def crop_grasps(
     depth: np.ndarray, uv: np.ndarray, jaw_angle: np.ndarray, arch: str, geom: vcrop.CropGeometry, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Crops of one depth image (H, W) for k grasps at ``uv`` (k, 2) image px.
+    """Crops of one depth image (H, W) metres (0 or non-finite = missing, filled by
+    :mod:`vgq.inpaint`) for k grasps at ``uv`` (k, 2) image px.
 
-    Returns (images (k, out, out) float32, pose (u, v) (k, 2) in crop px)."""
+    Returns (images (k, out, out) float32, pose (u, v) (k, 2) in crop px, fraction of
+    missing pixels in each window (k,))."""
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     k = len(uv)
     images = np.empty((k, geom.out, geom.out), dtype=np.float32)
     pose_uv = np.zeros((k, 2), dtype=np.float64)
+    missing = np.zeros(k, dtype=np.float64)
     if arch == "fast_vgqcnn":
-        centres = vcrop.window_center(fast_window_origins(uv, geom, rng), geom)
+        origins = fast_window_origins(uv, geom, rng)
         for i in range(k):
-            images[i], c = vcrop.crop(depth, centres[i], geom)
+            images[i], c, missing[i] = inpaint.crop_filled(depth, origins[i], geom)
             pose_uv[i] = vcrop.pose_uv(uv[i], c, geom)
     elif arch == "vgqcnn":
+        origins = vcrop.window_origin(uv, geom)
         for i in range(k):
-            images[i], _ = vcrop.crop(depth, uv[i], geom)
+            images[i], _, missing[i] = inpaint.crop_filled(depth, origins[i], geom)
     elif arch == "gqcnn":
+        miss = inpaint.missing_mask(depth)
+        filled = inpaint.fill_nearest(depth, miss) if miss.any() else depth
         for i in range(k):
-            images[i] = vcrop.rotated_crop(depth, uv[i], float(jaw_angle[i]), geom)
+            images[i] = vcrop.rotated_crop(filled, uv[i], float(jaw_angle[i]), geom)
+            missing[i] = vcrop.crop_window(miss.astype(np.float32), vcrop.window_origin(uv[i], geom), geom).mean()
     else:
         raise ValueError(f"unknown architecture {arch!r}")
-    return images, pose_uv
+    return images, pose_uv, missing
 
 
 def make_crops(
     src: str | Path, out: str | Path, arch: str, kappa_px: float | None = None, seed: int = 0,
     log: Callable[[str], None] = print, progress: bool = False,
+    sensor: str | sensor_model.SensorModel | dict | None = None, sensor_overrides: dict | None = None,
 ) -> dict:
     """Crop every grasp of the grasp dataset ``src`` into the ``vgq-crops`` dataset ``out``.
 
     The split comes from ``src``'s manifest (``datagen sample``); a dataset without one is
-    split object-wise here (80/10/10, by ``seed``). Returns the written manifest."""
+    split object-wise here (80/10/10, by ``seed``). ``sensor``: the depth-sensor model (a
+    preset name, a .json file, a dict or a SensorModel; default ``realistic``), with
+    ``sensor_overrides`` (field -> value). Returns the written manifest."""
     geom = geometry_for(arch, kappa_px)
+    sensor_name, sensor = sensor_model.resolve(sensor, sensor_overrides)
     out = Path(out)
     if (out / storage.MANIFEST).exists():
         raise FileExistsError(f"output folder {out} already holds a dataset; choose a new --out")
@@ -108,8 +127,11 @@ def make_crops(
     if missing:
         raise storage.DatasetError(f"{ds.root / storage.MANIFEST}: objects {missing[:5]} have no split")
     n = {s: sum(e["num_grasps"] for e in ds.shard_entries if split_of[e["object_id"]] == s) for s in SPLITS}
+    intr_d = m_src.get("intrinsics") or m_src.get("config", {}).get("intrinsics")
+    intr = Intrinsics.from_dict(intr_d) if intr_d else DEFAULT_INTRINSICS
     writers = {s: storage.crop_writers(out, s, n[s]) for s in SPLITS}
     pos = {s: 0 for s in SPLITS}
+    missing_sum = {s: 0.0 for s in SPLITS}
     thr = ds.label_threshold
     try:
         fill = {s: 0 for s in SPLITS}
@@ -128,7 +150,9 @@ def make_crops(
             for rows in np.split(order, bounds) if len(order) else []:
                 img_i = int(g["image_index"][rows[0]])
                 uv = np.stack([g["u"][rows], g["v"][rows]], axis=1)
-                crops, puv = crop_grasps(im["depth"][img_i], uv, g["jaw_angle"][rows], arch, geom, rng)
+                depth = sensor.apply(im["depth"][img_i], sensor_model.image_rng(seed, sh.object_id, img_i), intr)
+                crops, puv, miss = crop_grasps(depth, uv, g["jaw_angle"][rows], arch, geom, rng)
+                missing_sum[s] += float(miss.sum())
                 dst = slice(fill[s], fill[s] + len(rows))
                 labels = (g["quality"][rows] > thr).astype(np.uint8)
                 w["images"].array[dst] = crops
@@ -153,25 +177,17 @@ def make_crops(
                 wr.abort()
         raise
     counts = {
-        s: {
-            "grasps": n[s],
-            "positive": pos[s],
-            "positivity": pos[s] / n[s] if n[s] else 0.0,
-            "objects": sorted(i for i, v in split_of.items() if v == s),
-        }
+        s: crop_counts(
+            n[s], pos[s], missing_fraction_mean=missing_sum[s] / n[s] if n[s] else 0.0,
+            objects=sorted(i for i, v in split_of.items() if v == s),
+        )
         for s in SPLITS
     }
     cfg = m_src.get("config", {})
-    m = {
-        "format": CROP_FORMAT,
-        "format_version": FORMAT_VERSION,
-        "architecture": arch,
-        "geometry": geom.to_dict(),
-        "kappa_px": geom.kappa_px,
-        "pose_columns": list(FULL_POSE_COLUMNS),
-        "label_threshold": thr,
-        "seed": int(seed),
-        "source": {
+    native = m_src.get("sampling", {}).get("stats", {}).get("steps", {}).get("native")  # before sampling
+    m = write_crop_manifest(
+        out, arch, geom, counts, thr,
+        source={
             "dataset": str(Path(src).resolve()),
             "seed": m_src.get("seed"),
             "config": cfg,
@@ -179,13 +195,14 @@ def make_crops(
             "split": split_note,
             "objects": [{"object_id": o["object_id"], "name": o.get("name")} for o in m_src["objects"]],
         },
-        "counts": counts,
-        "versions": storage.library_versions(),
-    }
-    intr = m_src.get("intrinsics") or cfg.get("intrinsics")
-    if intr:
-        m["intrinsics"] = intr
-    atomic.write_json(out / storage.MANIFEST, m)
+        intrinsics=intr_d,
+        native_counts=crop_counts(native["grasps"], native["positive"]) if native else None,
+        seed=int(seed),
+        sensor={"name": sensor_name, "params": sensor.to_dict()},
+        inpaint={"method": "nearest valid pixel (OpenCV distance transform, 5x5 mask)", "margin_px": inpaint.MARGIN_PX},
+        versions=storage.library_versions(),
+    )
     for s in SPLITS:
-        log(f"{s}: {n[s]} crops, positivity {100 * counts[s]['positivity']:.1f}%")
+        log(f"{s}: {n[s]} crops, positivity {100 * counts[s]['positivity']:.1f}%, "
+            f"missing pixels {100 * counts[s]['missing_fraction_mean']:.2f}% (sensor {sensor_name})")
     return m

@@ -33,11 +33,17 @@ class MeshError(Exception):
 @dataclass(frozen=True)
 class MeshSource:
     """One object to load: ``path`` is a mesh file (or a URDF when its scale is not uniform),
-    ``scale`` the URDF ``<mesh scale>`` (1 for plain mesh files)."""
+    ``scale`` the URDF ``<mesh scale>`` (1 for plain mesh files).
+
+    A procedural object (:mod:`datagen.families`) has ``family`` and ``params`` set: its
+    mesh is built from them (``path`` only names it, ``family:<name>``) and keeps its
+    physical size (no rescale)."""
 
     name: str
     path: Path
     scale: float = 1.0
+    family: str | None = None
+    params: dict | None = field(default=None, hash=False)
 
 
 @dataclass(frozen=True)
@@ -197,27 +203,30 @@ def parse_urdf(urdf: str | Path) -> tuple[Path, np.ndarray]:
 
 
 def load_object(src: MeshSource, params: MeshParams = MeshParams()) -> GraspableObject:
-    """Load, repair, rescale and centre one object. Raises MeshError naming the file and
-    the reason when the mesh cannot be used (unreadable, empty, non-finite vertices, no
-    volume)."""
+    """Load (or build, for a procedural ``src.family``), repair, rescale and centre one
+    object; procedural objects keep their physical size. Raises MeshError naming the file
+    and the reason when the mesh cannot be used (unreadable, empty, non-finite vertices,
+    no volume, bad family parameters)."""
     path = Path(src.path)
     scale = np.full(3, float(src.scale))
-    if path.suffix.lower() == ".urdf":
+    if src.family is None and path.suffix.lower() == ".urdf":
         mesh_path, urdf_scale = parse_urdf(path)
         scale = scale * urdf_scale
     else:
         mesh_path = path
     if not (np.all(np.isfinite(scale)) and np.all(scale != 0)):
         raise MeshError(f"{path}: bad scale {src.scale}")
-    if not mesh_path.is_file():
+    if src.family is not None:
+        loaded = _family_mesh(src)
+    elif not mesh_path.is_file():
         raise MeshError(f"{mesh_path}: file not found")
-
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            loaded = trimesh.load(str(mesh_path), force="mesh", process=False)
-    except Exception as e:  # trimesh raises many exception types for bad files
-        raise MeshError(f"{mesh_path}: cannot read mesh ({type(e).__name__}: {e})") from e
+    else:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                loaded = trimesh.load(str(mesh_path), force="mesh", process=False)
+        except Exception as e:  # trimesh raises many exception types for bad files
+            raise MeshError(f"{mesh_path}: cannot read mesh ({type(e).__name__}: {e})") from e
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) == 0:
         raise MeshError(f"{mesh_path}: empty mesh (no faces)")
     verts = np.asarray(loaded.vertices, dtype=np.float64)
@@ -232,7 +241,7 @@ def load_object(src: MeshSource, params: MeshParams = MeshParams()) -> Graspable
             mesh = trimesh.Trimesh(vertices=verts * scale, faces=np.asarray(loaded.faces), process=False)
             mesh = _repair(mesh, params, repairs)
             total_scale = float(np.mean(np.abs(scale)))
-            if params.rescale == "min_extent":
+            if params.rescale == "min_extent" and src.family is None:  # procedural objects keep their size
                 factor = params.target_min_extent / principal_extents(mesh).min()
                 mesh.apply_scale(factor)
                 total_scale *= factor
@@ -244,6 +253,16 @@ def load_object(src: MeshSource, params: MeshParams = MeshParams()) -> Graspable
     if not np.all(np.isfinite(mesh.vertices)):
         raise MeshError(f"{mesh_path}: non-finite vertices after repair")
     return GraspableObject(name=src.name, source=str(path), mesh=mesh, scale=total_scale, repairs=repairs)
+
+
+def _family_mesh(src: MeshSource) -> trimesh.Trimesh:
+    """The procedural mesh of ``src`` (metres); MeshError naming it for bad parameters."""
+    from .families import FamilyError, build_mesh
+
+    try:
+        return build_mesh(src.family, src.params if src.params is not None else {})
+    except FamilyError as e:
+        raise MeshError(f"{src.path}: {e}") from None
 
 
 def principal_extents(mesh: trimesh.Trimesh) -> np.ndarray:

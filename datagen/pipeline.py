@@ -182,31 +182,61 @@ def _config_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
     return out
 
 
+def source_family(source: str | None) -> str:
+    """The family recorded for objects of a mesh source: ``random_urdfs`` for the default
+    source, else the folder's (or file's) name."""
+    from .families import SOURCE_FAMILY
+
+    return SOURCE_FAMILY if source is None else (Path(source).stem or SOURCE_FAMILY)
+
+
+def run_sources(config: DatagenConfig) -> list:
+    """The run's objects in id order: the first ``num_objects`` of the mesh source (none
+    when 0), then ``families`` (procedural objects, ``<family>_<index>``)."""
+    from .families import family_sources
+    from .mesh import mesh_sources
+
+    sources = [] if config.num_objects == 0 else mesh_sources(config.source)
+    if config.num_objects is not None:
+        sources = sources[: config.num_objects]
+    sources += family_sources(config.families, config.seed)
+    names = [s.name for s in sources]
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise ValueError(f"duplicate object names in the run (mesh source {config.source}, families): {dup[:3]}")
+    return sources
+
+
+def _recorded_config(d) -> dict | None:
+    """A manifest's config with the defaults of fields added since it was written."""
+    try:
+        return _normalised(DatagenConfig.from_dict(d).to_dict())
+    except (ConfigError, TypeError):
+        return d
+
+
 def prepare_run(out: str | Path, config: DatagenConfig) -> tuple[dict, list]:
     """The run's manifest (new, or the existing one to resume) and its mesh sources.
 
     Raises ConfigError when ``out`` holds a dataset made with a different config or
     object list."""
-    from .mesh import mesh_sources
-
     out = Path(out)
-    sources = mesh_sources(config.source)
-    if config.num_objects is not None:
-        sources = sources[: config.num_objects]
-    names = [s.name for s in sources]
-    if len(set(names)) != len(names):
-        raise ValueError(f"mesh source {config.source} has duplicate object names")
-    objects = [{"object_id": i, "name": s.name, "source": str(s.path), "source_scale": float(s.scale)} for i, s in enumerate(sources)]
+    sources = run_sources(config)
+    objects = [
+        {"object_id": i, "name": s.name, "source": str(s.path), "source_scale": float(s.scale),
+         "family": s.family or source_family(config.source), "params": s.params or {}}
+        for i, s in enumerate(sources)
+    ]
     cfg = _normalised(config.to_dict())
     if (out / storage.MANIFEST).exists():
         m = storage.read_manifest(out, storage.GRASP_FORMAT)
-        if m.get("config") != cfg:
+        if _recorded_config(m.get("config")) != cfg:
             diff = _config_diff(m.get("config", {}), cfg)
             raise ConfigError(
                 f"{out} holds a dataset generated with a different config (differs in: {', '.join(diff[:6])}); "
                 "use a new --out, the same settings, or --resume"
             )
-        if [o["name"] for o in m["objects"]] != names:
+        if [o["name"] for o in m["objects"]] != [s.name for s in sources]:
             raise ConfigError(f"{out} holds a dataset of a different object list; use a new --out")
         return m, sources
     return storage.new_grasp_manifest(cfg, config.seed, objects, config.label_threshold, intrinsics=config.intrinsics.to_dict()), sources

@@ -8,6 +8,7 @@ sampled dataset (same format, with the split recorded in its manifest).
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -30,7 +31,8 @@ class SamplingParams:
     phi_bin: float = math.radians(5.0)  # bin width over camera elevation for uniform sampling
     uniform: bool = True  # undersample to a uniform count over (phi, beta) bins
     uniform_quantile: float = 0.0  # per-bin cap = this quantile of non-empty bin counts (0: the smallest bin)
-    split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)  # train / val / test, object-wise
+    split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)  # train / val / test, object-wise per family
+    holdout_families: tuple[str, ...] = ()  # families whose objects all go to test (leave-family-out)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -47,6 +49,8 @@ class SamplingParams:
             raise ValueError(f"split_fractions must be 3 non-negative numbers summing to 1 with train > 0, got {f}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if not all(isinstance(f, str) and f for f in self.holdout_families):
+            raise ValueError(f"holdout_families must be family names, got {self.holdout_families!r}")
 
 
 # ----------------------------------------------------------------------------- pure functions
@@ -141,6 +145,47 @@ def split_objects(object_ids, fractions=(0.8, 0.1, 0.1), seed: int = 0) -> dict[
     return out
 
 
+def split_by_family(
+    object_ids, families: dict[int, str], fractions=(0.8, 0.1, 0.1), seed: int = 0, holdout: tuple[str, ...] = ()
+) -> dict[int, str]:
+    """Object-wise split within every family: object id -> "train" | "val" | "test".
+
+    ``families``: object id -> family name (ids without one form one unnamed family).
+    Each family is split by :func:`split_objects` with its own seed derived from (seed,
+    family), so a family of 3 or more objects has objects in every split whose fraction is
+    > 0; families in ``holdout`` go wholly to test. With a single family and no holdout this
+    is exactly :func:`split_objects` (the behaviour before families). Raises ValueError for
+    a holdout family that has no object."""
+    groups: dict[str, list[int]] = {}
+    for i in sorted(set(int(i) for i in object_ids)):
+        groups.setdefault(families.get(i) or "", []).append(i)
+    missing = sorted(set(holdout) - set(groups))
+    if missing:
+        raise ValueError(f"holdout family {missing[0]!r} has no object in the dataset (has: {', '.join(sorted(groups))})")
+    if len(groups) <= 1 and not holdout:
+        return split_objects(object_ids, fractions, seed)
+    out: dict[int, str] = {}
+    for fam, ids in sorted(groups.items()):
+        if fam in holdout:
+            out.update({i: "test" for i in ids})
+        else:
+            out.update(split_objects(ids, fractions, _family_seed(seed, fam)))
+    return out
+
+
+def _family_seed(seed: int, family: str) -> int:
+    return int.from_bytes(hashlib.sha256(f"vgq-split:{int(seed)}:{family}".encode()).digest()[:8], "little")
+
+
+def split_table(split: dict[int, str], families: dict[int, str]) -> dict[str, dict[str, int]]:
+    """Objects per split within each family: {family: {split: count}}."""
+    out: dict[str, dict[str, int]] = {}
+    for i, sp in sorted(split.items()):
+        row = out.setdefault(families.get(i) or "", {s: 0 for s in SPLITS})
+        row[sp] += 1
+    return out
+
+
 # ----------------------------------------------------------------------------- dataset stage
 
 
@@ -217,8 +262,18 @@ def sample_dataset(
             "positivity": float(100.0 * t.label[m].mean()) if m.any() else 0.0,
             "by_beta": _beta_table(t.label[m], t.beta[m], params.beta_bin, n_beta),
         }
-    split = split_objects(ds.object_ids, params.split_fractions, params.seed)
+    families = {int(o["object_id"]): o.get("family") for o in ds.manifest["objects"]}
+    split = split_by_family(ds.object_ids, families, params.split_fractions, params.seed, params.holdout_families)
+    stats["families"] = split_table(split, families)
     _print_stats(stats, log)
+    if len(stats["families"]) > 1:
+        log("objects per family (train / val / test): " + ", ".join(
+            f"{f} {r['train']}/{r['val']}/{r['test']}" for f, r in stats["families"].items()))
+        wanted = [sp for sp, fr in zip(SPLITS, params.split_fractions) if fr > 0]
+        short = [f for f, r in stats["families"].items()
+                 if f not in params.holdout_families and any(r[sp] == 0 for sp in wanted)]
+        if short:
+            log(f"warning: families with an empty split (fewer than 3 objects?): {', '.join(short)}")
     psi_tab = stats["steps"]["psi"]["by_beta"]
     empty = [i for i, (n, p) in enumerate(zip(psi_tab["count"], psi_tab["positive"])) if n > 0 and p == 0]
     if empty:

@@ -4,6 +4,8 @@
 
 Verification inputs are real crops and poses from the dataset's test split (else val, else
 train). Nothing is written unless onnxruntime matches torch within the tolerance.
+The card also records a calibration of the probabilities (``export.calibrate``): fitted on
+the val split for the dataset's positivity before sampling, its ECE measured on the test split.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vgq import atomic
 from vgq.camera import Intrinsics
 from vgq.crop import CropGeometry
 
@@ -64,16 +67,29 @@ def main(argv=None) -> None:
                    help="also write head_int8.onnx (fc5 in int8, ~2x faster) if it scores like the fp32 head on "
                         "labelled validation crops")
     p.add_argument("--int8-check-n", type=int, default=4096, help="labelled crops for the int8 check (default 4096)")
+    c = p.add_argument_group("calibration (fitted on the val split, ECE measured on the test split)")
+    c.add_argument("--no-calibration", action="store_true", help="export without a calibration")
+    c.add_argument("--calibration-method", choices=("platt", "temperature"), default="platt")
+    c.add_argument("--native-positivity", type=float, metavar="FRACTION",
+                   help="positivity to calibrate for (default: the dataset's before sampling, from its manifests)")
+    c.add_argument("--calibration-n", type=int, default=10000, help="max rows of each split (default 10000; 0: all)")
+    c.add_argument("--reliability-png", metavar="PATH", help="also copy the reliability diagram here "
+                   "(e.g. docs/img/reliability_diagram.png)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[export] %(message)s")
     if a.verify_n < 1:
         p.error("--verify-n must be >= 1")
     if a.int8_check_n < 100:
         p.error("--int8-check-n must be >= 100")
+    if a.native_positivity is not None and not 0 < a.native_positivity < 1:
+        p.error("--native-positivity must be a fraction in (0, 1)")
+    if a.calibration_n < 0:
+        p.error("--calibration-n must be >= 0")
 
     from training.checkpoint import CheckpointError, load_trained
     from training.data import DatasetError, open_crop_dataset
 
+    from .calibrate import DIAGRAM, CalibrationError, calibrate_on_dataset
     from .onnx_export import ExportError, export_model
 
     t0 = time.perf_counter()
@@ -90,6 +106,10 @@ def main(argv=None) -> None:
         if a.recipe:
             meta["dataset"]["recipe"] = a.recipe
         meta["metrics"].update(_baselines(a.baseline, ds.path))
+        calibration = None
+        if not a.no_calibration:
+            calibration = calibrate_on_dataset(net, ds, meta, a.calibration_method, a.native_positivity,
+                                               a.calibration_n, a.seed)
         logging.info("exporting %s, verifying on %d %s crops", meta["arch"], len(crops), split.name)
         card = export_model(
             net, a.out, crops, poses,
@@ -97,8 +117,13 @@ def main(argv=None) -> None:
             intrinsics=Intrinsics.from_dict(meta["intrinsics"]),
             dataset=meta["dataset"], training=meta["training"], metrics=meta["metrics"],
             label_threshold=float(meta.get("label_threshold", 0.002)), tolerance=a.tolerance,
-            int8_check=int8,
+            int8_check=int8, calibration=calibration,
         )
+        if calibration is not None and a.reliability_png:
+            atomic.write_bytes(a.reliability_png, (Path(a.out) / DIAGRAM).read_bytes())
+    except CalibrationError as e:
+        print(f"vgq-export: calibration: {e} (--no-calibration exports without one)", file=sys.stderr)
+        sys.exit(2)
     except (CheckpointError, DatasetError, ExportError, FileNotFoundError, ValueError) as e:
         print(f"vgq-export: {e}", file=sys.stderr)
         sys.exit(2)
@@ -110,6 +135,11 @@ def main(argv=None) -> None:
         logging.info("int8 head: balanced accuracy %.4f (fp32 %.4f), max |p_int8 - p_fp32| = %.4f, %d of %d decisions changed",
                      q["balanced_accuracy_int8"], q["balanced_accuracy_fp32"], q["max_abs_diff_probability"],
                      q["decisions_changed"], q["n"])
+    if card.calibration:
+        k = card.calibration
+        logging.info("calibration (%s, for positivity %.4f: %s): ECE on %s %.4f raw -> %.4f calibrated",
+                     k["method"], k["target_positivity"], k["target_positivity_source"], k["test"]["split"],
+                     k["test"]["ece_raw"], k["test"]["ece_calibrated"])
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ For k grasps (default 32, 64, 96, 128, 512), all in one run, median and p99 (ms)
   ``export.onnx_export.export_model`` into a temp folder from the Fast model's own weights
   (image stream, fc4, fc5, fc6; pc1 on the (z, q) columns): same cost as a trained one;
 * preprocessing with ``vgq.crop``: Fast one crop per image, VGQ one crop per grasp; both
-  then check the grasps and build pose rows (``service.grasps.to_network_poses``);
+  then check the grasps and build pose rows (``vgq.grasps.pose_rows``);
 * every encoder precision the model card holds (``fp32``, and ``int8`` from
   ``export.int8_encoder``): the encoder alone and encoder + head, each with its ratio to the
   fp32 FLOP floor; the service's ``encoder_precision auto`` serves the fastest (its choice is
@@ -141,21 +141,21 @@ def _stats(t: np.ndarray) -> dict:
 # ---- workload and models -------------------------------------------------------------------------
 def fast_preprocess(depth, grasps, geom, center):
     """Fast-VGQ-CNN: one crop of the image, then k pose rows (du, dv, z, q)."""
-    from service.grasps import to_network_poses
     from vgq.crop import crop
+    from vgq.grasps import pose_rows
 
     img, actual = crop(depth, center, geom)
-    return img[None, None], to_network_poses(grasps, actual, geom, len(grasps))
+    return img[None, None], pose_rows(grasps, actual, geom, len(grasps))
 
 
 def vgq_preprocess(depth, grasps, geom_vgq, geom_fast, center):
     """VGQ-CNN: one centred crop per grasp, then k pose rows (z, q)."""
-    from service.grasps import to_network_poses
     from vgq.crop import crop, window_center, window_origin
+    from vgq.grasps import pose_rows
 
     crops = np.stack([crop(depth, g[:2], geom_vgq)[0] for g in grasps])[:, None]
     c = window_center(window_origin(center, geom_fast), geom_fast)
-    return crops, np.ascontiguousarray(to_network_poses(grasps, c, geom_fast, len(grasps))[:, 2:])
+    return crops, np.ascontiguousarray(pose_rows(grasps, c, geom_fast, len(grasps))[:, 2:])
 
 
 def export_vgq_like(model_dir: Path, out_dir: Path, depth: np.ndarray, grasps: np.ndarray):

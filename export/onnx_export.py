@@ -12,6 +12,7 @@ import logging
 import os
 import shutil
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +20,7 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
+from service.runtime import session_options
 from training.networks import GraspQualityNet
 from vgq.camera import Intrinsics
 from vgq.crop import CropGeometry
@@ -32,6 +34,7 @@ from vgq.model_card import (
     ModelCard,
 )
 
+from .calibrate import DIAGRAM, CalibrationReport, plot_reliability
 from .graphs import EncoderGraph, HeadGraph, OnePieceGraph
 from .quantize import QuantizationError, check_int8_head, quantize_head
 
@@ -59,24 +62,36 @@ class Verification:
 
 
 def _session(path: Path) -> ort.InferenceSession:
-    so = ort.SessionOptions()
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    so.intra_op_num_threads = 1
-    return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    """A session with the service's options (``service.runtime.session_options``): the graphs
+    are checked as they will be run."""
+    return ort.InferenceSession(str(path), session_options(1), providers=["CPUExecutionProvider"])
 
 
 def _export(module: torch.nn.Module, args: tuple, path: Path, inputs, outputs, dynamic_axes) -> None:
-    torch.onnx.export(
-        module,
-        args,
-        str(path),
-        input_names=list(inputs),
-        output_names=list(outputs),
-        dynamic_axes=dynamic_axes,
-        opset_version=OPSET,
-        do_constant_folding=True,
-        dynamo=False,
-    )
+    # The TorchScript exporter (dynamo=False) on purpose, its two deprecation warnings silenced
+    # here and only here. Tried with torch 2.13 + onnxscript 0.7.2 (not a dependency): the
+    # dynamo exporter keeps the band-Conv + Sqrt LRN and the weight names, but (1) the head
+    # graph no longer broadcasts one image term against k poses (torch.export ties the two
+    # batch dims; onnxruntime fails "Shape mismatch ... {1,1024} != {16,1024}"), (2) it renames
+    # nodes ("node_linear_1", not "/head/fc5/Gemm" / "/fc4_image/MatMul" that export.from_onnx
+    # and the int8 check rely on), (3) it raises FutureWarnings of its own. The outputs are
+    # verified against torch below whichever exporter writes them.
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="You are using the legacy TorchScript-based ONNX export",
+                                category=DeprecationWarning)
+        warnings.filterwarnings("ignore", message="The feature will be removed. Please remove usage of this function",
+                                category=DeprecationWarning, module=r"torch\.onnx\._internal\.torchscript_exporter")
+        torch.onnx.export(
+            module,
+            args,
+            str(path),
+            input_names=list(inputs),
+            output_names=list(outputs),
+            dynamic_axes=dynamic_axes,
+            opset_version=OPSET,
+            do_constant_folding=True,
+            dynamo=False,
+        )
 
 
 def _sha(paths) -> str:
@@ -140,13 +155,17 @@ def export_model(
     label_threshold: float = 0.002,
     tolerance: float = DEFAULT_TOLERANCE,
     int8_check: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    calibration: CalibrationReport | None = None,
 ) -> ModelCard:
     """Export ``net`` to ``out_dir`` after verifying ONNX against torch on ``crops`` (n, S, S)
     metres and raw ``poses`` (n, n_pose) in the net's pose columns. Returns the model card.
 
     ``int8_check`` (Fast-VGQ-CNN only): labelled (crops, poses, labels) on which an int8 head
     (``export.quantize``) must score like the fp32 one; it is then added as ``head_int8.onnx``
-    and its check recorded in the card (``export.int8_head``)."""
+    and its check recorded in the card (``export.int8_head``).
+
+    ``calibration`` (``export.calibrate.calibration_report``): recorded in the card's
+    ``calibration``, its reliability diagram written beside the graphs."""
     net = net.eval()
     crops, poses = _check_inputs(net, crops, poses)
     out_dir = Path(out_dir)
@@ -206,7 +225,10 @@ def export_model(
             export={"opset": OPSET, "torch": torch.__version__, "onnxruntime": ort.__version__,
                     "verification": ver.to_dict(), "tolerance": tolerance, "sha256": digest, **extra},
             label_threshold=label_threshold,
+            calibration=calibration.to_dict() if calibration is not None else {},
         )
+        if calibration is not None:
+            plot_reliability(calibration, tmp / DIAGRAM)
         card.save(tmp)
         os.chmod(tmp, 0o755)
         _swap_in(tmp, out_dir)

@@ -22,6 +22,7 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 
+from service.runtime import session_options
 from training.metrics import binary_metrics
 from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT
 
@@ -86,8 +87,7 @@ def check_int8_head(encoder_path, head_path, int8_path, crops: np.ndarray, poses
     y = np.asarray(labels).astype(bool)
     if y.all() or not y.any():
         raise QuantizationError("the int8 check needs positive and negative examples")
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = 1
+    so = session_options(1)  # the service's options: checked as served
     enc, h32, h8 = (ort.InferenceSession(str(p), so, providers=["CPUExecutionProvider"])
                     for p in (encoder_path, head_path, int8_path))
     crops = np.ascontiguousarray(crops, np.float32).reshape(len(crops), 1, *np.shape(crops)[-2:])

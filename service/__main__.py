@@ -22,7 +22,7 @@ def main(argv=None) -> None:
     from .protocol import HTTP, HeaderTimeoutProtocol
 
     s: Settings = parse_args(argv)
-    HeaderTimeoutProtocol.seconds = s.request_timeout_s
+    HeaderTimeoutProtocol.configure(s)
     if not os.path.isdir(s.model_dir):
         print(f"vgq-serve: model folder {s.model_dir!r} does not exist (set --model-dir or VGQ_MODEL_DIR)", file=sys.stderr)
         sys.exit(2)

@@ -22,6 +22,7 @@ class CachedImage:
     image_term: np.ndarray  # (1, 1024) float32 encoder output
     window_center: np.ndarray  # (2,) float64, image px (u, v)
     image_shape: tuple[int, int]  # (H, W)
+    missing_fraction: float = 0.0  # fraction of the crop window without a depth reading (filled)
 
     @property
     def nbytes(self) -> int:

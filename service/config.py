@@ -24,6 +24,11 @@ class Settings:
     encoder_precision: str = "auto"  # auto (the fastest checked encoder, timed at start-up) | fp32 | int8
     max_grasps: int = 2048  # grasps per request
     max_body_bytes: int = 32 * 1024 * 1024  # request body limit
+    max_buffered_bytes: int = 128 * 1024 * 1024  # request bodies held in memory at once, all requests together
+    max_inflight: int = 64  # requests being served at once (health, readiness and metrics not counted)
+    max_header_bytes: int = 16 * 1024  # request line + headers of one request
+    max_headers: int = 100  # header lines of one request
+    max_url_bytes: int = 8 * 1024  # request target (path + query)
     max_image_side: int = 4096  # pixels, either dimension of an uploaded depth image
     cache_entries: int = 4096
     cache_bytes: int = 64 * 1024 * 1024
@@ -31,16 +36,21 @@ class Settings:
     redis_url: str = "redis://127.0.0.1:6379/0"
     cache_ttl_s: float = 86400.0  # redis backend: an image unused this long expires (each hit renews it)
     request_timeout_s: float = 10.0
+    max_missing_fraction: float = 0.5  # a crop window with more pixels without depth (0) is refused (422)
     api_key: str = ""  # when set, upload and score need header X-API-Key
     log_level: str = "info"
     access_log: bool = False  # one structured line per request
 
     def __post_init__(self) -> None:
         for name, lo in (("port", 0), ("workers", 1), ("threads", 0), ("max_grasps", 1), ("max_body_bytes", 1024),
-                         ("max_image_side", 32), ("cache_entries", 1), ("cache_bytes", 4096)):
+                         ("max_buffered_bytes", 1024), ("max_inflight", 1), ("max_header_bytes", 1024), ("max_headers", 8),
+                         ("max_url_bytes", 256), ("max_image_side", 32), ("cache_entries", 1), ("cache_bytes", 4096)):
             v = getattr(self, name)
             if not isinstance(v, int) or v < lo:
                 raise ValueError(f"setting {name} must be an integer >= {lo}, got {v!r}")
+        if self.max_buffered_bytes < self.max_body_bytes:
+            raise ValueError(f"setting max_buffered_bytes ({self.max_buffered_bytes}) must be >= max_body_bytes "
+                             f"({self.max_body_bytes}): one largest body must fit")
         if self.head_precision not in HEAD_PRECISIONS:
             raise ValueError(f"setting head_precision must be one of {HEAD_PRECISIONS}, got {self.head_precision!r}")
         if self.encoder_precision not in ENCODER_PRECISIONS:
@@ -49,6 +59,8 @@ class Settings:
             raise ValueError(f"setting cache_backend must be 'memory' or 'redis', got {self.cache_backend!r}")
         if self.cache_backend == "redis" and not self.redis_url.startswith(("redis://", "rediss://", "unix://")):
             raise ValueError(f"setting redis_url must be a redis://, rediss:// or unix:// URL, got {self.redis_url!r}")
+        if not 0 <= self.max_missing_fraction <= 1:
+            raise ValueError(f"setting max_missing_fraction must be in [0, 1], got {self.max_missing_fraction!r}")
         for name in ("request_timeout_s", "cache_ttl_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"setting {name} must be > 0, got {getattr(self, name)!r}")

@@ -15,6 +15,7 @@ Depth must be finite and >= 0 (0 means no reading). Image sides must lie in
 from __future__ import annotations
 
 import io
+import math
 import struct
 import warnings
 import zipfile
@@ -23,6 +24,7 @@ import numpy as np
 from PIL import Image
 
 from .errors import ApiError
+from .media import media_type
 
 NPY_TYPES = ("application/x-npy", "application/npy")
 PNG_TYPES = ("image/png",)
@@ -35,8 +37,14 @@ def _check_size(h: int, w: int, min_side: int, max_side: int) -> None:
         raise ApiError(422, f"depth image is {h}x{w} (HxW); each side must be in [{min_side}, {max_side}] px")
 
 
-def _decode_npy(body: bytes, min_side: int, max_side: int) -> np.ndarray:
-    f = io.BytesIO(body)
+NPY_HEADER_MAX = 16 + 10000  # numpy's own bound on a .npy header (max_header_size)
+
+
+def npy_header(body: bytes, what: str) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+    """(shape, fortran order, dtype, data offset) of a .npy, read and checked without pickle and
+    before anything is allocated: every dimension a non-negative integer, a float32 / float64 dtype.
+    Raises ApiError 422 naming ``what``."""
+    f = io.BytesIO(bytes(body[:NPY_HEADER_MAX]))  # the header only: no copy of the data
     try:
         version = np.lib.format.read_magic(f)
         if version == (1, 0):
@@ -46,20 +54,31 @@ def _decode_npy(body: bytes, min_side: int, max_side: int) -> np.ndarray:
         else:
             raise ValueError(f"unsupported .npy version {version}")
     except Exception as e:
-        raise ApiError(422, f"depth body is not a valid .npy file: {e}") from None
+        raise ApiError(422, f"{what} is not a valid .npy file: {e}") from None
+    if not isinstance(shape, tuple) or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape):
+        raise ApiError(422, f"{what} .npy declares shape {shape}; dimensions must be non-negative integers")
     if dtype.hasobject or dtype.kind != "f" or dtype.itemsize not in (4, 8):
-        raise ApiError(422, f"depth .npy has dtype {dtype}; expected float32 (or float64) metres")
+        raise ApiError(422, f"{what} .npy has dtype {dtype}; expected float32 or float64")
+    return shape, bool(fortran), dtype, f.tell()
+
+
+def _from_buffer(body: bytes, what: str, shape, fortran: bool, dtype, start: int) -> np.ndarray:
+    n = math.prod(shape)
+    if len(body) - start != n * dtype.itemsize:
+        raise ApiError(422, f"{what} .npy holds {len(body) - start} data bytes, header promises {n * dtype.itemsize} "
+                            "(truncated or padded)")
+    a = np.frombuffer(body, dtype=dtype, count=n, offset=start)
+    return a.reshape(shape[::-1]).T if fortran else a.reshape(shape)
+
+
+def _decode_npy(body: bytes, min_side: int, max_side: int) -> np.ndarray:
+    shape, fortran, dtype, start = npy_header(body, "depth body")
     if len(shape) == 3 and shape[2] == 1:
         shape = shape[:2]
     if len(shape) != 2:
         raise ApiError(422, f"depth .npy has shape {shape}; expected (H, W) or (H, W, 1)")
     _check_size(shape[0], shape[1], min_side, max_side)
-    start = f.tell()
-    need = shape[0] * shape[1] * dtype.itemsize
-    if len(body) - start != need:
-        raise ApiError(422, f"depth .npy holds {len(body) - start} data bytes, header promises {need} (truncated or padded)")
-    a = np.frombuffer(body, dtype=dtype, count=shape[0] * shape[1], offset=start)
-    a = a.reshape(shape[::-1]).T if fortran else a.reshape(shape)
+    a = _from_buffer(body, "depth", shape, fortran, dtype, start)
     return np.ascontiguousarray(a, dtype=np.float32)
 
 
@@ -70,9 +89,9 @@ _PNG_COLOUR = {0: "grayscale", 2: "RGB", 3: "palette", 4: "grayscale + alpha", 6
 def png_header(body: bytes) -> tuple[int, int, int, int]:
     """(height, width, bit depth, colour type) from a PNG's IHDR chunk, read without decoding.
     Raises ApiError 422 if the body is not a PNG."""
-    if not body.startswith(PNG_SIGNATURE):
+    if bytes(body[:8]) != PNG_SIGNATURE:
         raise ApiError(422, "depth body is not a PNG file (bad signature)")
-    if len(body) < 33 or body[12:16] != b"IHDR" or struct.unpack(">I", body[8:12])[0] != 13:
+    if len(body) < 33 or bytes(body[12:16]) != b"IHDR" or struct.unpack(">I", body[8:12])[0] != 13:
         raise ApiError(422, "depth PNG is truncated or corrupt: no IHDR header chunk")
     w, h, bits, colour = struct.unpack(">IIBB", body[16:26])
     return h, w, bits, colour
@@ -126,7 +145,7 @@ def validate_depth(a: np.ndarray) -> np.ndarray:
 def decode_depth(body: bytes, content_type: str, *, width: int | None = None, height: int | None = None,
                  min_side: int = 32, max_side: int = 4096) -> np.ndarray:
     """Decode and validate a depth upload. Raises ApiError (415 or 422) naming the problem."""
-    ct = (content_type or "").split(";")[0].strip().lower()
+    ct = media_type(content_type)
     if not body:
         raise ApiError(422, "depth body is empty")
     if ct in NPY_TYPES:
@@ -148,24 +167,13 @@ def encode_npy(depth: np.ndarray) -> bytes:
 
 
 def parse_npy(body: bytes, what: str, max_elements: int) -> np.ndarray:
-    """A float .npy of any shape (<= max_elements values), parsed without pickle."""
-    f = io.BytesIO(body)
-    try:
-        version = np.lib.format.read_magic(f)
-        reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-        shape, fortran, dtype = reader(f)
-    except Exception as e:
-        raise ApiError(422, f"{what} is not a valid .npy array: {e}") from None
-    if dtype.hasobject or dtype.kind != "f" or dtype.itemsize not in (4, 8):
-        raise ApiError(422, f"{what} has dtype {dtype}; expected float32 or float64")
-    n = int(np.prod(shape)) if shape else 1
+    """A float .npy of any shape (<= max_elements values), parsed without pickle; the header's
+    dimensions are checked before anything is allocated."""
+    shape, fortran, dtype, start = npy_header(body, what)
+    n = math.prod(shape)
     if n > max_elements:
         raise ApiError(422, f"{what} has {n} values; at most {max_elements}")
-    start = f.tell()
-    if len(body) - start != n * dtype.itemsize:
-        raise ApiError(422, f"{what} holds {len(body) - start} data bytes, header promises {n * dtype.itemsize}")
-    a = np.frombuffer(body, dtype=dtype, count=n, offset=start)
-    return a.reshape(shape[::-1]).T if fortran else a.reshape(shape)
+    return _from_buffer(body, what, shape, fortran, dtype, start)
 
 
 NPZ_MAX_MEMBERS = 8
@@ -179,7 +187,7 @@ def read_npz(body: bytes, max_total_bytes: int, names: tuple[str, ...] | None = 
     and their declared uncompressed sizes must add up to at most ``max_total_bytes`` (413).
     A member whose data does not match its declared size fails its CRC check (422)."""
     try:
-        zf = zipfile.ZipFile(io.BytesIO(body))
+        zf = zipfile.ZipFile(BufferReader(body))
         infos = zf.infolist()
     except Exception as e:
         raise ApiError(422, f"body is not a valid .npz archive: {e}") from None
@@ -200,6 +208,34 @@ def read_npz(body: bytes, max_total_bytes: int, names: tuple[str, ...] | None = 
         except Exception as e:
             raise ApiError(422, f".npz member {name!r} cannot be read (corrupt archive): {e}") from None
     return out
+
+
+class BufferReader(io.RawIOBase):
+    """A seekable read-only file over a bytes-like object, without copying it (io.BytesIO copies
+    anything but bytes)."""
+
+    def __init__(self, buf):
+        self.view, self.pos = memoryview(buf).cast("B"), 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        base = {0: 0, 1: self.pos, 2: len(self.view)}[whence]
+        self.pos = max(0, base + offset)
+        return self.pos
+
+    def readinto(self, b) -> int:
+        n = max(0, min(len(b), len(self.view) - self.pos))
+        b[:n] = self.view[self.pos:self.pos + n]
+        self.pos += n
+        return n
 
 
 def _npz_name(info) -> str:

@@ -1,31 +1,69 @@
-"""uvicorn's httptools protocol with a deadline on request headers.
+"""uvicorn's httptools protocol with bounds on what a request may send before the app sees it.
 
-uvicorn bounds the idle time between keep-alive requests but not the time a client may take
-to send a request line and its headers: a client that opens a connection and sends nothing,
-or half a header block (header slow-loris), would hold it for as long as it likes. Here every
-request must have its headers in within ``seconds`` of its connection opening or of its first
-byte (a keep-alive or pipelined request); otherwise the service answers 408 and closes.
-The body is bounded separately by the app (``request_timeout_s``).
+uvicorn bounds the idle time between keep-alive requests but neither the time a client may
+take to send its request line and headers nor their size: httptools gathers a header value
+in memory however long it grows (an 85 MB header was answered 200). Here, per request:
+
+* the headers must be in within ``seconds`` of the connection opening or of the request's
+  first byte (keep-alive, pipelined); otherwise 408 (slow-loris headers);
+* the request line's target (path + query) is at most ``max_url_bytes``; otherwise 414;
+* at most ``max_headers`` header lines and ``max_header_bytes`` bytes of request line and
+  headers; otherwise 431. Bytes are counted as they arrive, so a header without an end
+  costs at most the limit plus one read (64 KiB), never the whole header;
+* a request the parser refuses (bad syntax, invalid Content-Length) gets 400.
+
+Each of these answers the service's JSON error shape and closes the connection. The body is
+bounded separately by the app (``max_body_bytes``, ``request_timeout_s``).
 """
 
 from __future__ import annotations
 
 import asyncio
 import os
+import time
 
-from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+import httptools
+import orjson
+from uvicorn.protocols.http.httptools_impl import STATUS_LINE, HttpToolsProtocol
 
 #: uvicorn's ``http=`` option for this protocol (a string, so worker processes can import it)
 HTTP = "service.protocol:HeaderTimeoutProtocol"
 
 
+def error_response(status: int, message: str) -> bytes:
+    """A whole HTTP/1.1 response with the service's JSON error body; closes the connection."""
+    body = orjson.dumps({"error": {"status": status, "message": message}})
+    return (STATUS_LINE[status] + b"content-type: application/json\r\nconnection: close\r\n"
+            b"content-length: %d\r\n\r\n%s" % (len(body), body))
+
+
+class _Refused(Exception):
+    pass
+
+
 class HeaderTimeoutProtocol(HttpToolsProtocol):
-    """Closes a connection with 408 when a request's headers take longer than ``seconds``
-    (the service's ``request_timeout_s``; worker processes read it from the environment)."""
+    """The bounds above; worker processes read them from the environment (``VGQ_*``)."""
 
     seconds: float = float(os.environ.get("VGQ_REQUEST_TIMEOUT_S", "10"))
-    _header_timer: asyncio.TimerHandle | None = None
+    max_header_bytes: int = int(os.environ.get("VGQ_MAX_HEADER_BYTES", str(16 * 1024)))
+    max_headers: int = int(os.environ.get("VGQ_MAX_HEADERS", "100"))
+    max_url_bytes: int = int(os.environ.get("VGQ_MAX_URL_BYTES", str(8 * 1024)))
 
+    _header_timer: asyncio.TimerHandle | None = None
+    _in_head = True  # between a request's first byte (or the connection) and its complete headers
+    _head_bytes = 0
+    _n_headers = 0
+    _heads_done = 0
+    _fed_counted = 0  # bytes of the current read already counted by the callbacks
+    _refusal: tuple[int, str] | None = None
+
+    @classmethod
+    def configure(cls, settings) -> None:
+        cls.seconds = settings.request_timeout_s
+        cls.max_header_bytes, cls.max_headers = settings.max_header_bytes, settings.max_headers
+        cls.max_url_bytes = settings.max_url_bytes
+
+    # ---- deadline -------------------------------------------------------------------------
     def _arm(self) -> None:
         if self._header_timer is None:
             self._header_timer = self.loop.call_later(self.seconds, self._headers_late)
@@ -37,23 +75,76 @@ class HeaderTimeoutProtocol(HttpToolsProtocol):
 
     def _headers_late(self) -> None:
         self._header_timer = None
+        self._refuse(408, f"request headers not received within {self.seconds:g} s")
+
+    def _refuse(self, status: int, message: str) -> None:
         if not self.transport.is_closing():
-            body = f"request headers not received within {self.seconds:g} s".encode()
-            self.transport.write(b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain; charset=utf-8\r\n"
-                                 b"connection: close\r\ncontent-length: %d\r\n\r\n%s" % (len(body), body))
+            self.transport.write(error_response(status, message))
             self.transport.close()
+
+    # ---- size bounds ----------------------------------------------------------------------
+    def _count(self, n: int, status: int) -> None:
+        self._head_bytes += n
+        self._fed_counted += n
+        if self._head_bytes > self.max_header_bytes and self._refusal is None:
+            self._refusal = (status, f"request line and headers exceed {self.max_header_bytes} bytes")
+            raise _Refused
 
     def connection_made(self, transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        self._in_head, self._head_bytes, self._n_headers = True, 0, 0
         self._arm()
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
+        self._in_head, self._head_bytes, self._n_headers = True, 0, 0
         self._arm()
 
+    def on_url(self, url: bytes) -> None:
+        if len(self.url) + len(url) > self.max_url_bytes:
+            self._refusal = (414, f"request target exceeds {self.max_url_bytes} bytes")
+            raise _Refused
+        self._count(len(url), 431)
+        super().on_url(url)
+
+    def on_header(self, name: bytes, value: bytes) -> None:
+        self._n_headers += 1
+        if self._n_headers > self.max_headers:
+            self._refusal = (431, f"more than {self.max_headers} request headers")
+            raise _Refused
+        self._count(len(name) + len(value) + 4, 431)
+        super().on_header(name, value)
+
     def on_headers_complete(self) -> None:
+        # the request's clock starts here, not when its task first runs: time spent queued behind
+        # other requests' work on the event loop counts in the service's latency metrics
+        self.scope["vgq.t0"] = time.perf_counter()
         self._disarm()
+        self._in_head = False
+        self._heads_done += 1
         super().on_headers_complete()
+
+    def data_received(self, data: bytes) -> None:
+        self._unset_keepalive_if_required()
+        in_head, heads_done = self._in_head, self._heads_done
+        self._fed_counted = 0
+        try:
+            self.parser.feed_data(data)
+        except httptools.HttpParserUpgrade:
+            if self._should_upgrade():
+                self.handle_websocket_upgrade()
+            else:
+                self._unsupported_upgrade_warning()
+            return
+        except (httptools.HttpParserError, _Refused) as e:
+            status, message = self._refusal or (400, f"invalid HTTP request: {e}")
+            self._refuse(status, message)
+            return
+        if in_head and self._in_head and heads_done == self._heads_done:
+            # the whole read was request line / headers still being gathered by httptools
+            self._head_bytes += len(data) - self._fed_counted
+            if self._head_bytes > self.max_header_bytes:
+                self._refuse(431, f"request line and headers exceed {self.max_header_bytes} bytes")
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()

@@ -28,8 +28,8 @@ import numpy as np
 from . import logs
 from .cache import CachedImage, MemoryCache
 
-MAGIC = b"VGQ1"
-_HEADER = struct.Struct("<4sIIddI")  # magic, H, W, window centre u, v (px), n float32 values
+MAGIC = b"VGQ2"
+_HEADER = struct.Struct("<4sIIdddI")  # magic, H, W, window centre u, v (px), missing fraction, n float32 values
 KEY_PREFIX = "vgq:img:"
 
 
@@ -38,18 +38,18 @@ def pack_entry(entry: CachedImage) -> bytes:
     term = np.ascontiguousarray(entry.image_term, dtype="<f4").reshape(-1)
     h, w = entry.image_shape
     c = entry.window_center
-    return _HEADER.pack(MAGIC, int(h), int(w), float(c[0]), float(c[1]), term.size) + term.tobytes()
+    return _HEADER.pack(MAGIC, int(h), int(w), float(c[0]), float(c[1]), float(entry.missing_fraction), term.size) + term.tobytes()
 
 
 def unpack_entry(data: bytes) -> CachedImage:
     """Inverse of ``pack_entry``; raises ValueError for bytes that are not an entry."""
     if len(data) < _HEADER.size:
         raise ValueError(f"cache entry of {len(data)} bytes is shorter than its header")
-    magic, h, w, cu, cv, n = _HEADER.unpack_from(data)
+    magic, h, w, cu, cv, missing, n = _HEADER.unpack_from(data)
     if magic != MAGIC or len(data) != _HEADER.size + 4 * n:
         raise ValueError("cache entry has a wrong magic or length")
     term = np.frombuffer(data, dtype="<f4", count=n, offset=_HEADER.size).astype(np.float32).reshape(1, n)
-    return CachedImage(term, np.array([cu, cv], dtype=np.float64), (h, w))
+    return CachedImage(term, np.array([cu, cv], dtype=np.float64), (h, w), missing)
 
 
 def redacted(url: str) -> str:

@@ -28,7 +28,7 @@ def _first(root):
 
 
 def test_vgqcnn_crops_are_centred_vgq_crops(one_image_dataset, tmp_path):
-    m = make_crops(one_image_dataset, tmp_path, "vgqcnn", log=lambda s: None)
+    m = make_crops(one_image_dataset, tmp_path, "vgqcnn", log=lambda s: None, sensor="clean")
     depth, g = _first(one_image_dataset)
     a = storage.open_crops(tmp_path, "train")
     geom = vcrop.CropGeometry(96, 32, 0.0)
@@ -44,7 +44,7 @@ def test_vgqcnn_crops_are_centred_vgq_crops(one_image_dataset, tmp_path):
 
 
 def test_gqcnn_crops_are_rotated_vgq_crops(one_image_dataset, tmp_path):
-    make_crops(one_image_dataset, tmp_path, "gqcnn", log=lambda s: None)
+    make_crops(one_image_dataset, tmp_path, "gqcnn", log=lambda s: None, sensor="clean")
     depth, g = _first(one_image_dataset)
     a = storage.open_crops(tmp_path, "train")
     geom = vcrop.CropGeometry(96, 32, 0.0)
@@ -54,7 +54,7 @@ def test_gqcnn_crops_are_rotated_vgq_crops(one_image_dataset, tmp_path):
 
 
 def test_fast_vgqcnn_crops_keep_grasps_within_kappa(one_image_dataset, tmp_path):
-    m = make_crops(one_image_dataset, tmp_path, "fast_vgqcnn", kappa_px=24, log=lambda s: None)
+    m = make_crops(one_image_dataset, tmp_path, "fast_vgqcnn", kappa_px=24, log=lambda s: None, sensor="clean")
     depth, g = _first(one_image_dataset)
     a = storage.open_crops(tmp_path, "train")
     geom = vcrop.CropGeometry(96, 32, 24.0)
@@ -82,7 +82,7 @@ def test_fast_window_offsets_are_uniform_within_kappa():
 
 def test_crops_split_object_wise(tmp_path):
     fake_dataset(tmp_path / "g", n_objects=10, n_images=1, n_grasps=5)
-    m = make_crops(tmp_path / "g", tmp_path / "c", "vgqcnn", log=lambda s: None)
+    m = make_crops(tmp_path / "g", tmp_path / "c", "vgqcnn", log=lambda s: None, sensor="clean")
     seen = {}
     for s in SPLITS:
         ids = set(storage.open_crops(tmp_path / "c", s)["object_id"].tolist())

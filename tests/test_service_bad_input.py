@@ -103,6 +103,11 @@ def assert_error(r: httpx.Response, status: int, *words: str) -> None:
         assert w.lower() in msg.lower(), (w, msg)
 
 
+#: integer fields given as text that is not a usable integer (each was a 500 once: ``int(float("inf"))``)
+BAD_INTEGERS = [("inf", "inf"), ("minus-inf", "-inf"), ("nan", "nan"), ("1e400", "1e400"), ("400-digits", "9" * 400),
+                ("fraction", "300.5"), ("true", "true"), ("negative", "-300"), ("zero", "0"), ("huge", "1e12")]
+
+
 # ---- uploads: (name, body, content type, query params, status, words in the message) ----------------------------
 nan_depth = with_depth(pixels={(5, 5): np.nan})
 inf_depth = with_depth(pixels={(5, 5): np.inf, (6, 6): -np.inf})
@@ -124,7 +129,8 @@ UPLOADS = [
     ("npy-scalar", lambda: npy(np.float32(0.7)), NPY, {}, 422, ["shape ()"]),
     ("npy-too-small", lambda: npy(np.full((8, 8), 0.7, np.float32)), NPY, {}, 422, ["8x8"]),
     ("npy-huge-dims", lambda: npy_header_only((100000, 100000)), NPY, {}, 422, ["100000x100000"]),
-    ("npy-negative-dims", lambda: npy_header_only((-300, 300)), NPY, {}, 422, ["[32, 1024]"]),
+    ("npy-negative-dims", lambda: npy_header_only((-300, 300)), NPY, {}, 422, ["non-negative"]),
+    ("npy-overflowing-dims", lambda: npy_header_only((2**32, 2**32)), NPY, {}, 422, ["4294967296x4294967296"]),
     ("npy-nan", lambda: npy(nan_depth), NPY, {}, 422, ["1 non-finite"]),
     ("npy-inf", lambda: npy(inf_depth), NPY, {}, 422, ["2 non-finite"]),
     ("npy-negative", lambda: npy(neg_depth), NPY, {}, 422, ["1 negative"]),
@@ -142,17 +148,23 @@ UPLOADS = [
     ("raw-no-shape", lambda: table_scene().tobytes(), "application/octet-stream", {}, 422, ["width and height"]),
     ("raw-wrong-length", lambda: table_scene().tobytes()[:-4], "application/octet-stream", {"width": 300, "height": 300}, 422, ["359996 bytes"]),
     ("raw-huge-dims", lambda: b"\0" * 1024, "application/octet-stream", {"width": 100000, "height": 100000}, 422, ["100000x100000"]),
-    ("raw-negative-dims", lambda: b"\0" * 1024, "application/octet-stream", {"width": -16, "height": -16}, 422, ["-16x-16"]),
+    ("raw-negative-dims", lambda: b"\0" * 1024, "application/octet-stream", {"width": -16, "height": -16}, 422, ["width", ">= 1"]),
     ("raw-nan", lambda: nan_depth.tobytes(), "application/octet-stream", {"width": 300, "height": 300}, 422, ["non-finite"]),
     ("width-not-integer", lambda: b"\0" * 1024, "application/octet-stream", {"width": "abc", "height": 3}, 422, ["width"]),
     ("text-plain", lambda: npy(table_scene()), "text/plain", {}, 415, ["text/plain", "application/x-npy"]),
     ("no-content-type", lambda: npy(table_scene()), None, {}, 415, ["content type"]),
     ("json-as-depth", lambda: b'{"depth": [[1]]}', "application/json", {}, 415, ["application/json"]),
     ("centre-outside", lambda: npy(table_scene()), NPY, {"center_u": 400, "center_v": 10}, 422, ["window centre"]),
-    ("centre-nan", lambda: npy(table_scene()), NPY, {"center_u": "nan"}, 422, ["window centre"]),
-    ("centre-inf", lambda: npy(table_scene()), NPY, {"center_v": "inf"}, 422, ["window centre"]),
+    ("centre-nan", lambda: npy(table_scene()), NPY, {"center_u": "nan"}, 422, ["center_u", "finite"]),
+    ("centre-negative", lambda: npy(table_scene()), NPY, {"center_u": -3}, 422, ["center_u", ">= 0"]),
+    ("centre-inf", lambda: npy(table_scene()), NPY, {"center_v": "inf"}, 422, ["center_v", "finite"]),
     ("fx-zero", lambda: npy(table_scene()), NPY, {"fx": 0}, 422, ["fx"]),
-    ("fy-nan", lambda: npy(table_scene()), NPY, {"fy": "nan"}, 422, ["fy"]),
+    ("fy-nan", lambda: npy(table_scene()), NPY, {"fy": "nan"}, 422, ["fy", "finite"]),
+    ("fx-negative", lambda: npy(table_scene()), NPY, {"fx": -500}, 422, ["fx", "> 0"]),
+    *[(f"width-{name}", lambda: table_scene().tobytes(), "application/octet-stream", {"width": v, "height": 300}, 422, ["width"])
+      for name, v in BAD_INTEGERS],
+    *[(f"height-{name}", lambda: table_scene().tobytes(), "application/octet-stream", {"width": 300, "height": v}, 422, ["height"])
+      for name, v in BAD_INTEGERS],
 ]
 
 
@@ -193,6 +205,9 @@ SCORES = [
     ("json-nested", lambda: _json({"grasps": [[[1] * 7] * 7]}), "application/json", 422, ["7 numbers"]),
     ("json-object-missing-q", lambda: _json({"grasps": [{"u": 150, "v": 150, "z": 0.6}]}), "application/json", 422, ['"q"']),
     ("json-object-q-number", lambda: _json({"grasps": [{"u": 150, "v": 150, "z": 0.6, "q": 1}]}), "application/json", 422, ['"q"']),
+    ("json-true", lambda: b'{"grasps": [[150, 150, 0.6, true, 0, 0, 0]]}', "application/json", 422, ["true / false"]),
+    ("json-false-object", lambda: b'{"grasps": [{"u": 150, "v": 150, "z": false, "q": [1, 0, 0, 0]}]}', "application/json", 422,
+     ["true / false"]),
     ("k-zero", lambda: _json({"grasps": []}), "application/json", 422, ["k = 0"]),
     ("k-zero-binary", lambda: b"", "application/octet-stream", 422, ["k = 0"]),
     ("k-over-limit", lambda: _bin(grasps_at(k=MAX_GRASPS + 1)), "application/octet-stream", 422, [f"at most {MAX_GRASPS}"]),
@@ -277,6 +292,18 @@ ONE_SHOT = [
     ("npz-center-3", lambda: npz(depth=table_scene(), grasps=grasps_at(k=8), center=np.zeros(3)), "application/x-npz", 422, ["center"]),
     ("npz-pickled-member", lambda: _npz_raw(depth=npy(np.array([None] * 4), allow_pickle=True), grasps=npy(grasps_at(k=8))),
      "application/x-npz", 422, ["dtype object"]),
+    ("npz-depth-negative-dims", lambda: _npz_raw(depth=npy_header_only((-300, -300)), grasps=npy(grasps_at(k=8))),
+     "application/x-npz", 422, ["depth", "non-negative"]),
+    ("npz-grasps-negative-dims", lambda: _npz_raw(depth=npy(table_scene()), grasps=npy_header_only((-16, -7))),
+     "application/x-npz", 422, ["grasps", "non-negative"]),
+    ("npz-grasps-overflowing-dims", lambda: _npz_raw(depth=npy(table_scene()), grasps=npy_header_only((2**32, 2**32))),
+     "application/x-npz", 422, ["grasps", "values"]),
+    ("npz-center-negative-dims", lambda: _npz_raw(depth=npy(table_scene()), grasps=npy(grasps_at(k=8)),
+                                                  center=npy_header_only((-1, -2))), "application/x-npz", 422, ["center", "non-negative"]),
+    ("npz-center-negative", lambda: npz(depth=table_scene(), grasps=grasps_at(k=8), center=np.array([-5.0, 10.0])),
+     "application/x-npz", 422, ["center_u", ">= 0"]),
+    ("npz-center-nan", lambda: npz(depth=table_scene(), grasps=grasps_at(k=8), center=np.array([149.5, np.nan])),
+     "application/x-npz", 422, ["center_v", "finite"]),
     ("multipart-garbage", lambda: b"--xyz\r\nnot a part", "multipart/form-data; boundary=xyz", 400, ["malformed multipart"]),
     ("multipart-no-boundary", lambda: b"abc", "multipart/form-data", 400, ["multipart"]),
     ("json-one-shot", lambda: b"{}", "application/json", 415, ["multipart/form-data"]),
@@ -305,6 +332,29 @@ def test_multipart_without_depth_part_is_422(url):
 def test_multipart_without_grasps_part_is_422(url):
     r = httpx.post(f"{url}/v1/score", files={"depth": ("d.npy", npy(table_scene()), NPY)})
     assert_error(r, 422, '"grasps"')
+
+
+MULTIPART_NUMBERS = [(f, v) for f in ("width", "height") for _, v in BAD_INTEGERS] + \
+    [(f, v) for f in ("center_u", "center_v") for v in ("inf", "-inf", "nan", "1e400", "9" * 400, "-1", "abc")]
+
+
+@pytest.mark.parametrize("field,value", MULTIPART_NUMBERS, ids=[f"{f}={v[:12]}" for f, v in MULTIPART_NUMBERS])
+def test_multipart_number_fields_are_checked(url, field, value):
+    """The issue's reproducer (width=inf answered 500) and its relatives: 422 naming the field."""
+    fields = {"width": "300", "height": "300", field: value}
+    r = httpx.post(f"{url}/v1/score", files={"depth": ("d.raw", table_scene().tobytes(), "application/octet-stream")},
+                   data={"grasps": _json({"grasps": grasps_at(k=8).tolist()}).decode(), **fields})
+    assert_error(r, 422, field)
+
+
+@pytest.mark.parametrize("grasps,words", [("", ["empty"]), ("{not json", ["not valid JSON"]),
+                                          ('{"grasps": [[150, 150, 0.6, 1, 0, 0, false]]}', ["true / false"])],
+                         ids=["empty", "not-json", "boolean"])
+def test_multipart_grasps_field_is_checked(url, grasps, words):
+    """A form field's bad value is a 422 (the multipart body itself is well formed)."""
+    files = {"depth": ("d.npy", npy(table_scene()), NPY), "grasps": (None, grasps.encode())}
+    r = httpx.post(f"{url}/v1/score", files=files)
+    assert_error(r, 422, *words)
 
 
 def test_multipart_with_bad_depth_names_it(url):

@@ -14,9 +14,9 @@ from service.cache import CachedImage
 from service.config import Settings, from_env
 from service.depth_io import decode_depth, encode_npy, parse_npy, png_header, read_npz
 from service.errors import ApiError
-from service.grasps import MAX_Z_M, to_network_poses
 from service.redis_cache import pack_entry, redacted, unpack_entry
 from vgq.crop import CropGeometry
+from vgq.grasps import MAX_Z_M, GraspError, pose_rows
 
 GEOM = CropGeometry(96, 32, 36.0)
 
@@ -144,14 +144,15 @@ def test_quaternion_scale_does_not_change_pose_rows(scale):
     s = g.copy()
     s[:, 3:] *= scale
     c = np.array([149.5, 149.5])
-    assert np.allclose(to_network_poses(s, c, GEOM, 16), to_network_poses(g, c, GEOM, 16))
+    assert np.allclose(pose_rows(s, c, GEOM, 16), pose_rows(g, c, GEOM, 16))
 
 
 def test_depth_beyond_bound_is_rejected():
     g = _grasps()
     g[1, 2] = MAX_Z_M * 1.5
-    status, msg = status_of(to_network_poses, g, np.array([149.5, 149.5]), GEOM, 16)
-    assert status == 422 and "depth z" in msg
+    with pytest.raises(GraspError, match="depth z") as e:
+        pose_rows(g, np.array([149.5, 149.5]), GEOM, 16)
+    assert e.value.indices == [1] and isinstance(e.value, ValueError)
 
 
 # ---- redis entry format -------------------------------------------------------------------------------------------
@@ -208,3 +209,47 @@ def test_int8_head_asked_of_a_model_without_one_is_a_clear_error(model_dir):
     assert FastModel(model_dir).head_precision == "fp32"  # auto falls back to fp32
     with pytest.raises(ModelError, match="no int8 head"):
         FastModel(model_dir, head_precision="int8")
+
+
+# ---- the one number path, paths in answers, multipart without copies ------------------------------------------------
+@pytest.mark.parametrize("raw", ["inf", "-inf", "nan", "1e400", "9" * 400, "2.5", "abc", True, "-1", "0", "3e9"])
+def test_integer_fields_refuse_what_is_not_a_usable_integer(raw):
+    from service.numbers import WIDTH
+
+    status, msg = status_of(WIDTH.parse, raw)
+    assert status == 422 and "field width must be" in msg
+
+
+def test_numbers_accept_text_and_array_elements():
+    from service.numbers import CENTER_U, FX, WIDTH
+
+    assert WIDTH.parse("300") == 300 and WIDTH.parse("300.0") == 300 and WIDTH.parse(None) is None and WIDTH.parse("") is None
+    assert CENTER_U.parse(np.float64(12.5)) == 12.5 and CENTER_U.parse("0") == 0.0
+    assert status_of(CENTER_U.parse, np.float32(np.nan))[1] == "field center_u must be finite, got np.float32(nan)"
+    assert status_of(FX.parse, "0")[0] == 422 and FX.schema()["exclusiveMinimum"] == 0.0
+
+
+def test_absolute_paths_are_cut_to_their_last_part():
+    from service.errors import redact_paths
+
+    doc = {"root": "/home/ci/data/crops", "msg": "cannot load model from /srv/models/fast: no card", "rel": "examples/x.npy",
+           "win": "C:\\build\\data\\shard.npz", "n": 3, "list": ["/a/b/c.json"], "quantized_nodes": ["/head/fc5/Gemm"],
+           "url": "redis://cache:6379/0 and http://host/a/b/c"}
+    out = redact_paths(doc)
+    assert out["root"] == "crops" and out["msg"] == "cannot load model from fast: no card" and out["rel"] == "examples/x.npy"
+    assert out["win"] == "shard.npz" and out["n"] == 3 and out["list"] == ["c.json"]
+    assert out["quantized_nodes"] == ["/head/fc5/Gemm"] and out["url"] == doc["url"]
+
+
+def test_multipart_parts_are_views_into_the_body():
+    from service.oneshot import parse_multipart
+
+    d = depth()
+    body = bytearray(b"--b\r\nContent-Disposition: form-data; name=\"depth\"; filename=\"d.npy\"\r\n"
+                     b"Content-Type: application/x-npy\r\n\r\n" + _raw_npy(d) +
+                     b"\r\n--b\r\nContent-Disposition: form-data; name=\"grasps\"\r\n\r\n"
+                     b'{"grasps": [[25, 20, 0.6, 1, 0, 0, 0]]}\r\n--b\r\nContent-Disposition: form-data; name=\"center_u\"\r\n\r\n'
+                     b"24.5\r\n--b--\r\n")
+    shot = parse_multipart(body, "multipart/form-data; boundary=b")
+    assert isinstance(shot.depth_body, memoryview) and shot.depth_body.obj is body  # no copy of the depth bytes
+    assert np.array_equal(shot.decode(4096), d) and shot.numbers["center_u"] == 24.5 and shot.grasps.shape == (1, 7)

@@ -62,3 +62,41 @@ def test_architecture_compatibility(tmp_path, data):
     c.check_arch("fast_vgqcnn")  # kappa = 0 ablation point
     with pytest.raises(DatasetError, match="cannot train 'gqcnn'"):
         c.check_arch("gqcnn")
+
+
+def test_both_crop_writers_write_one_manifest_layout(tmp_path):
+    """datagen crops and training.synthetic both go through vgq.schema.write_crop_manifest."""
+    from datagen_fakes import fake_dataset
+
+    from datagen.crops import make_crops
+
+    fake_dataset(tmp_path / "g", n_objects=10, n_images=1, n_grasps=5)
+    real = make_crops(tmp_path / "g", tmp_path / "c", "vgqcnn", log=lambda s: None)
+    synth = make_synthetic_crop_dataset(tmp_path / "s", 8, 4, 4, arch="vgqcnn", kappa_px=0.0)
+    # extra keys: intrinsics when the source has them; sensor and inpaint describe rendered crops only
+    optional = {"recipe", "seed", "versions", "intrinsics", "sensor", "inpaint"}
+    assert set(synth) - optional == set(real) - optional
+    for m, root in ((real, tmp_path / "c"), (synth, tmp_path / "s")):
+        ds = open_crop_dataset(root)
+        assert ds.manifest == json.loads((root / "manifest.json").read_text())
+        for s, c in ds.counts().items():
+            assert {k: m["counts"][s][k] for k in ("n", "positive")} == c
+            assert m["counts"][s]["positivity"] == pytest.approx(c["positive"] / c["n"])
+        # not resampled: the native positivity is that of all the crops
+        total = sum(c["n"] for c in m["counts"].values())
+        assert m["native_counts"]["n"] == total
+
+
+def test_crops_of_a_sampled_dataset_record_the_positivity_before_sampling(tmp_path):
+    from datagen_fakes import fake_dataset
+
+    from datagen.crops import make_crops
+    from datagen.sampling import SamplingParams, sample_dataset
+
+    fake_dataset(tmp_path / "g", n_objects=10, n_images=2, n_grasps=40, seed=4)
+    stats = sample_dataset(tmp_path / "g", tmp_path / "s", SamplingParams(target_positivity=50.0),
+                           log=lambda s: None, plot=False)
+    m = make_crops(tmp_path / "s", tmp_path / "c", "vgqcnn", log=lambda s: None)
+    native = stats["steps"]["native"]
+    assert (m["native_counts"]["n"], m["native_counts"]["positive"]) == (native["grasps"], native["positive"])
+    assert m["native_counts"]["n"] > sum(c["n"] for c in m["counts"].values())  # sampling dropped grasps

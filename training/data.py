@@ -4,15 +4,16 @@ A crop dataset is a folder with ``manifest.json`` and one sub-folder per split
 (``train``, ``val``, ``test``), each holding one ``<field>.npy`` per ``CROP_FIELDS`` field.
 Arrays are memory-mapped; only the rows of a batch are read.
 
-Manifest keys read here (written by ``datagen crops`` and by
-``training.synthetic.write_crop_dataset``):
+Manifest keys read here (written by ``vgq.schema.write_crop_manifest``, for ``datagen
+crops`` and ``training.synthetic.write_crop_dataset`` alike):
 
 * ``format`` == ``"vgq-crops"``, ``format_version`` == 1 (if present);
 * ``geometry``: a ``vgq.crop.CropGeometry`` dict (``window``, ``out``, ``kappa_px``);
   a top-level ``kappa_px`` is accepted when the geometry dict lacks it;
 * ``architecture`` (or ``arch``): the architecture the crops were cut for;
 * optional: ``intrinsics`` (``vgq.camera.Intrinsics`` dict), ``label_threshold``,
-  ``counts``, ``source`` / ``recipe`` (recorded, not interpreted).
+  ``counts``, ``native_counts``, ``source`` / ``recipe`` (recorded, not interpreted here;
+  export reads ``native_counts`` to calibrate for the positivity before sampling).
 """
 
 from __future__ import annotations

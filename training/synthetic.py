@@ -14,7 +14,7 @@ from vgq import atomic
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
 from vgq.crop import CropGeometry
 from vgq.pose import canonical_quaternion
-from vgq.schema import CROP_FIELDS, CROP_FORMAT, FORMAT_VERSION, check_fields
+from vgq.schema import CROP_FIELDS, check_fields, crop_counts, write_crop_manifest
 
 SIGNALS = ("image", "pose", "none")
 
@@ -37,24 +37,12 @@ def write_crop_dataset(
     counts = {}
     for name, arrays in splits.items():
         n = check_fields(CROP_FIELDS, arrays, f"split {name!r}")
-        counts[name] = {"n": n, "positive": int(np.asarray(arrays["labels"]).sum())}
+        counts[name] = crop_counts(n, int(np.asarray(arrays["labels"]).sum()))
     for name, arrays in splits.items():
         for f in CROP_FIELDS:
             atomic.save_npy(path / name / f"{f}.npy", arrays[f])
-    manifest = {
-        "format": CROP_FORMAT,
-        "format_version": FORMAT_VERSION,
-        "architecture": arch,
-        "geometry": geometry.to_dict(),
-        "kappa_px": geometry.kappa_px,
-        "intrinsics": intrinsics.to_dict(),
-        "label_threshold": label_threshold,
-        "counts": counts,
-        "source": source or {},
-        "recipe": recipe or {},
-    }
-    atomic.write_json(path / "manifest.json", manifest)
-    return manifest
+    return write_crop_manifest(path, arch, geometry, counts, label_threshold, source or {},
+                               intrinsics=intrinsics.to_dict(), recipe=recipe or {})
 
 
 def synthetic_split(

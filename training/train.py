@@ -4,6 +4,9 @@ The data order is ``DistributedSampler`` over the training split (one replica wi
 torchrun), reshuffled per epoch with the config's seed, so a resumed run reads exactly the
 batches the killed run would have read next. The global batch is ``config.batch_size``,
 split evenly over the processes; rank 0 alone writes the run folder.
+
+The loop state is one :class:`TrainState`; a checkpoint is one dict
+(:func:`checkpoint_dict`): weights, optimizer, config, normalisation, that state, dataset facts.
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +50,54 @@ class TrainResult:
     best_val_balanced_accuracy: float
     last_val: dict
     wall_time_s: float
+
+
+@dataclass
+class TrainState:
+    """Where a run stands: the loop state saved in each checkpoint (``ckpt["state"]``).
+
+    ``(epoch, batch_in_epoch)`` is the position in the data order, so a resumed run reads the
+    very batches the killed one would have read next. ``wall_time_s`` (seconds) adds up over
+    resumes; ``best_val_balanced_accuracy`` is NaN until a validation gives a finite one.
+    """
+
+    step: int = 0
+    samples_seen: int = 0
+    epoch: int = 0
+    batch_in_epoch: int = 0
+    best_val_balanced_accuracy: float = float("nan")
+    best_step: int = -1
+    wall_time_s: float = 0.0
+    world_size: int = 1
+
+    def advance(self, batch_size: int) -> None:
+        """One optimizer step on a global batch of ``batch_size`` samples."""
+        self.step += 1
+        self.batch_in_epoch += 1
+        self.samples_seen += batch_size
+
+    def next_epoch(self) -> None:
+        self.epoch += 1
+        self.batch_in_epoch = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str = "checkpoint") -> "TrainState":
+        """The state as saved by this code or by the dict-based loop before it (same keys,
+        checkpoint version 1). CheckpointError naming what is missing or malformed."""
+        missing = [k for k in ("step", "samples_seen", "epoch", "batch_in_epoch") if k not in d]
+        if missing:
+            raise CheckpointError(f"{where}: its training state lacks {missing}; it cannot be resumed")
+        kw = {}
+        for f in fields(cls):
+            if d.get(f.name) is not None:
+                try:
+                    kw[f.name] = type(f.default)(d[f.name])
+                except (TypeError, ValueError) as e:
+                    raise CheckpointError(f"{where}: training state {f.name}={d[f.name]!r} is not a number ({e})") from e
+        return cls(**kw)
 
 
 @dataclass(frozen=True)
@@ -123,14 +174,13 @@ def _trim_log(path: Path, samples: int) -> None:
     atomic.write_bytes(path, ("\n".join(keep) + "\n" if keep else "").encode())
 
 
-def _check_resume_config(saved: dict, cfg: TrainConfig) -> TrainConfig:
+def _check_resume_config(saved: dict, cfg: TrainConfig) -> None:
     diff = sorted(k for k, v in cfg.to_dict().items() if k not in RESUMABLE_CHANGES and saved.get(k) != v)
     if diff:
         raise CheckpointError(
             "cannot resume with a different configuration: "
             + ", ".join(f"{k}={cfg.to_dict()[k]!r} (checkpoint: {saved.get(k)!r})" for k in diff)
         )
-    return cfg
 
 
 def _check_resume_dataset(saved: dict, data: CropDataset) -> None:
@@ -141,6 +191,101 @@ def _check_resume_dataset(saved: dict, data: CropDataset) -> None:
                 f"cannot resume on a different dataset: {k} is {now.get(k)!r} in {data.path}, "
                 f"{saved.get(k)!r} in the checkpoint's dataset {saved.get('path')}"
             )
+
+
+def _open_data(cfg: TrainConfig, data_dir, d: _Dist) -> tuple[CropDataset, CropSplit, CropSplit]:
+    """The crop dataset and its train / val splits, checked to suit ``cfg`` on ``d.world`` processes."""
+    data = open_crop_dataset(data_dir)
+    data.check_arch(cfg.arch)
+    train_split, val_split = data.split("train"), data.split("val")
+    if cfg.batch_size % d.world:
+        raise ValueError(f"batch_size {cfg.batch_size} is not divisible by the {d.world} processes")
+    if len(train_split) < cfg.batch_size:
+        raise DatasetError(f"training split has {len(train_split)} rows, fewer than one batch ({cfg.batch_size})")
+    n_pos = int(np.asarray(train_split.labels).sum())
+    if d.main and n_pos in (0, len(train_split)):
+        print(f"warning: the training split of {data.path} has only one class "
+              f"({n_pos} positive of {len(train_split)}); nothing to learn", file=sys.stderr)
+    return data, train_split, val_split
+
+
+def _checkpoint_to_resume(paths: RunPaths, resume: bool, cfg: TrainConfig, data: CropDataset) -> dict | None:
+    """``last.pt`` when resuming (checked against ``cfg`` and ``data``), None on a fresh start."""
+    if not paths.last.is_file():
+        return None
+    if not resume:
+        raise CheckpointError(f"run folder {paths.root} already holds a checkpoint; pass --resume or another --out")
+    ckpt = load_checkpoint(paths.last)
+    _check_resume_config(ckpt["config"], cfg)
+    _check_resume_dataset(ckpt["dataset"], data)
+    return ckpt
+
+
+def _optimizer(cfg: TrainConfig, net: GraspQualityNet) -> torch.optim.Optimizer:
+    if cfg.optimizer == "adamw":
+        return torch.optim.AdamW(net.parameters(), lr=cfg.base_lr, weight_decay=cfg.weight_decay)
+    return torch.optim.SGD(net.parameters(), lr=cfg.base_lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+
+
+def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit, ckpt: dict | None, paths: RunPaths):
+    """(net with its normalisation, optimizer, Normalization, TrainState, last validation, best validation):
+    fresh (normalisation from the training split) or as saved in ``ckpt``."""
+    torch.manual_seed(cfg.seed)
+    net = GraspQualityNet(cfg.arch, image_size=data.geometry.out)
+    opt = _optimizer(cfg, net)
+    best_val: dict = {}
+    if ckpt is None:
+        norm = Normalization.from_data(train_split.arrays["images"], train_split.poses(cfg.arch), net.pose_columns)
+        state, last_val = TrainState(), {}
+    else:
+        net.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        norm = Normalization.from_dict(ckpt["normalization"])
+        state, last_val = TrainState.from_dict(ckpt["state"], str(paths.last)), dict(ckpt.get("val") or {})
+        if paths.best.is_file():
+            best_val = dict(load_checkpoint(paths.best).get("val") or {})
+    net.set_normalization(norm)
+    return net, opt, norm, state, last_val, best_val
+
+
+def checkpoint_dict(cfg: TrainConfig, net: GraspQualityNet, opt: torch.optim.Optimizer | None, norm: Normalization,
+                    state: TrainState, data_info: dict, data: CropDataset, val: dict) -> dict:
+    """The one checkpoint layout (version CHECKPOINT_VERSION): tensors and plain containers
+    only, so it loads with ``weights_only=True``. ``opt`` None (best.pt: for evaluation and
+    export, never resumed from) stores no optimizer state."""
+    return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "arch": cfg.arch,
+            "model": net.state_dict(), "optimizer": None if opt is None else opt.state_dict(),
+            "config": cfg.to_dict(), "normalization": norm.to_dict(), "state": state.to_dict(),
+            "dataset": data_info, "geometry": data.geometry.to_dict(), "intrinsics": data.intrinsics.to_dict(),
+            "val": M.nan_to_none(val)}
+
+
+def _sgd_step(model: torch.nn.Module, opt: torch.optim.Optimizer, batch, lr: float, weights) -> float:
+    """One optimizer step at learning rate ``lr`` on ``(images, poses, labels)``; the loss."""
+    for g in opt.param_groups:
+        g["lr"] = lr
+    img, pose, lab = batch
+    loss = F.cross_entropy(model(img, pose), lab, weight=weights)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return loss.item()
+
+
+class _MetricsLog:
+    """``metrics.jsonl`` lines (rank 0 only; other ranks write nothing)."""
+
+    def __init__(self, path: Path, enabled: bool):
+        self._f = open(path, "a") if enabled else None
+
+    def write(self, rec: dict) -> None:
+        if self._f is not None:
+            self._f.write(json.dumps(M.nan_to_none(rec)) + "\n")
+            self._f.flush()
+
+    def close(self) -> None:
+        if self._f is not None:
+            self._f.close()
 
 
 def train(
@@ -158,157 +303,91 @@ def train(
     """
     d = _init_distributed()
     cfg = config
-    data = open_crop_dataset(data_dir)
-    data.check_arch(cfg.arch)
-    train_split, val_split = data.split("train"), data.split("val")
+    data, train_split, val_split = _open_data(cfg, data_dir, d)
     paths = RunPaths(Path(run_dir))
-    if cfg.batch_size % d.world:
-        raise ValueError(f"batch_size {cfg.batch_size} is not divisible by the {d.world} processes")
-    local_batch = cfg.batch_size // d.world
-    if len(train_split) < cfg.batch_size:
-        raise DatasetError(f"training split has {len(train_split)} rows, fewer than one batch ({cfg.batch_size})")
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
-    n_pos = int(np.asarray(train_split.labels).sum())
-    if d.main and n_pos in (0, len(train_split)):
-        print(f"warning: the training split of {data.path} has only one class "
-              f"({n_pos} positive of {len(train_split)}); nothing to learn", file=sys.stderr)
+    ckpt = _checkpoint_to_resume(paths, resume, cfg, data)
 
-    ckpt = None
-    if paths.last.is_file():
-        if not resume:
-            raise CheckpointError(f"run folder {paths.root} already holds a checkpoint; pass --resume or another --out")
-        ckpt = load_checkpoint(paths.last)
-        cfg = _check_resume_config(ckpt["config"], cfg)
-        _check_resume_dataset(ckpt["dataset"], data)
-
-    torch.manual_seed(cfg.seed)
-    net = GraspQualityNet(cfg.arch, image_size=data.geometry.out)
-    if cfg.optimizer == "adamw":
-        opt = torch.optim.AdamW(net.parameters(), lr=cfg.base_lr, weight_decay=cfg.weight_decay)
-    else:
-        opt = torch.optim.SGD(net.parameters(), lr=cfg.base_lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
-    if ckpt is not None:
-        net.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["optimizer"])
-        norm = Normalization.from_dict(ckpt["normalization"])
-        st = dict(ckpt["state"])
-        last_val = dict(ckpt.get("val") or {})
-    else:
-        norm = Normalization.from_data(train_split.arrays["images"], train_split.poses(cfg.arch), net.pose_columns)
-        st = {"step": 0, "samples_seen": 0, "epoch": 0, "batch_in_epoch": 0,
-              "best_val_balanced_accuracy": float("nan"), "best_step": -1, "wall_time_s": 0.0}
-        last_val = {}
-    net.set_normalization(norm)
-    best = float(st["best_val_balanced_accuracy"])
-    best_val = {}
-    if ckpt is not None and paths.best.is_file():
-        best_val = dict(load_checkpoint(paths.best).get("val") or {})
+    net, opt, norm, state, last_val, best_val = _start_or_resume(cfg, data, train_split, ckpt, paths)
+    state.world_size = d.world
     model = DistributedDataParallel(net) if d.world > 1 else net
     weights = _class_weights(train_split) if cfg.class_balance == "loss_weights" else None
-    dinfo = data.info()  # counts read once
+    data_info = data.info()  # counts read once
 
     if d.main:
         paths.root.mkdir(parents=True, exist_ok=True)
-        # drop log lines written after the checkpoint (all of them on a fresh start)
-        _trim_log(paths.metrics, int(st["samples_seen"]) if ckpt is not None else -1)
-        atomic.write_json(paths.run_json, _run_info(cfg, data, norm, st, d, finished=False))
+        _trim_log(paths.metrics, state.samples_seen if ckpt is not None else -1)  # all lines on a fresh start
+        atomic.write_json(paths.run_json, _run_info(cfg, data, norm, state, finished=False))
     d.barrier()
 
-    t0 = time.time()
-    wall0 = float(st["wall_time_s"])
+    t0, wall0 = time.time(), state.wall_time_s
 
-    def state_now() -> dict:
-        return {**st, "best_val_balanced_accuracy": best, "wall_time_s": wall0 + time.time() - t0, "world_size": d.world}
-
-    def checkpoint(kind: str, val: dict) -> None:
-        if not d.main:
-            return
-        # best.pt is for evaluation and export, never resumed from: no optimizer state
-        ck = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "arch": cfg.arch,
-              "model": net.state_dict(), "optimizer": opt.state_dict() if kind == "last" else None,
-              "config": cfg.to_dict(),
-              "normalization": norm.to_dict(), "state": state_now(), "dataset": dinfo,
-              "geometry": data.geometry.to_dict(), "intrinsics": data.intrinsics.to_dict(),
-              "val": M.nan_to_none(val)}
-        save_checkpoint(paths.last if kind == "last" else paths.best, ck)
-
-    log_f = open(paths.metrics, "a") if d.main else None
-
-    def log(rec: dict) -> None:
-        if log_f is not None:
-            log_f.write(json.dumps(M.nan_to_none(rec)) + "\n")
-            log_f.flush()
+    def save(path: Path, val: dict, with_optimizer: bool) -> None:
+        state.wall_time_s = wall0 + time.time() - t0
+        if d.main:
+            save_checkpoint(path, checkpoint_dict(cfg, net, opt if with_optimizer else None, norm, state, data_info, data, val))
 
     total_steps = math.ceil(cfg.samples / cfg.batch_size)
+    local_batch = cfg.batch_size // d.world
     sampler = DistributedSampler(range(len(train_split)), num_replicas=d.world, rank=d.rank,
                                  shuffle=True, seed=cfg.seed, drop_last=True)
-    bar = tqdm(total=total_steps * cfg.batch_size, initial=min(st["samples_seen"], total_steps * cfg.batch_size),
+    bar = tqdm(total=total_steps * cfg.batch_size, initial=min(state.samples_seen, total_steps * cfg.batch_size),
                unit="sample", unit_scale=True, desc=f"train {cfg.arch}", disable=not (progress and d.main),
                dynamic_ncols=True)
+    log = _MetricsLog(paths.metrics, d.main)
     loss_acc, loss_n, ema = 0.0, 0, None
     net.train()
     try:
-        while st["step"] < total_steps:
-            sampler.set_epoch(int(st["epoch"]))
+        while state.step < total_steps:
+            sampler.set_epoch(state.epoch)
             order = np.fromiter(iter(sampler), dtype=np.int64, count=len(sampler))
             n_batches = len(order) // local_batch  # BatchSampler(sampler, local_batch, drop_last=True)
-            for bi in range(int(st["batch_in_epoch"]), n_batches):
-                b = order[bi * local_batch : (bi + 1) * local_batch]
-                lr = cfg.lr_at(st["samples_seen"])
-                for g in opt.param_groups:
-                    g["lr"] = lr
-                img, pose, lab = train_split.batch(b, cfg.arch)
-                loss = F.cross_entropy(model(img, pose), lab, weight=weights)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                st["step"] += 1
-                st["batch_in_epoch"] += 1
-                st["samples_seen"] += cfg.batch_size
-                lv = loss.item()
-                loss_acc, loss_n = loss_acc + lv, loss_n + 1
-                ema = lv if ema is None else 0.95 * ema + 0.05 * lv
+            for bi in range(state.batch_in_epoch, n_batches):
+                lr = cfg.lr_at(state.samples_seen)
+                batch = train_split.batch(order[bi * local_batch : (bi + 1) * local_batch], cfg.arch)
+                loss = _sgd_step(model, opt, batch, lr, weights)
+                state.advance(cfg.batch_size)
+                loss_acc, loss_n = loss_acc + loss, loss_n + 1
+                ema = loss if ema is None else 0.95 * ema + 0.05 * loss
                 bar.update(cfg.batch_size)
-                post = {"loss": f"{ema:.4f}", "lr": f"{lr:.2e}"}
-                if last_val:
-                    post["val_bacc"] = f"{last_val.get('balanced_accuracy', float('nan')):.3f}"
-                bar.set_postfix(post, refresh=False)
-                done = st["step"] >= total_steps
-                if st["step"] % cfg.log_every_steps == 0 or done:
-                    log({"kind": "train", "step": st["step"], "samples": st["samples_seen"], "epoch": st["epoch"],
-                         "loss": loss_acc / loss_n, "lr": lr, "wall_time_s": wall0 + time.time() - t0})
+                bar.set_postfix({"loss": f"{ema:.4f}", "lr": f"{lr:.2e}",
+                                 **({"val_bacc": f"{last_val.get('balanced_accuracy', math.nan):.3f}"} if last_val else {})},
+                                refresh=False)
+                done = state.step >= total_steps
+                if state.step % cfg.log_every_steps == 0 or done:
+                    log.write({"kind": "train", "step": state.step, "samples": state.samples_seen, "epoch": state.epoch,
+                               "loss": loss_acc / loss_n, "lr": lr, "wall_time_s": wall0 + time.time() - t0})
                     loss_acc, loss_n = 0.0, 0
-                if _crossed(st["samples_seen"], cfg.batch_size, cfg.val_every_samples) or done:
+                if _crossed(state.samples_seen, cfg.batch_size, cfg.val_every_samples) or done:
                     last_val = _validate(net, val_split, cfg, d)
-                    log({"kind": "val", "step": st["step"], "samples": st["samples_seen"], **last_val})
-                    if _better(last_val["balanced_accuracy"], best):
-                        best = last_val["balanced_accuracy"]
-                        st["best_step"] = st["step"]
+                    log.write({"kind": "val", "step": state.step, "samples": state.samples_seen, **last_val})
+                    if _better(last_val["balanced_accuracy"], state.best_val_balanced_accuracy):
+                        state.best_val_balanced_accuracy, state.best_step = last_val["balanced_accuracy"], state.step
                         best_val = dict(last_val)
-                        checkpoint("best", last_val)
-                    checkpoint("last", last_val)
+                        save(paths.best, last_val, with_optimizer=False)
+                    save(paths.last, last_val, with_optimizer=True)
                     d.barrier()
-                elif _crossed(st["samples_seen"], cfg.batch_size, cfg.checkpoint_every_samples):
-                    checkpoint("last", last_val)
+                elif _crossed(state.samples_seen, cfg.batch_size, cfg.checkpoint_every_samples):
+                    save(paths.last, last_val, with_optimizer=True)
                 if done:
                     break
-            if st["batch_in_epoch"] >= n_batches:
-                st["epoch"] += 1
-                st["batch_in_epoch"] = 0
+            if state.batch_in_epoch >= n_batches:
+                state.next_epoch()
     finally:
         bar.close()
-        if log_f is not None:
-            log_f.close()
+        log.close()
+    if d.main and not paths.best.is_file():  # no finite balanced accuracy (e.g. one class in val): keep last
+        save(paths.best, last_val, with_optimizer=False)
+    state.wall_time_s = wall0 + time.time() - t0
     if d.main:
-        if not paths.best.is_file():  # no finite balanced accuracy (e.g. one class in val): keep last
-            checkpoint("best", last_val)
-        atomic.write_json(paths.run_json, _run_info(cfg, data, norm, state_now(), d, finished=True, best_val=best_val))
+        atomic.write_json(paths.run_json, _run_info(cfg, data, norm, state, finished=True, best_val=best_val))
     d.barrier()
-    return TrainResult(paths.root, int(st["step"]), int(st["samples_seen"]), best, last_val, wall0 + time.time() - t0)
+    return TrainResult(paths.root, state.step, state.samples_seen, state.best_val_balanced_accuracy, last_val,
+                       state.wall_time_s)
 
 
-def _run_info(cfg: TrainConfig, data: CropDataset, norm: Normalization, st: dict, d: _Dist,
+def _run_info(cfg: TrainConfig, data: CropDataset, norm: Normalization, state: TrainState,
               finished: bool, best_val: dict | None = None) -> dict:
     return {
         "arch": cfg.arch,
@@ -318,7 +397,6 @@ def _run_info(cfg: TrainConfig, data: CropDataset, norm: Normalization, st: dict
         "intrinsics": data.intrinsics.to_dict(),
         "intrinsics_from_manifest": data.intrinsics_from_manifest,
         "normalization": norm.to_dict(),
-        "training": {**{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in st.items()},
-                     "world_size": d.world, "finished": finished, "torch": torch.__version__},
+        "training": {**M.nan_to_none(state.to_dict()), "finished": finished, "torch": torch.__version__},
         "best_validation": M.nan_to_none(best_val or {}),
     }

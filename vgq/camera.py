@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from PIL import Image
 
 
 @dataclass(frozen=True)
@@ -63,3 +64,97 @@ def deproject(uvz: np.ndarray, intr: Intrinsics = DEFAULT_INTRINSICS) -> np.ndar
     x = (a[:, 0] - intr.cx) * a[:, 2] / intr.fx
     y = (a[:, 1] - intr.cy) * a[:, 2] / intr.fy
     return np.stack([x, y, a[:, 2]], axis=1)
+
+
+# ----------------------------------------------------------------------------- resampling
+
+#: Focal lengths a client camera may have, as a ratio of the model's (fx_model / fx_camera):
+#: images are resampled by this ratio, so 0.5-2 keeps the resampled image between half and
+#: twice the upload's size and the object's scale within what a resize reproduces faithfully.
+FOCAL_RATIO_RANGE: tuple[float, float] = (0.5, 2.0)
+#: A focal length within this relative tolerance of the model's is used as is (no resampling).
+FOCAL_TOLERANCE: float = 0.005
+#: A resampled pixel is valid when at least this share of its bilinear weight fell on valid
+#: (finite, > 0) source pixels; otherwise it is 0, "no reading".
+MIN_VALID_WEIGHT: float = 0.5
+
+
+class CameraMismatch(ValueError):
+    """Camera intrinsics the model cannot be applied to; ``field`` names the offending value."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(message)
+        self.field = field
+
+
+def check_client_intrinsics(camera: Intrinsics, model: Intrinsics) -> tuple[float, float]:
+    """Scale factors (sx, sy) = (model fx / camera fx, model fy / camera fy) that bring an
+    image of ``camera`` to the model's focal lengths. Raises :class:`CameraMismatch` when a
+    ratio is outside :data:`FOCAL_RATIO_RANGE` or the principal point lies outside the image."""
+    lo, hi = FOCAL_RATIO_RANGE
+    for name, size in (("cx", camera.width), ("cy", camera.height)):
+        c = getattr(camera, name)
+        if not (-0.5 <= c <= size - 0.5):
+            raise CameraMismatch(name, f"{name} = {c} px lies outside the image (0 to {size - 1} px)")
+    ratios = []
+    for name in ("fx", "fy"):
+        f, fm = getattr(camera, name), getattr(model, name)
+        r = fm / f
+        if not lo <= r <= hi:
+            raise CameraMismatch(
+                name, f"{name} = {f:g} px is outside the range this model serves: {fm / hi:g} to {fm / lo:g} px "
+                f"({lo:g}x to {hi:g}x the model's focal length ratio; the model was trained at {name} = {fm:g} px)"
+            )
+        ratios.append(1.0 if abs(r - 1.0) <= FOCAL_TOLERANCE else r)
+    return ratios[0], ratios[1]
+
+
+def resampled_intrinsics(camera: Intrinsics, sx: float, sy: float) -> Intrinsics:
+    """Intrinsics of ``camera``'s image resized by (sx, sy): pixel centres on integers, so
+    an edge at -0.5 px stays at -0.5 px and c' = (c + 0.5) * s - 0.5."""
+    w, h = max(1, int(round(camera.width * sx))), max(1, int(round(camera.height * sy)))
+    sx_eff, sy_eff = w / camera.width, h / camera.height
+    return Intrinsics(
+        fx=camera.fx * sx_eff, fy=camera.fy * sy_eff,
+        cx=(camera.cx + 0.5) * sx_eff - 0.5, cy=(camera.cy + 0.5) * sy_eff - 0.5, width=w, height=h,
+    )
+
+
+def map_pixels(uv: np.ndarray, src: Intrinsics, dst: Intrinsics) -> np.ndarray:
+    """Pixel coordinates (n, 2) of ``src``'s image in ``dst``'s (same camera pose, other
+    intrinsics): the same viewing ray, u' = (u - cx) * fx' / fx + cx'."""
+    a = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    return np.stack(
+        [(a[:, 0] - src.cx) * dst.fx / src.fx + dst.cx, (a[:, 1] - src.cy) * dst.fy / src.fy + dst.cy], axis=1
+    )
+
+
+def resample_depth(depth: np.ndarray, camera: Intrinsics, model: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
+    """Resize a depth image (H, W, metres; 0 or non-finite = no reading) taken with
+    ``camera`` to ``model``'s focal lengths: returns (depth', intrinsics').
+
+    Depth values are metric and stay as they are; only the pixel grid changes. Bilinear
+    (Pillow, antialiased when shrinking) over valid pixels only: a resampled pixel is the
+    weighted mean of the valid source pixels under it, and 0 where less than
+    :data:`MIN_VALID_WEIGHT` of its weight was valid, so missing readings never blend into
+    false depths. An image already at the model's focal lengths comes back unchanged."""
+    sx, sy = check_client_intrinsics(camera, model)
+    d = np.asarray(depth, dtype=np.float32)
+    if d.shape != (camera.height, camera.width):
+        raise CameraMismatch("width", f"image is {d.shape[1]}x{d.shape[0]} px but the intrinsics say "
+                                      f"{camera.width}x{camera.height}")
+    if sx == 1.0 and sy == 1.0:
+        return d, camera
+    dst = resampled_intrinsics(camera, sx, sy)
+    valid = np.isfinite(d) & (d > 0)
+    size = (dst.width, dst.height)
+
+    def _resize(a: np.ndarray) -> np.ndarray:
+        return np.asarray(Image.fromarray(a).resize(size, Image.Resampling.BILINEAR), dtype=np.float32)
+
+    w = _resize(valid.astype(np.float32))
+    s = _resize(np.where(valid, d, 0.0).astype(np.float32))
+    out = np.zeros_like(s)
+    ok = w >= MIN_VALID_WEIGHT
+    out[ok] = s[ok] / w[ok]
+    return out, dst

@@ -103,6 +103,20 @@ def in_training_range(grasp_uv, window_centre_uv, geom: CropGeometry) -> np.ndar
     return np.all(off <= geom.kappa_px + 1e-9, axis=-1)
 
 
+def grid_window_centers(grasp_uv, image_shape, geom: CropGeometry) -> np.ndarray:
+    """Window centres (n, 2) for grasps anywhere in an image: each grasp goes to the nearest
+    centre of a fixed grid with spacing ``2 * floor(kappa_px)`` anchored on the image's
+    central window, so its offset is within +/- kappa (per axis), as in the training crops,
+    and grasps near each other share a window (encoded once). ``image_shape`` is (H, W)."""
+    step = 2 * int(np.floor(geom.kappa_px))
+    if step < 1:
+        raise ValueError(f"a window grid needs kappa_px >= 1 px, got {geom.kappa_px}")
+    h, w = image_shape
+    anchor = window_center(window_origin([[(w - 1) / 2, (h - 1) / 2]], geom), geom)[0]
+    g = np.asarray(grasp_uv, dtype=np.float64).reshape(-1, 2)
+    return anchor + np.round((g - anchor) / step) * step
+
+
 def rotated_crop(depth: np.ndarray, center_uv, angle_rad: float, geom: CropGeometry) -> np.ndarray:
     """GQ-CNN crop: the window centred on ``center_uv`` after rotating the image by
     ``angle_rad`` about that point, so that an in-image grasp axis at ``angle_rad``

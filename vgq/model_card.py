@@ -2,7 +2,8 @@
 
 It states everything a consumer needs to feed the graphs correctly: architecture, crop
 geometry and intrinsics it was trained for, normalisation (already inside the graphs;
-recorded for reference), graph file names and I/O names, dataset and metrics.
+recorded for reference), graph file names and I/O names, dataset and metrics, and the
+calibration of its probabilities (``vgq.calibration``; empty when exported without one).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from . import atomic
+from .calibration import Calibration
 from .camera import Intrinsics
 from .crop import CropGeometry
 from .normalization import Normalization
@@ -42,6 +44,12 @@ class ModelCard:
     metrics: dict = field(default_factory=dict)
     export: dict = field(default_factory=dict)
     label_threshold: float = 0.002
+    #: Calibration.to_dict() + how it was fitted and measured (export.calibrate); {} if none
+    calibration: dict = field(default_factory=dict)
+
+    def calibrator(self) -> Calibration | None:
+        """The map raw P(success) -> calibrated P(success) (None: the card has no calibration)."""
+        return Calibration.from_dict(self.calibration) if self.calibration else None
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -68,6 +76,7 @@ class ModelCard:
             metrics=dict(d.get("metrics", {})),
             export=dict(d.get("export", {})),
             label_threshold=float(d.get("label_threshold", 0.002)),
+            calibration=dict(d.get("calibration") or {}),
         )
 
     def save(self, model_dir: str | Path) -> None:

@@ -30,26 +30,44 @@ def pose_column_indices(arch: str) -> list[int]:
     return [FULL_POSE_COLUMNS.index(c) for c in POSE_COLUMNS[arch]]
 
 
-def canonical_quaternion(q: np.ndarray, eps: float = 1e-12) -> np.ndarray:
-    """Normalise (..., 4) quaternions (w, x, y, z) and flip their sign so w >= 0.
+class PoseError(ValueError):
+    """Pose rows that cannot be used; ``indices``: the offending rows (the first
+    ``MAX_LISTED``), so a caller can name them."""
 
-    Raises ValueError for zero-norm or non-finite quaternions.
+    MAX_LISTED = 20
+
+    def __init__(self, message: str, indices=()):
+        super().__init__(message)
+        self.indices = [int(i) for i in list(indices)[: self.MAX_LISTED]]
+
+
+def canonical_quaternion(q: np.ndarray, eps: float = 1e-12) -> np.ndarray:
+    """Normalise (..., 4) quaternions (w, x, y, z) and flip their sign so w >= 0 (for
+    |w| <= 1e-12 after normalising: the first non-zero of x, y, z positive).
+
+    Raises PoseError (a ValueError) naming the rows with zero-norm or non-finite quaternions.
     """
     q = np.asarray(q, dtype=np.float64)
     if q.shape[-1] != 4:
-        raise ValueError(f"quaternions must have 4 components (w, x, y, z), got shape {q.shape}")
-    if not np.all(np.isfinite(q)):
-        raise ValueError("quaternion has non-finite components")
-    n = np.linalg.norm(q, axis=-1, keepdims=True)
-    if np.any(n < eps):
-        raise ValueError("quaternion has zero norm")
-    q = q / n
-    # sign: first non-zero component among (w, x, y, z) positive
+        raise PoseError(f"quaternions must have 4 components (w, x, y, z), got shape {q.shape}")
+    flat = q.reshape(-1, 4)
+    bad = ~np.isfinite(flat).all(axis=1)
+    if bad.any():
+        raise PoseError(f"{int(bad.sum())} quaternions have non-finite components", np.flatnonzero(bad))
+    m = np.abs(flat).max(axis=1, initial=0.0)  # largest |component|: scale first, no overflow up to 1e308
+    bad = m < eps
+    if bad.any():
+        raise PoseError(f"{int(bad.sum())} quaternions have zero norm", np.flatnonzero(bad))
+    u = flat / m[:, None]
+    u /= np.sqrt(np.einsum("ij,ij->i", u, u))[:, None]
     tol = 1e-12
-    nz = np.abs(q) > tol
-    first = np.argmax(nz, axis=-1)
-    lead = np.take_along_axis(q, first[..., None], axis=-1)
-    return q * np.where(lead < 0, -1.0, 1.0)
+    sign = np.where(u[:, 0] < 0, -1.0, 1.0)
+    tiny = np.abs(u[:, 0]) <= tol  # rare: w ~ 0, the first non-zero of (x, y, z) decides
+    if tiny.any():
+        t = u[tiny]
+        first = np.argmax(np.abs(t) > tol, axis=1)
+        sign[tiny] = np.where(t[np.arange(len(t)), first] < 0, -1.0, 1.0)
+    return (u * sign[:, None]).reshape(q.shape)
 
 
 def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:

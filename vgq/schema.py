@@ -11,7 +11,8 @@ Two on-disk datasets exist (both folders with a ``manifest.json``, written atomi
 
 **Crop dataset** (``datagen crops``), format ``vgq-crops`` v1, training-ready::
 
-    manifest.json          source dataset, crop geometry, architecture, counts per split
+    manifest.json          source dataset, crop geometry, architecture, counts per split,
+                           native counts (written by :func:`write_crop_manifest` only)
     <split>/<field>.npy    split in train / val / test; CROP_FIELDS, one row per grasp,
                            plain .npy so training can memory-map them
 
@@ -25,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import atomic
+from .crop import CropGeometry
 from .pose import FULL_POSE_COLUMNS
 
 GRASP_FORMAT = "vgq-grasps"
@@ -111,4 +114,59 @@ def read_manifest(root: str | Path, expected_format: str, error: type[Exception]
         raise error(f"{p}: format {fmt!r}, expected {expected_format!r}")
     if m.get("format_version") != FORMAT_VERSION:
         raise error(f"{p}: format_version {m.get('format_version')!r}, expected {FORMAT_VERSION}")
+    return m
+
+
+def crop_counts(n: int, positive: int, **extra) -> dict:
+    """One entry of a crop manifest's ``counts`` (or its ``native_counts``): rows ``n``,
+    ``positive`` rows and ``positivity`` = positive / n (a fraction, 0 when empty), plus
+    ``extra`` (e.g. ``objects``: the object ids of a split)."""
+    n, positive = int(n), int(positive)
+    if n < 0 or not 0 <= positive <= n:
+        raise ValueError(f"crop counts need 0 <= positive <= n, got positive={positive}, n={n}")
+    return {"n": n, "positive": positive, "positivity": positive / n if n else 0.0, **extra}
+
+
+def write_crop_manifest(
+    root: str | Path,
+    architecture: str,
+    geometry: CropGeometry,
+    counts: dict[str, dict],
+    label_threshold: float,
+    source: dict,
+    intrinsics: dict | None = None,
+    native_counts: dict | None = None,
+    **extra,
+) -> dict:
+    """Write ``root/manifest.json`` of a ``vgq-crops`` dataset atomically (after its split
+    arrays: a dataset is complete once its manifest exists) and return it. The one writer;
+    :func:`read_manifest` is its reader.
+
+    ``counts``: split -> :func:`crop_counts`. ``intrinsics``: a ``vgq.camera.Intrinsics``
+    dict (omitted: readers assume the default sensor). ``native_counts``: :func:`crop_counts`
+    of the grasps before any resampling (``datagen sample``'s psi filter, positivity
+    equalisation and uniform undersampling), the positivity a deployed model meets;
+    default: the crops themselves (all splits), i.e. a dataset that was not resampled.
+    ``extra``: further top-level keys (``recipe``, ``seed``, ``versions``, ...).
+    """
+    for name, c in counts.items():
+        if name not in SPLITS or not {"n", "positive", "positivity"} <= set(c):
+            raise ValueError(f"crop manifest counts: bad entry {name!r}: {c} (need a split of {SPLITS} with n, positive, positivity)")
+    if native_counts is None:
+        native_counts = crop_counts(sum(c["n"] for c in counts.values()), sum(c["positive"] for c in counts.values()))
+    m = {
+        "format": CROP_FORMAT,
+        "format_version": FORMAT_VERSION,
+        "architecture": architecture,
+        "geometry": geometry.to_dict(),
+        "kappa_px": geometry.kappa_px,
+        "pose_columns": list(FULL_POSE_COLUMNS),
+        "label_threshold": float(label_threshold),
+        "counts": counts,
+        "native_counts": native_counts,
+        "source": source,
+        **({"intrinsics": dict(intrinsics)} if intrinsics else {}),
+        **extra,
+    }
+    atomic.write_json(Path(root) / MANIFEST, m)
     return m

@@ -1,0 +1,101 @@
+"""The one path every number taken from a request goes through: query parameters, multipart
+fields and .npz members alike. A ``Number`` names its field, checks the value (finite, in
+range, integral where it must be; booleans are not numbers) and describes itself for the
+OpenAPI document, so the schema and the check cannot disagree.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import ApiError
+
+MAX_INT = 2**31 - 1  # integer fields (image sides) are bounded before any arithmetic on them
+MAX_TEXT = 64  # characters of a number given as text (a 400-digit number is refused by length)
+
+
+@dataclass(frozen=True)
+class Number:
+    """A numeric request field. Bounds: ``minimum`` / ``maximum`` inclusive, ``exclusive_minimum``
+    strict; ``integer`` fields must hold a whole number (``3`` or ``3.0``)."""
+
+    name: str
+    description: str
+    integer: bool = False
+    minimum: float | None = None
+    exclusive_minimum: float | None = None
+    maximum: float | None = None
+
+    def parse(self, raw) -> float | int | None:
+        """``raw``: None or "" (absent) -> None; text (query, form field) or a number (array
+        element) -> float / int. Raises ApiError 422 naming the field."""
+        if raw is None or (isinstance(raw, str) and raw == ""):
+            return None
+        if isinstance(raw, (bool, np.bool_)):
+            self._fail(raw, "a number, not true / false")
+        if isinstance(raw, (bytes, bytearray)):
+            raw = raw.decode("latin-1")
+        if isinstance(raw, str):
+            if len(raw) > MAX_TEXT:
+                self._fail(raw, f"a number of at most {MAX_TEXT} characters")
+            try:
+                v = float(raw.strip())
+            except ValueError:
+                self._fail(raw, "an integer" if self.integer else "a number")
+        else:
+            try:
+                v = float(raw)
+            except (TypeError, ValueError, OverflowError):
+                self._fail(raw, "an integer" if self.integer else "a number")
+        if not math.isfinite(v):
+            self._fail(raw, "finite")
+        if self.integer and v != math.floor(v):
+            self._fail(raw, "an integer")
+        if self.minimum is not None and v < self.minimum:
+            self._fail(raw, f">= {self.minimum:g}")
+        if self.exclusive_minimum is not None and v <= self.exclusive_minimum:
+            self._fail(raw, f"> {self.exclusive_minimum:g}")
+        maximum = self.maximum if self.maximum is not None else (MAX_INT if self.integer else None)
+        if maximum is not None and v > maximum:
+            self._fail(raw, f"<= {maximum:g}")
+        return int(v) if self.integer else v
+
+    def _fail(self, raw, what: str):
+        shown = raw if not isinstance(raw, str) or len(raw) <= 24 else raw[:20] + "..."
+        raise ApiError(422, f"field {self.name} must be {what}, got {shown!r}")
+
+    def schema(self) -> dict:
+        s: dict = {"type": "integer" if self.integer else "number", "description": self.description}
+        if self.minimum is not None:
+            s["minimum"] = int(self.minimum) if self.integer else self.minimum
+        if self.exclusive_minimum is not None:
+            s["exclusiveMinimum"] = self.exclusive_minimum
+        maximum = self.maximum if self.maximum is not None else (MAX_INT if self.integer else None)
+        if maximum is not None:
+            s["maximum"] = int(maximum) if self.integer else maximum
+        return s
+
+    def query_parameter(self) -> dict:
+        return {"name": self.name, "in": "query", "required": False, "schema": self.schema(), "description": self.description}
+
+
+CENTER_U = Number("center_u", "crop window centre, column (image px, u); default: the image centre; must lie in the image",
+                  minimum=0.0)
+CENTER_V = Number("center_v", "crop window centre, row (image px, v); default: the image centre; must lie in the image",
+                  minimum=0.0)
+WIDTH = Number("width", "image width (px), raw float32 bodies only", integer=True, minimum=1)
+HEIGHT = Number("height", "image height (px), raw float32 bodies only", integer=True, minimum=1)
+FX = Number("fx", "the camera's focal length along u (px); checked against the model's", exclusive_minimum=0.0)
+FY = Number("fy", "the camera's focal length along v (px); checked against the model's", exclusive_minimum=0.0)
+
+#: the numeric query parameters of an upload, and the numeric fields of a multipart one-shot
+UPLOAD_NUMBERS = (CENTER_U, CENTER_V, WIDTH, HEIGHT, FX, FY)
+ONE_SHOT_NUMBERS = (CENTER_U, CENTER_V, WIDTH, HEIGHT)
+
+
+def parse_all(numbers, source) -> dict:
+    """``{name: value or None}`` for each Number, read from a mapping (query params, form)."""
+    return {n.name: n.parse(source.get(n.name)) for n in numbers}

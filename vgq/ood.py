@@ -1,0 +1,58 @@
+"""Out-of-distribution flags: the reasons a grasp's score is not to be trusted.
+
+A grasp row is (u, v, z, qw, qx, qy, qz): pixel (image px), depth z (metres, camera frame),
+orientation (camera frame, w, x, y, z; gripper z = approach). Each flag is one bit, so a
+grasp's flags travel as one small integer and as a list of names.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: bit -> name, in bit order
+OOD_FLAGS: dict[int, str] = {
+    1: "approach_away_from_camera",  # psi >= 90 deg: the training data filtered these out
+    2: "z_outside_training_range",  # TCP depth outside the z range the model was trained on
+    4: "center_on_missing_depth",  # the grasp's pixel has no depth reading in the upload
+    8: "window_mostly_missing",  # its crop window is mostly missing depth (inpainted)
+}
+APPROACH_AWAY, Z_OUT_OF_RANGE, CENTER_MISSING, WINDOW_MISSING = OOD_FLAGS
+
+
+def approach_away(q: np.ndarray) -> np.ndarray:
+    """(k,) bool: the approach axis (gripper z in the camera frame) points back towards the
+    camera or sideways (psi >= 90 deg). ``q`` (k, 4) unit quaternions (w, x, y, z)."""
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    # R[2, 2] = cos(psi) = 1 - 2 (x^2 + y^2) for a unit quaternion
+    return 1.0 - 2.0 * (q[:, 1] ** 2 + q[:, 2] ** 2) <= 0.0
+
+
+def center_missing(uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """(k,) bool: the nearest pixel to each (u, v) (k, 2) has no reading (0 or non-finite)."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    h, w = depth.shape
+    cols = np.clip(np.floor(uv[:, 0] + 0.5).astype(np.int64), 0, w - 1)
+    rows = np.clip(np.floor(uv[:, 1] + 0.5).astype(np.int64), 0, h - 1)
+    d = depth[rows, cols]
+    return ~(np.isfinite(d) & (d > 0))
+
+
+def ood_flags(
+    grasps: np.ndarray, depth: np.ndarray, z_range: tuple[float, float], window_missing: np.ndarray | bool = False
+) -> np.ndarray:
+    """(k,) uint8 bitmask of :data:`OOD_FLAGS` for grasp rows (k, 7) on ``depth`` (H, W,
+    metres, the image as uploaded: missing pixels still 0). ``z_range`` (metres) is the
+    training range; ``window_missing`` per grasp (or one bool): its window is mostly missing."""
+    g = np.asarray(grasps, dtype=np.float64).reshape(-1, 7)
+    z = g[:, 2]
+    flags = np.zeros(len(g), dtype=np.uint8)
+    flags[approach_away(g[:, 3:7])] |= APPROACH_AWAY
+    flags[(z < z_range[0]) | (z > z_range[1])] |= Z_OUT_OF_RANGE
+    flags[center_missing(g[:, :2], depth)] |= CENTER_MISSING
+    flags[np.broadcast_to(np.asarray(window_missing, dtype=bool), (len(g),))] |= WINDOW_MISSING
+    return flags
+
+
+def flag_names(mask: int) -> list[str]:
+    """Names of the bits set in one grasp's ``mask``, in bit order."""
+    return [name for bit, name in OOD_FLAGS.items() if int(mask) & bit]
