@@ -98,3 +98,24 @@ def test_explicit_precision_is_served_without_timing(int8_enc_model, model_dir):
         FastModel(model_dir, encoder_precision="int8")
     with pytest.raises(ValueError, match="encoder_precision"):
         Settings(encoder_precision="fp16")
+
+
+def test_export_cli_int8_encoder_flag_checks_and_records_the_outcome(tmp_path, caplog):
+    """``python -m export --int8-encoder``: the fp32 export is written; the int8 encoder is added
+    with its check in the card, or (on this tiny run, where one flip of 16 exceeds 2%) the
+    refusal is logged and nothing of it is left in the folder."""
+    import logging
+
+    from export.__main__ import main as export_main
+    from test_export import _tiny_run
+
+    data, run = _tiny_run(tmp_path)
+    with caplog.at_level(logging.INFO):
+        export_main(["--run", str(run), "--data", str(data), "--out", str(tmp_path / "m"), "--verify-n", "4",
+                     "--no-calibration", "--int8-encoder", "--int8-check-n", "100"])
+    card = ModelCard.load(tmp_path / "m")
+    kept = (tmp_path / "m" / "encoder_int8.onnx").is_file()
+    assert kept == ("encoder_int8" in card.files) == ("int8_encoder" in card.export)
+    assert kept or any("int8 encoder refused" in r.getMessage() for r in caplog.records)
+    assert "calibrating on 16 train crops, checking on 8 val crops" in caplog.text
+    assert not list((tmp_path / "m").glob(".*tmp"))
