@@ -153,7 +153,8 @@ def topology(model_dir, tmp: Path, replicas: int = 2, service_args: tuple[str, .
         port = free_port()
         tmp.mkdir(parents=True, exist_ok=True)
         (tmp / "nginx.conf").write_text(nginx_conf(tmp, port, [u for u, _ in reps]))
-        proc = stack.enter_context(process([nginx, "-p", str(tmp), "-c", str(tmp / "nginx.conf")]))
+        # -e: the start-up error log too (before nginx.conf is read it would open /var/log/nginx/error.log)
+        proc = stack.enter_context(process([nginx, "-p", str(tmp), "-e", str(tmp / "error.log"), "-c", str(tmp / "nginx.conf")]))
         lb = f"http://127.0.0.1:{port}"
         wait_until(lambda: httpx.get(lb + "/readyz", timeout=1).status_code == 200, "nginx", timeout=20, proc=proc)
         yield lb, reps, tmp / "access.log"
