@@ -91,7 +91,7 @@ async def model_info(request: Request):
                                                    "max_image_side", "max_header_bytes", "max_headers", "max_url_bytes",
                                                    "request_timeout_s")}
     return json_response(redact_paths({"model_card": svc.model.card.to_dict(), "head_precision": svc.model.head_precision,
-                                       "limits": limits, "depth_content_types": list(DEPTH_TYPES)}))
+                                       "encoder": svc.model.encoder_info, "limits": limits, "depth_content_types": list(DEPTH_TYPES)}))
 
 
 @router.get("/v1/cache", summary="Image cache statistics", responses={200: doc.CACHE_RESPONSE, **doc.errors(doc.PROTOCOL)})

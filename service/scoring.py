@@ -44,13 +44,15 @@ class Service:
         try:
             if self.model is None:
                 self.model = FastModel(self.settings.model_dir, threads=self.settings.ort_threads,
-                                       head_precision=self.settings.head_precision)
+                                       head_precision=self.settings.head_precision,
+                                       encoder_precision=self.settings.encoder_precision)
             self.model.warm_up()
             gc.collect()
             gc.freeze()  # start-up objects out of the collector's way: no GC pauses on them later
             self.ready = True
             self.metrics.ready.set(1)
             logs.event(self.log, "ready", model_version=self.model.version, head=self.model.head_precision,
+                       encoder=self.model.encoder_info,
                        threads=self.settings.ort_threads, cache=self.cache.backend)
         except Exception as e:  # reported by /readyz and the log; the process stays up for diagnosis
             self.load_error = str(e)
