@@ -5,6 +5,7 @@
     image_id = c.upload(depth, intrinsics=(615.0, 615.0, 319.5, 239.5))  # (H, W) float32 metres; fx, fy, cx, cy px
     p = c.score(image_id, grasps)               # (k, 7): u, v, z, qw, qx, qy, qz anywhere in the image -> (k,)
     r = c.score_details(image_id, grasps)       # + raw_score, ood (names per grasp), ood_mask, calibrated
+    plan = c.plan(depth, k=5)                   # the best 5 grasps: plan.rows (n, 7), plan.poses (n, 4, 4)
 
 Intrinsics: a tuple (fx, fy, cx, cy), a dict with those keys (any subset) or a
 ``vgq.camera.Intrinsics``; omitted, the service assumes the model's (``last_upload`` says so).
@@ -13,6 +14,8 @@ Intrinsics: a tuple (fx, fy, cx, cy), a dict with those keys (any subset) or a
 from __future__ import annotations
 
 import io
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 import httpx
 import numpy as np
@@ -33,6 +36,35 @@ def intrinsics_params(intrinsics) -> dict:
     if isinstance(intrinsics, dict):
         return {k: float(v) for k, v in intrinsics.items() if k in ("fx", "fy", "cx", "cy") and v is not None}
     return dict(zip(("fx", "fy", "cx", "cy"), (float(x) for x in intrinsics)))
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The answer of ``POST /v1/plan``: ``grasps`` best first, each a dict with ``row`` (u, v,
+    z, qw, qx, qy, qz), ``pose`` (4 x 4, camera frame, metres), ``width`` (m), ``contacts``
+    (2 x 3, camera frame, m), ``score``, ``ood_flags`` and ``ood``; ``reason`` says why when
+    there are none; ``intrinsics`` the camera planned with (px); ``answer`` the whole JSON."""
+
+    grasps: list[dict]
+    reason: str | None
+    intrinsics: dict
+    model_version: str
+    seconds: dict = field(default_factory=dict)
+    answer: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def rows(self) -> np.ndarray:
+        """(n, 7) grasp rows, best first: what ``score`` takes."""
+        return np.array([g["row"] for g in self.grasps], dtype=np.float64).reshape(-1, 7)
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(n, 4, 4) grasp frames in the camera frame (x = jaw axis, z = approach), metres."""
+        return np.array([g["pose"] for g in self.grasps], dtype=np.float64).reshape(-1, 4, 4)
+
+    @property
+    def scores(self) -> np.ndarray:
+        return np.array([g["score"] for g in self.grasps], dtype=np.float64)
 
 
 class ServiceClient:
@@ -132,6 +164,24 @@ class ServiceClient:
             return self._details(r.json())
         self.last_ood_count = int(r.headers.get("x-ood-count", 0))
         return np.frombuffer(r.content, dtype="<f4").copy()
+
+    def plan(self, depth: np.ndarray, k: int = 5, intrinsics=None, roi=None, seed: int = 0, cem: int = 0) -> Plan:
+        """The best ``k`` grasps on a (H, W) depth image in metres (0 = no reading).
+        ``intrinsics``: the camera's fx, fy, cx, cy in px (a mapping or an object with those
+        attributes, e.g. ``vgq.camera.Intrinsics``; default: the model's); ``roi``: (u0, v0,
+        u1, v1) px where grasps may lie; ``seed``: repeatable sampling; ``cem``: refinement
+        iterations. Raises ServiceError (422 naming the field) for input it cannot plan on."""
+        params: dict = {"k": k, "seed": seed, "cem": cem}
+        if intrinsics is not None:
+            for name in ("fx", "fy", "cx", "cy"):
+                v = intrinsics[name] if isinstance(intrinsics, Mapping) else getattr(intrinsics, name)
+                params[name] = repr(float(v))
+        if roi is not None:
+            params["roi"] = ",".join(repr(float(x)) for x in roi)
+        r = self.http.post("/v1/plan", content=self._npy(depth), params=params, headers={"content-type": "application/x-npy"})
+        self._raise(r)
+        d = r.json()
+        return Plan(d["grasps"], d["reason"], d["intrinsics"], d["model_version"], d.get("seconds", {}), d)
 
     def model(self) -> dict:
         r = self.http.get("/v1/model")

@@ -10,6 +10,7 @@ from pathlib import Path
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent.parent / "models" / "fast-vgqcnn-default"
 
 HEAD_PRECISIONS = ("auto", "fp32", "int8")
+ENCODER_PRECISIONS = ("auto", "fp32", "int8")
 
 
 @dataclass
@@ -20,6 +21,7 @@ class Settings:
     workers: int = 1
     threads: int = 0  # onnxruntime intra-op threads per session; 0 = cores / workers
     head_precision: str = "auto"  # auto (int8 when the model ships a checked int8 head) | fp32 | int8
+    encoder_precision: str = "auto"  # auto (the fastest checked encoder, timed at start-up) | fp32 | int8
     max_grasps: int = 2048  # grasps per request
     max_body_bytes: int = 32 * 1024 * 1024  # request body limit
     max_buffered_bytes: int = 128 * 1024 * 1024  # request bodies held in memory at once, all requests together
@@ -52,6 +54,8 @@ class Settings:
                              f"({self.max_body_bytes}): one largest body must fit")
         if self.head_precision not in HEAD_PRECISIONS:
             raise ValueError(f"setting head_precision must be one of {HEAD_PRECISIONS}, got {self.head_precision!r}")
+        if self.encoder_precision not in ENCODER_PRECISIONS:
+            raise ValueError(f"setting encoder_precision must be one of {ENCODER_PRECISIONS}, got {self.encoder_precision!r}")
         if self.cache_backend not in ("memory", "redis"):
             raise ValueError(f"setting cache_backend must be 'memory' or 'redis', got {self.cache_backend!r}")
         if self.cache_backend == "redis" and not self.redis_url.startswith(("redis://", "rediss://", "unix://")):

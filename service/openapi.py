@@ -10,7 +10,8 @@ _ERROR = {
     "required": ["error"],
     "properties": {"error": {"type": "object", "required": ["status", "message"], "properties": {
         "status": {"type": "integer"}, "message": {"type": "string"},
-        "details": {"type": "object", "properties": {"grasps": {"type": "array", "items": {"type": "integer"}}}}}}},
+        "details": {"type": "object", "properties": {"grasps": {"type": "array", "items": {"type": "integer"}},
+                                                    "field": {"type": "string", "description": "the input at fault"}}}}}},
 }
 _WHAT = {400: "malformed request or body", 401: "missing or wrong API key", 404: "unknown or evicted image id",
          408: "request headers or body not received in time (the connection is closed)",
@@ -138,4 +139,55 @@ ONE_SHOT_BODY = {
         "application/x-npz": {"schema": _BINARY, "description": "arrays depth (H, W) float32 m, grasps (k, 7), optional "
                                                                 "intrinsics (4,) = fx, fy, cx, cy px and center (2,)"},
     },
+}
+
+PLAN_ERRORS = PROTOCOL + (401, 413, 415, 422, 503)
+PLAN_BODY = {
+    "required": True,
+    "description": "Depth image in metres (camera frame z; 0 = no reading), as for POST /v1/images.",
+    "content": UPLOAD_BODY["content"],
+}
+_NUMBERS = {"type": "array", "items": {"type": "number"}}
+_PLANNED_GRASP = {"type": "object", "required": ["row", "pose", "width", "contacts", "score", "ood_flags", "ood"], "properties": {
+    "row": {**_GRASP_ROW, "description": "the grasp row u, v (px of the uploaded image), z (m), qw, qx, qy, qz (camera frame): "
+                                         "what POST /v1/images/{id}/scores takes"},
+    "u": {"type": "number"}, "v": {"type": "number"}, "z": {"type": "number"},
+    "q": {**_NUMBERS, "minItems": 4, "maxItems": 4, "description": "qw, qx, qy, qz"},
+    "pose": {"type": "array", "items": {**_NUMBERS, "minItems": 4, "maxItems": 4}, "minItems": 4, "maxItems": 4,
+             "description": "4 x 4 grasp frame in the camera frame (metres): x = jaw axis, z = approach, origin = TCP"},
+    "width": {"type": "number", "description": "distance between the contacts (m)"},
+    "contacts": {"type": "array", "items": {**_NUMBERS, "minItems": 3, "maxItems": 3}, "minItems": 2, "maxItems": 2,
+                 "description": "the two observed contact points, camera frame (m)"},
+    "score": {"type": "number", "minimum": 0, "maximum": 1, "description": "Fast-VGQ-CNN's P(success)"},
+    "ood_flags": {"type": "integer", "minimum": 0, "description": "vgq.ood bitmask (0: in distribution)"},
+    "ood": {"type": "array", "items": {"type": "string"}, "description": "names of the set ood flags"}}}
+PLAN_EXAMPLE = {  # vgq-plan examples/depth_example.npy --k 1 on the bundled model (rounded)
+    "grasps": [{"u": 150.83, "v": 154.9, "z": 0.72562, "q": [0.86217, 0.49129, -0.08047, 0.09388],
+                "row": [150.83, 154.9, 0.72562, 0.86217, 0.49129, -0.08047, 0.09388],
+                "pose": [[0.96942, -0.24096, -0.04651, 0.00184], [0.08282, 0.49964, -0.86227, 0.00746],
+                         [0.23101, 0.83205, 0.50432, 0.72562], [0.0, 0.0, 0.0, 1.0]],
+                "width": 0.03075, "contacts": [[-0.01307, 0.00619, 0.72207], [0.01674, 0.00874, 0.72917]],
+                "score": 0.931, "ood_flags": 0, "ood": []}],
+    "reason": None,
+    "counts": {"object_pixels": 507, "table": True, "pairs": 313, "approaches": 1519, "checked": 512, "collision_free": 256,
+               "windows": 1},
+    "seconds": {"resample": 0.0004, "scene": 0.0041, "sample": 0.0049, "encode": 0.0055, "score": 0.004, "select": 0.0004,
+                "total": 0.025},
+    "model_version": "fast_vgqcnn-60b272a5a797", "k": 1, "seed": 0, "cem": 0,
+    "intrinsics": {"fx": 525.0, "fy": 525.0, "cx": 149.5, "cy": 149.5, "width": 300, "height": 300},
+}
+PLAN_RESPONSE = {
+    "description": "The best k distinct grasps, best first; none (with a reason) when the image has nothing to grasp.",
+    "content": {"application/json": {"schema": {
+        "type": "object", "required": ["grasps", "reason", "counts", "seconds", "model_version", "k", "seed", "cem", "intrinsics"],
+        "properties": {
+            "grasps": {"type": "array", "items": _PLANNED_GRASP},
+            "reason": {"type": ["string", "null"], "description": "why there are no grasps (null when there are)"},
+            "counts": {"type": "object", "description": "candidates at each stage"},
+            "seconds": {"type": "object", "additionalProperties": {"type": "number"}, "description": "time of each stage"},
+            "model_version": {"type": "string"}, "k": {"type": "integer"}, "seed": {"type": "integer"},
+            "cem": {"type": "integer"},
+            "intrinsics": {"type": "object", "required": ["fx", "fy", "cx", "cy", "width", "height"],
+                           "description": "the camera the image was planned with (px)"}}},
+        "example": PLAN_EXAMPLE}},
 }

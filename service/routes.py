@@ -106,7 +106,8 @@ async def model_info(request: Request):
     card = svc.model.card
     lo, hi = svc.z_range
     return json_response(redact_paths({
-        "model_card": card.to_dict(), "head_precision": svc.model.head_precision, "limits": limits,
+        "model_card": card.to_dict(), "head_precision": svc.model.head_precision, "encoder": svc.model.encoder_info,
+        "limits": limits,
         "depth_content_types": list(DEPTH_TYPES),
         "camera": {"intrinsics": card.intrinsics.to_dict(), "focal_range_px": focal_range(card.intrinsics),
                    "focal_ratio_range": list(FOCAL_RATIO_RANGE)},

@@ -87,7 +87,8 @@ class Service:
         try:
             if self.model is None:
                 self.model = FastModel(self.settings.model_dir, threads=self.settings.ort_threads,
-                                       head_precision=self.settings.head_precision)
+                                       head_precision=self.settings.head_precision,
+                                       encoder_precision=self.settings.encoder_precision)
             self.calibration = self.model.card.calibrator()
             self.z_range, self.z_range_source = training_z_range(self.model.card)
             self.model.warm_up()
@@ -96,7 +97,8 @@ class Service:
             self.ready = True
             self.metrics.ready.set(1)
             logs.event(self.log, "ready", model_version=self.model.version, head=self.model.head_precision,
-                       threads=self.settings.ort_threads, cache=self.cache.backend, calibrated=self.calibration is not None)
+                       encoder=self.model.encoder_info, threads=self.settings.ort_threads, cache=self.cache.backend,
+                       calibrated=self.calibration is not None)
         except Exception as e:  # reported by /readyz and the log; the process stays up for diagnosis
             self.load_error = str(e)
             logs.event(self.log, "model load failed", logging.ERROR, error=str(e))

@@ -59,3 +59,21 @@ def test_curl_example_runs(url):
     r = subprocess.run(["bash", "-c", "set -euo pipefail\n" + cmds], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert '"p_success"' in r.stdout
+
+
+def test_plan_python_example_runs(url):
+    code = [b for b in blocks("python") if "client.plan(" in b][0].replace("http://127.0.0.1:8000", url)
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1] == "3 grasps" and "TCP (camera frame, m)" in r.stdout
+
+
+@pytest.mark.skipif(shutil.which("curl") is None, reason="curl is not installed")
+def test_plan_curl_example_runs(url):
+    import json
+
+    cmd = [b for b in blocks("bash") if "/v1/plan" in b][0].replace("http://127.0.0.1:8000", url)
+    r = subprocess.run(["bash", "-c", "set -euo pipefail\n" + cmd], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)
+    assert len(d["grasps"]) == 3 and d["reason"] is None
