@@ -197,11 +197,11 @@ class Service:
 
     def score(self, key: str, entry: CachedImage, grasps: np.ndarray, strict: bool = False) -> Scores:
         rows, origins, uv = self.place(entry, grasps)
-        keys = [(int(a), int(b)) for a, b in origins]
-        where: dict = {}
-        for i, o in enumerate(keys):
-            where.setdefault(o, []).append(i)
-        where = {o: np.asarray(ix) for o, ix in where.items()}
+        uniq, inverse = np.unique(origins, axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        order = np.argsort(inverse, kind="stable")
+        groups = np.split(order, np.cumsum(np.bincount(inverse, minlength=len(uniq)))[:-1])
+        where = {(int(o[0]), int(o[1])): ix for o, ix in zip(uniq, groups)}  # window origin -> grasp indices
         new = [o for o in where if o not in entry.windows]
         if new:
             self.cache.fetch_windows(key, entry, new)
@@ -210,7 +210,7 @@ class Service:
         geom, cap = self.model.geometry, self.settings.ood_window_missing
         frac = {o: entry.windows[o].missing_fraction if o in entry.windows else
                 float(missing_mask(crop_window(entry.depth, o, geom)).mean()) for o in where}
-        win_missing = np.array([frac[o] > cap for o in keys], dtype=bool)
+        win_missing = np.array([frac[o] > cap for o in where], dtype=bool)[inverse]
         g = np.asarray(grasps, dtype=np.float64).copy()
         g[:, :2] = uv
         mask = ood_flags(g, entry.depth, self.z_range, win_missing)
