@@ -1,4 +1,4 @@
-# The scoring service only: onnxruntime on CPU, no torch. Build from the repository root:
+# The scoring and planning service only: onnxruntime on CPU, no torch. Build from the repository root:
 #   docker build -t vgq-service . && docker run --rm -p 8000:8000 vgq-service
 FROM python:3.11-slim
 
@@ -12,6 +12,7 @@ WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY vgq ./vgq
 COPY service ./service
+COPY planning ./planning
 COPY models/fast-vgqcnn-default ./models/fast-vgqcnn-default
 
 # the same install step as scripts/serve.sh: the package with its [service] extra

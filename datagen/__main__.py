@@ -11,16 +11,34 @@ import json
 import sys
 from pathlib import Path
 
-# The dataset the shipped model is trained on (``datagen recipe``): generate -> sample -> crops.
-RECIPE = {
-    "objects": 600,  # first 600 of pybullet_data's random_urdfs (sorted by name)
-    "cameras": 10,  # camera poses per stable pose
-    "seed": 0,
-    "arch": "fast_vgqcnn",
-    "kappa": 36.0,  # px in the 96 px window (the authors' default)
-    "sampling": {"uniform_quantile": 0.1},  # small dataset: cap bins at the 10% quantile, not the minimum
-    "sensor": "clean",  # the shipped model saw clean renders (the crops CLI default is the realistic sensor)
+# The datasets of the bundled models (``datagen recipe --version V``): generate -> sample -> crops.
+RECIPES = {
+    # v1: the model bundled today (fast_vgqcnn-60b272a5a797): random_urdfs only, the paper's label, clean renders
+    "v1": {
+        "objects": 600,  # first 600 of pybullet_data's random_urdfs (sorted by name)
+        "families": None,
+        "cameras": 10,  # camera poses per stable pose
+        "seed": 0,
+        "arch": "fast_vgqcnn",
+        "kappa": 36.0,  # px in the 96 px window (the authors' default)
+        "sampling": {"uniform_quantile": 0.1},  # small dataset: cap bins at the 10% quantile, not the minimum
+        "sensor": "clean",
+        "set": {"label.kind": "paper"},
+    },
+    # v2 (issue 10): everyday families + random_urdfs, the physics label (docs/labels.md), the depth-sensor model
+    "v2": {
+        "objects": 600,
+        "families": "all=40",  # 40 objects of each of the 11 families, split object-wise within every family
+        "cameras": 50,  # Dex-Net 2.0's 50: labels are per grasp and stable pose, so more views cost only rendering
+        "seed": 0,
+        "arch": "fast_vgqcnn",
+        "kappa": 36.0,
+        "sampling": {"uniform_quantile": 0.1},
+        "sensor": "realistic",
+        "set": {"label.kind": "physics", "max_stable_poses": 6},  # round objects have up to 34 poses
+    },
 }
+RECIPE = RECIPES["v1"]  # the bundled model's recipe until v2 is trained
 
 
 class CliError(Exception):
@@ -112,7 +130,9 @@ def cmd_generate(args) -> int:
     if args.resume:
         if not (out / MANIFEST).is_file():
             raise CliError(f"--resume: no {MANIFEST} in {out}")
-        base = DatagenConfig.from_dict(read_manifest(out, GRASP_FORMAT)["config"])
+        from .config import recorded_config
+
+        base = DatagenConfig.from_dict(recorded_config(read_manifest(out, GRASP_FORMAT)["config"]))
     cfg = _build_config(
         args, base, source=str(Path(args.source).resolve()) if args.source else None, num_objects=args.objects,
         cameras_per_pose=args.cameras, seed=args.seed,
@@ -164,25 +184,63 @@ def cmd_bench(args) -> int:
         args, source=str(Path(args.source).resolve()) if args.source else None, num_objects=args.objects,
         cameras_per_pose=args.cameras, seed=args.seed,
     )
-    res = run_bench(cfg, workers=args.workers)
+    if args.physics:
+        from .bench import run_physics_bench
+
+        res = run_physics_bench(cfg, workers=args.workers, grasps=args.grasps, trials=args.trials)
+    else:
+        res = run_bench(cfg, workers=args.workers)
     if args.json:
         print(json.dumps(res, indent=2))
+    return 0
+
+
+def cmd_labelstudy(args) -> int:
+    from .label_study import StudyParams, augment, run_study, summarise, write_report
+
+    out = Path(args.out)
+    params = StudyParams(grasps=args.grasps, label_trials=args.label_trials, eval_trials=args.eval_trials,
+                         per_family=args.per_family, random_urdfs=args.random_urdfs, seed=args.seed)
+    cfg = _build_config(args)
+    results = run_study(out, params, cfg, workers=args.workers) if not args.summary_only else None
+    if args.more_label_trials:
+        from .label_study import add_label_trials, load_results
+
+        add_label_trials(out, args.more_label_trials, cfg, params, workers=args.workers,
+                         upto=args.label_trials + args.more_label_trials)
+        results = load_results(out)
+    if results is None:
+        from .label_study import load_results
+
+        results = load_results(out)
+    if augment(out, cfg, params):  # cached objects from an older study: add the newer analytic scores
+        from .label_study import load_results
+
+        results = load_results(out)
+    if not any(r.get("status") == "done" for r in results):
+        raise CliError(f"{out}: no object produced study data")
+    summary = summarise(results, out / "plots", cfg.quality.label_threshold, cfg.label.success_threshold)
+    write_report(out, summary)
+    print(json.dumps(summary, indent=2))
     return 0
 
 
 def cmd_recipe(args) -> int:
     from .parallel import default_workers
 
+    recipe = RECIPES[args.version]
     out = Path(args.out)
-    objects = args.objects or RECIPE["objects"]
+    objects = args.objects or recipe["objects"]
     workers = args.workers or default_workers()
-    sets = [f"--set sampling.{k}={json.dumps(v)}" for k, v in RECIPE["sampling"].items()]
+    sets = " ".join(f"--set {k}={json.dumps(v)}" for k, v in recipe["set"].items())
+    samp = " ".join(f"--set sampling.{k}={json.dumps(v)}" for k, v in recipe["sampling"].items())
+    fams = f" --families {recipe['families']}" if recipe["families"] else ""
     steps = [
-        f"python -m datagen generate --out {out / 'grasps'} --objects {objects} --cameras {RECIPE['cameras']} "
-        f"--seed {RECIPE['seed']} --workers {workers}",
-        f"python -m datagen sample --in {out / 'grasps'} --out {out / 'sampled'} --seed {RECIPE['seed']} " + " ".join(sets),
-        f"python -m datagen crops --in {out / 'sampled'} --out {out / 'crops'} --arch {RECIPE['arch']} "
-        f"--kappa {RECIPE['kappa']:g} --seed {RECIPE['seed']} --sensor {RECIPE['sensor']}",
+        f"python -m datagen generate --out {out / 'grasps'} --objects {objects}{fams} --cameras {recipe['cameras']} "
+        f"--seed {recipe['seed']} --workers {workers} {sets}",
+        f"python -m datagen sample --in {out / 'grasps'} --out {out / 'sampled'} --seed {recipe['seed']} {samp}",
+        f"python -m datagen crops --in {out / 'sampled'} --out {out / 'crops'} --arch {recipe['arch']} "
+        f"--kappa {recipe['kappa']:g} --seed {recipe['seed']} --sensor {recipe['sensor']}",
     ]
     for s in steps:
         print(s)
@@ -292,12 +350,33 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--source")
     b.add_argument("--seed", type=_nonneg_int)
     b.add_argument("--json", action="store_true", help="also print the result as JSON")
+    b.add_argument("--physics", action="store_true", help="measure physics grasp trials per second instead")
+    b.add_argument("--grasps", type=_positive_int("--grasps"), default=16, help="--physics: grasps per object")
+    b.add_argument("--trials", type=_positive_int("--trials"), default=4, help="--physics: noisy trials per grasp")
     _add_config_args(b)
     b.set_defaults(func=cmd_bench)
 
-    r = sub.add_parser("recipe", help="build the shipped model's dataset (generate -> sample -> crops)")
+    ls = sub.add_parser("labelstudy", help="compare grasp labels against physics trials under noise (issue 17)")
+    ls.add_argument("--out", required=True, help="study folder (per-object results are cached: rerun to resume)")
+    ls.add_argument("--grasps", type=_positive_int("--grasps"), default=24, help="grasps per object")
+    ls.add_argument("--label-trials", type=_positive_int("--label-trials"), default=5)
+    ls.add_argument("--eval-trials", type=_positive_int("--eval-trials"), default=5)
+    ls.add_argument("--per-family", type=_nonneg_int, default=2, help="held-out objects per everyday family")
+    ls.add_argument("--random-urdfs", type=_nonneg_int, default=8, help="held-out random_urdfs objects (past #600)")
+    ls.add_argument("--workers", type=_positive_int("--workers"), default=1)
+    ls.add_argument("--seed", type=_nonneg_int, default=17)
+    ls.add_argument("--summary-only", action="store_true", help="only summarise the cached results")
+    ls.add_argument("--more-label-trials", type=_nonneg_int, default=0,
+                    help="add this many label trials per grasp to the cached objects (AUC vs label trials)")
+    _add_config_args(ls)
+    ls.set_defaults(func=cmd_labelstudy)
+
+    r = sub.add_parser("recipe", help="build a bundled model's dataset (generate -> sample -> crops)")
     r.add_argument("--out", required=True)
-    r.add_argument("--objects", type=_positive_int("--objects"), help=f"default {RECIPE['objects']}")
+    r.add_argument("--version", choices=sorted(RECIPES), default="v2",
+                   help="v1: the model bundled today (random_urdfs, paper label, clean); v2 (default): families, "
+                        "physics label, sensor model")
+    r.add_argument("--objects", type=_positive_int("--objects"), help="random_urdfs objects (default: the recipe's)")
     r.add_argument("--workers", type=_positive_int("--workers"))
     r.add_argument("--dry-run", action="store_true", help="only print the commands")
     r.set_defaults(func=cmd_recipe)

@@ -21,9 +21,12 @@ from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
 from vgq.schema import IMAGE_FIELDS
 
 from .camera import CameraParams
+from .collision import RobustCollisionParams
 from .grasps import AntipodalParams
 from .gripper import GripperGeometry
+from .labels import LabelParams
 from .mesh import MeshParams
+from .physics import PhysicsParams
 from .quality import QualityParams
 from .sampling import SamplingParams
 
@@ -43,6 +46,9 @@ class DatagenConfig:
     gripper: GripperGeometry = field(default_factory=GripperGeometry)
     intrinsics: Intrinsics = DEFAULT_INTRINSICS
     sampling: SamplingParams = field(default_factory=SamplingParams)
+    label: LabelParams = field(default_factory=LabelParams)  # which label becomes `quality` (issue 17)
+    collision: RobustCollisionParams = field(default_factory=RobustCollisionParams)  # P(collision-free)
+    physics: PhysicsParams = field(default_factory=PhysicsParams)  # physics trials (label.kind "physics")
     cameras_per_pose: int = 10  # camera poses per stable pose (VG-dset: 100, Dex-Net 2.0: 50)
     stable_pose_min_probability: float = 0.01  # keep stable poses with p >= this
     max_stable_poses: int | None = None  # keep at most this many (most probable first)
@@ -70,7 +76,18 @@ class DatagenConfig:
 
     @property
     def label_threshold(self) -> float:
+        """A grasp is positive when its ``quality`` (the label's score) exceeds this."""
+        if self.label.kind == "physics":
+            return float(self.label.success_threshold)
         return float(self.quality.label_threshold)
+
+
+def recorded_config(d: dict) -> dict:
+    """A config dict recorded in a dataset manifest, upgraded for settings added since: a
+    dataset without a ``label`` section predates the label setting and has the paper's label."""
+    if isinstance(d, dict) and "label" not in d:
+        return {**d, "label": {"kind": "paper"}}
+    return d
 
 
 def load_config(path: str | Path) -> DatagenConfig:

@@ -26,7 +26,7 @@ from typing import Callable
 import numpy as np
 
 from vgq import atomic
-from vgq.schema import GRASP_FIELDS, IMAGE_FIELDS
+from vgq.schema import GRASP_FIELDS, GRASP_LABEL_FIELDS, IMAGE_FIELDS
 
 from . import storage
 from .config import ConfigError, DatagenConfig
@@ -52,8 +52,10 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
     """:func:`generate_object` plus a dict of facts about the object for the manifest
     (stable pose probabilities, grasp count, torque scaling used, mesh scale and repairs)."""
     from .camera import sample_cameras
-    from .collision import CollisionChecker
+    from .collision import CollisionChecker, collision_free_probability
     from .grasps import sample_antipodal_grasps
+    from .labels import label_score
+    from .pads import pad_quality
     from .gripper import align_to_table, grasp_frames
     from .mesh import load_object, stable_poses
     from .project import project_grasps
@@ -62,6 +64,7 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
 
     intr = config.intrinsics
     ss_grasps, ss_quality, ss_poses = np.random.SeedSequence(seed).spawn(3)
+    kind = config.label.kind
     obj = load_object(src, config.mesh)
     T_poses, probs = stable_poses(obj, config.stable_pose_min_probability, config.max_stable_poses)
     info = {
@@ -86,15 +89,37 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
     n_img = 0
     for pose_id, ss_pose in enumerate(ss_poses.spawn(len(T_poses))):
         rng = np.random.default_rng(ss_pose)
+        ss_robust, ss_physics = np.random.SeedSequence(ss_pose.entropy, spawn_key=(*ss_pose.spawn_key, 7)).spawn(2)
+        rng_robust = np.random.default_rng(ss_robust)
         T_wo = T_poses[pose_id]
         mesh_world = obj.mesh.copy()
         mesh_world.apply_transform(T_wo)
         checker = CollisionChecker(mesh_world, config.gripper)
+        checker_c = CollisionChecker(mesh_world, config.gripper, clearance=config.collision.clearance)
         cams = sample_cameras(config.cameras_per_pose, config.camera, rng)
+        success = np.full(len(grasps), np.nan)
+        if kind == "physics":  # one approach per grasp and pose, labelled by trials, shared by the cameras
+            pose_grasp = align_to_table(T_wo @ T_object_grasp0, rng)
+            pose_free = ~np.asarray(checker.collides(pose_grasp[0]), dtype=bool)
+            success = _physics_success(obj.mesh, T_wo, pose_grasp[0], pose_free, config, ss_physics, info)
         for j in range(len(cams)):
             T_wc = cams.T_world_camera[j]
-            T_wg, omega, beta = align_to_table(T_wo @ T_object_grasp0, rng)
-            collides = np.asarray(checker.collides(T_wg), dtype=bool)
+            if kind == "physics":
+                T_wg, omega, beta = pose_grasp
+                collides = ~pose_free
+            else:
+                T_wg, omega, beta = align_to_table(T_wo @ T_object_grasp0, rng)
+                collides = np.asarray(checker.collides(T_wg), dtype=bool)
+            # robust collision and pad quality of the rows whose nominal approach is free (NaN elsewhere:
+            # those rows are negatives under every label); not computed for the paper's label (its cost)
+            p_cf = np.full(len(grasps), np.nan)
+            pad_q = np.full(len(grasps), np.nan)
+            free = np.flatnonzero(~collides) if kind != "paper" else np.zeros(0, np.int64)
+            if len(free):
+                p_cf[free] = collision_free_probability(checker_c, T_wg[free], config.collision, rng_robust)
+                pad_q[free] = pad_quality(obj.mesh, np.linalg.inv(T_wo) @ T_wg[free], config.gripper, qparams,
+                                          qparams.torque_scaling)[0]
+            score = label_score(kind, quality, ~collides, p_cf, pad_q, success)
             depth = render_depth(mesh_world, T_wc, intr)
             pr = project_grasps(T_wg, T_wc, intr)
             u, v, z = (np.asarray(pr[k], np.float64) for k in ("u", "v", "z"))
@@ -123,12 +148,38 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
                     "psi": np.asarray(pr["psi"])[k],
                     "omega": np.asarray(omega)[k],
                     "jaw_angle": np.asarray(pr["jaw_angle"])[k],
-                    "quality": np.where(collides, 0.0, quality)[k],
+                    "quality": score[k],
                     "collision_free": ~collides[k],
+                    "fc_quality": quality[k],
+                    "p_collision_free": p_cf[k],
+                    "pad_quality": pad_q[k],
+                    "success_rate": success[k],
                 }
             )
             n_img += 1
-    return _concat(image_parts, IMAGE_FIELDS), _concat(grasp_parts, GRASP_FIELDS), info
+    info["label"] = kind
+    return _concat(image_parts, IMAGE_FIELDS), _concat(grasp_parts, {**GRASP_FIELDS, **GRASP_LABEL_FIELDS}), info
+
+
+def _physics_success(mesh, T_wo, T_wg, free, config: DatagenConfig, ss: np.random.SeedSequence, info: dict) -> np.ndarray:
+    """Success rate (n,) of ``config.label.trials`` noisy physics trials of each grasp whose
+    approach is free at the nominal pose (0 for the others, which get no trials); records the
+    trial count, seconds and the stable-pose check in ``info``."""
+    from .physics import _worker_sim, run_trials
+
+    out = np.zeros(len(T_wg))
+    idx = np.flatnonzero(free)
+    sim = _worker_sim(config.gripper, config.physics, None)
+    t0 = time.perf_counter()
+    pose = sim.set_object(mesh, T_wo)
+    if len(idx):
+        res = run_trials(sim, T_wg[idx], config.label.trials, np.random.default_rng(ss))
+        out[idx] = res.success_rate
+    info.setdefault("physics", []).append({
+        "trials": int(len(idx) * config.label.trials), "seconds": time.perf_counter() - t0,
+        "pose_stable": bool(pose["stable"]), "pose_drift_m": float(pose["drift_m"]),
+    })
+    return out
 
 
 def generate_object(src, config: DatagenConfig, object_id: int, seed: int) -> tuple[dict, dict]:
@@ -209,8 +260,10 @@ def run_sources(config: DatagenConfig) -> list:
 
 def _recorded_config(d) -> dict | None:
     """A manifest's config with the defaults of fields added since it was written."""
+    from .config import recorded_config
+
     try:
-        return _normalised(DatagenConfig.from_dict(d).to_dict())
+        return _normalised(DatagenConfig.from_dict(recorded_config(d)).to_dict())
     except (ConfigError, TypeError):
         return d
 

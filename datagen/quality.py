@@ -105,10 +105,13 @@ def resolve_torque_scaling(mesh: trimesh.Trimesh, params: QualityParams) -> floa
 # --------------------------------------------------------------------------- wrenches
 
 
-def contact_wrenches(contacts, normals, mu, params: QualityParams, torque_scaling: float):
+def contact_wrenches(contacts, normals, mu, params: QualityParams, torque_scaling: float, axes=None):
     """Wrench sets of m two-contact grasps.
 
-    contacts, normals (outward): (m, 2, 3); mu: scalar or (m,).
+    contacts, normals (outward): (m, 2, 3); mu: scalar or (m,); axes: (m, 3) jaw axes (jaw 0
+    pushes along +axis, jaw 1 along -axis), None -> the contact line (contact 0 -> 1), as for
+    point fingers; flat pads touching off the line pass their jaw axis
+    (:mod:`datagen.pads`).
     Returns ``(W (m, P, 6), ok (m,) bool)`` with P = 2 * num_cone_faces (+4 with soft
     fingers); ``ok`` is False where the quality is 0 without a hull: contacts coincide, or a
     jaw's push is outside its contact's friction cone (the contact slips).
@@ -124,7 +127,10 @@ def contact_wrenches(contacts, normals, mu, params: QualityParams, torque_scalin
     d = c[:, 1] - c[:, 0]
     length = np.linalg.norm(d, axis=1)
     ok = length > 1e-12
-    u = d / np.where(ok, length, 1.0)[:, None]
+    if axes is None:
+        u = d / np.where(ok, length, 1.0)[:, None]
+    else:
+        u = _unit(np.asarray(axes, dtype=np.float64).reshape(m, 3))
     push = np.stack([u, -u], axis=1)  # (m, 2, 3)
     n_in = -nrm
     nmag = np.einsum("mij,mij->mi", push, n_in)  # (m, 2)
@@ -183,10 +189,10 @@ def hull_quality(W: np.ndarray) -> float:
     return _hull_distance(W) if _full_rank(W[None])[0] else 0.0
 
 
-def ferrari_canny_batch(contacts, normals, mu, params: QualityParams, torque_scaling: float) -> np.ndarray:
+def ferrari_canny_batch(contacts, normals, mu, params: QualityParams, torque_scaling: float, axes=None) -> np.ndarray:
     """Ferrari-Canny quality (m,) of m two-contact grasps (see :func:`contact_wrenches`);
     a convex hull is built only for grasps whose contacts do not slip."""
-    W, ok = contact_wrenches(contacts, normals, mu, params, torque_scaling)
+    W, ok = contact_wrenches(contacts, normals, mu, params, torque_scaling, axes)
     q = np.zeros(len(W))
     idx = np.flatnonzero(ok)
     if len(idx):

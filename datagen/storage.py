@@ -26,8 +26,8 @@ import numpy as np
 from vgq import __version__ as vgq_version
 from vgq import atomic
 from vgq import schema
-from vgq.schema import (CROP_FIELDS, CROP_FORMAT, FORMAT_VERSION, GRASP_FIELDS, GRASP_FORMAT, IMAGE_FIELDS, MANIFEST,
-                        SPLITS, check_fields)
+from vgq.schema import (CROP_FIELDS, CROP_FORMAT, FORMAT_VERSION, GRASP_FIELDS, GRASP_FORMAT, GRASP_LABEL_FIELDS,
+                        IMAGE_FIELDS, MANIFEST, SPLITS, check_fields)
 
 SHARD_DIR = "shards"
 
@@ -68,11 +68,20 @@ def encode_shard(images: dict[str, np.ndarray], grasps: dict[str, np.ndarray], w
     idx = grasps["image_index"]
     if len(idx) and (idx.min() < 0 or idx.max() >= n_img):
         raise ValueError(f"{where}: image_index outside [0, {n_img})")
+    _check_label_fields(grasps, len(idx), f"{where} (grasps)")
     arrays = {k: np.ascontiguousarray(images[k]) for k in IMAGE_FIELDS}
     arrays.update({k: np.ascontiguousarray(grasps[k]) for k in GRASP_FIELDS})
+    arrays.update({k: np.ascontiguousarray(grasps[k]) for k in GRASP_LABEL_FIELDS if k in grasps})
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     return buf.getvalue()
+
+
+def _check_label_fields(grasps: dict, n: int, where: str) -> None:
+    """The optional GRASP_LABEL_FIELDS present in ``grasps`` have their dtype, shape and n rows."""
+    present = {k: v for k, v in GRASP_LABEL_FIELDS.items() if k in grasps}
+    if present and check_fields(present, grasps, where) != n:
+        raise ValueError(f"{where}: label fields have {check_fields(present, grasps, where)} rows, expected {n}")
 
 
 def shard_counts(images: dict, grasps: dict, label_threshold: float) -> dict[str, int]:
@@ -117,9 +126,9 @@ def read_shard(path: str | Path, sha256: str | None = None) -> tuple[dict[str, n
         raise DatasetError(f"shard {p} is not a readable .npz file ({type(e).__name__}: {e})") from e
     try:
         images = {k: arrays[k] for k in IMAGE_FIELDS if k in arrays}
-        grasps = {k: arrays[k] for k in GRASP_FIELDS if k in arrays}
+        grasps = {k: arrays[k] for k in (*GRASP_FIELDS, *GRASP_LABEL_FIELDS) if k in arrays}
         n_img = check_fields(IMAGE_FIELDS, images, str(p))
-        check_fields(GRASP_FIELDS, grasps, str(p))
+        _check_label_fields(grasps, check_fields(GRASP_FIELDS, grasps, str(p)), str(p))
     except ValueError as e:
         raise DatasetError(f"shard {p} is not a {GRASP_FORMAT} shard: {e}") from e
     idx = grasps["image_index"]

@@ -45,7 +45,7 @@ def main() -> None:
     crops = np.load(HERE / "heldout_test_crops.npz")
     test_ids = sorted(set(int(i) for i in crops["object_id"]))[: a.objects]
     cfg = DatagenConfig().with_overrides(
-        {"cameras_per_pose": RECIPE["cameras"], "seed": RECIPE["seed"], "num_objects": RECIPE["objects"]}
+        {"cameras_per_pose": RECIPE["cameras"], "seed": RECIPE["seed"], "num_objects": RECIPE["objects"], **RECIPE["set"]}
     )
     geom = vcrop.CropGeometry(kappa_px=RECIPE["kappa"])
     sources = mesh_sources(cfg.source)[: RECIPE["objects"]]

@@ -51,6 +51,26 @@ def _sample(ds, order: tuple[str, ...], n: int, seed: int, arch: str):
     return (split, *(t.numpy() for t in split.batch(idx, arch)))
 
 
+def _add_int8_encoder(out: str, ds, arch: str, n_check: int, seed: int) -> None:
+    """Calibrate an int8 encoder on train crops, check it on val (else test) crops, add it to
+    ``out`` when it passes (``export.int8_encoder``); a refusal is logged, not an error."""
+    from .int8_encoder import add_int8_encoder
+    from .quantize import QuantizationError
+
+    calib = _sample(ds, ("train",), 2048, seed, arch)
+    chk, *labelled = _sample(ds, ("val", "test"), n_check, seed, arch)
+    logging.info("int8 encoder: calibrating on %d %s crops, checking on %d %s crops", len(calib[1]), calib[0].name,
+                 len(labelled[0]), chk.name)
+    try:
+        r = add_int8_encoder(out, calib[1], tuple(labelled), check_data=f"{ds.path} ({chk.name}, {len(labelled[0])} crops)",
+                             calibration=f"{ds.path} ({calib[0].name}, {len(calib[1])} crops)")
+    except QuantizationError as e:
+        logging.warning("int8 encoder refused, not written: %s", e)
+        return
+    logging.info("int8 encoder: balanced accuracy %.4f (fp32 %.4f), mean |dp| %.4f, %d of %d decisions changed",
+                 r.balanced_accuracy_variant, r.balanced_accuracy_fp32, r.mean_abs_diff_probability, r.decisions_changed, r.n)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(prog="vgq-export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", required=True, help="training run folder (or a checkpoint file)")
@@ -67,6 +87,10 @@ def main(argv=None) -> None:
                    help="also write head_int8.onnx (fc5 in int8, ~2x faster) if it scores like the fp32 head on "
                         "labelled validation crops")
     p.add_argument("--int8-check-n", type=int, default=4096, help="labelled crops for the int8 check (default 4096)")
+    p.add_argument("--int8-encoder", action="store_true",
+                   help="also write encoder_int8.onnx (static int8, calibrated on up to 2048 train crops) if it scores "
+                        "like the fp32 encoder on the val (else test) crops; a refused one is reported and left out "
+                        "(the fp32 export stands). Existing folders: python -m export.int8_encoder")
     c = p.add_argument_group("calibration (fitted on the val split, ECE measured on the test split)")
     c.add_argument("--no-calibration", action="store_true", help="export without a calibration")
     c.add_argument("--calibration-method", choices=("platt", "temperature"), default="platt")
@@ -119,6 +143,8 @@ def main(argv=None) -> None:
             label_threshold=float(meta.get("label_threshold", 0.002)), tolerance=a.tolerance,
             int8_check=int8, calibration=calibration,
         )
+        if a.int8_encoder:
+            _add_int8_encoder(a.out, ds, meta["arch"], a.int8_check_n, a.seed)
         if calibration is not None and a.reliability_png:
             atomic.write_bytes(a.reliability_png, (Path(a.out) / DIAGRAM).read_bytes())
     except CalibrationError as e:

@@ -12,6 +12,10 @@ For k grasps (default 32, 64, 96, 128, 512), all in one run, median and p99 (ms)
   (image stream, fc4, fc5, fc6; pc1 on the (z, q) columns): same cost as a trained one;
 * preprocessing with ``vgq.crop``: Fast one crop per image, VGQ one crop per grasp; both
   then check the grasps and build pose rows (``vgq.grasps.pose_rows``);
+* every encoder precision the model card holds (``fp32``, and ``int8`` from
+  ``export.int8_encoder``): the encoder alone and encoder + head, each with its ratio to the
+  fp32 FLOP floor; the service's ``encoder_precision auto`` serves the fastest (its choice is
+  in the config of the report);
 * speed-up VGQ / Fast (how many times faster Fast-VGQ-CNN is), and the FLOP floor of Fast:
   FLOPs of encoder + head (2 per multiply-add of Conv, Gemm, MatMul) divided by the peak
   of a 1024^3 MatMul measured in the same onnxruntime with the same threads, interleaved
@@ -175,7 +179,7 @@ def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs
     """Measure everything (see the module doc); returns the JSON-able report."""
     import onnxruntime as ort
 
-    from service.loadtest import load_workload
+    from tools.loadtest.workload import load_workload
     from service.runtime import FastModel, session_options
     from vgq.model_card import ENCODER_INPUT, HEAD_INPUTS, VGQ_INPUTS, VGQ_OUTPUT
 
@@ -184,7 +188,8 @@ def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs
     kmax = max(ks)
     work = load_workload(kmax)
     depth, all_grasps = work.depth, work.grasps.astype(np.float64)
-    fast = FastModel(model_dir, threads=threads)  # as the service runs it (head_precision auto)
+    fast = FastModel(model_dir, threads=threads)  # as the service runs it (head and encoder precision auto)
+    variants = {p: FastModel(model_dir, threads=threads, encoder_precision=p) for p in fast.encoder_info["available"]}
     fast32 = FastModel(model_dir, threads=threads, head_precision="fp32") if fast.head_precision != "fp32" else None
     geom = fast.geometry
     center = np.array([(depth.shape[1] - 1) / 2, (depth.shape[0] - 1) / 2])
@@ -219,6 +224,8 @@ def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs
                 "vgq_pre": (lambda: vgq_preprocess(depth, grasps, geom_vgq, geom, center), n_vpre),
                 "peak": (peak_call, max(5, min(50, runs // 20))),
                 **({"head_fp32": (lambda: fast32.score(term, poses), runs)} if fast32 else {}),
+                **{f"encoder_{p}": ((lambda m=m: m.encode(crop1[0, 0])), runs) for p, m in variants.items()},
+                **{f"fast_{p}": ((lambda m=m: m.score(m.encode(crop1[0, 0]), poses)), runs) for p, m in variants.items()},
             }, warmup=min(20, max(2, runs // 10)))
             # the peak of this k's time window: load from other processes lowers both alike
             peak = 2 * PEAK_N**3 / t.pop("peak").min() / 1e9
@@ -238,6 +245,10 @@ def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs
                 "head_flop_floor_ms": head_flops / (peak * 1e9) * 1e3,
                 "fast_over_floor": fm / floor_ms,
                 "head_over_floor": st["head"]["median_ms"] / (head_flops / (peak * 1e9) * 1e3),
+                "encoder_flop_floor_ms": enc_flops / (peak * 1e9) * 1e3,
+                "variants": {p: {"fast_over_floor": st[f"fast_{p}"]["median_ms"] / floor_ms,
+                                 "encoder_over_floor": st[f"encoder_{p}"]["median_ms"] / (enc_flops / (peak * 1e9) * 1e3),
+                                 "speedup_prediction": vm / st[f"fast_{p}"]["median_ms"]} for p in variants},
             }
             fewer = [f"{what} {n} runs" for what, n in (("prediction", n_vgq), ("preprocessing", n_vpre)) if n < runs]
             if fewer:
@@ -246,6 +257,7 @@ def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs
     return {
         "machine": machine_info(threads),
         "config": {"model_dir": str(model_dir), "model_version": fast.version, "head_precision": fast.head_precision,
+                   "encoder_precision": fast.encoder_precision, "encoder_selection": fast.encoder_info,
                    "runs": runs, "ks": list(ks),
                    "threads": threads, "vgq_budget_s": vgq_budget_s, "image": work.source,
                    "date": time.strftime("%Y-%m-%d %H:%M:%S %Z")},
@@ -254,6 +266,21 @@ def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs
         "rows": {str(k): v for k, v in rows.items()},
         "notes": notes,
     }
+
+
+#: CPU flags that decide which precision is fast: AVX2 / FMA (fp32), AVX-512, int8 dot products
+#: (VNNI), bf16, AMX tiles.
+ISA_FLAGS = ("avx2", "fma", "avx512f", "avx512bw", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_tile", "amx_int8", "amx_bf16")
+
+
+def isa_flags(cpuinfo: str = "/proc/cpuinfo") -> list[str]:
+    """The ``ISA_FLAGS`` this CPU reports (Linux /proc/cpuinfo; empty elsewhere)."""
+    try:
+        with open(cpuinfo) as f:
+            flags = set(next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), []))
+    except OSError:
+        return []
+    return [x for x in ISA_FLAGS if x in flags]
 
 
 def machine_info(threads: int) -> dict:
@@ -265,7 +292,7 @@ def machine_info(threads: int) -> dict:
             cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
     except OSError:
         pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "threads": threads, "onnxruntime": ort.__version__,
+    return {"cpu": cpu, "cores": os.cpu_count(), "threads": threads, "isa": isa_flags(), "onnxruntime": ort.__version__,
             "python": platform.python_version(), "load_average": list(os.getloadavg())}
 
 
@@ -280,10 +307,12 @@ def markdown(report: dict) -> str:
         return lambda r: f"{r[name]['median_ms']:.2f} / {r[name]['p99_ms']:.2f}"
 
     m, c = report["machine"], report["config"]
-    out = [f"{m['cpu']}, {m['cores']} cores, onnxruntime {m['onnxruntime']}, {m['threads']} thread(s); "
+    variants = list(rows[ks[0]].get("variants", {}))
+    out = [f"{m['cpu']}, {m['cores']} cores, ISA {' '.join(m.get('isa', [])) or 'unknown'}; onnxruntime {m['onnxruntime']}, {m['threads']} thread(s); "
            f"model {c['model_version']}; {c['runs']} runs; load average {m['load_average'][0]:.2f}; {c['date']}",
            f"best MatMul peak {report['matmul_peak_gflops']:.1f} GFLOP/s ({PEAK_N}^3, measured between the runs of each k); "
-           f"encoder {report['encoder_mflop']:.1f} MFLOP",
+           f"encoder {report['encoder_mflop']:.1f} MFLOP; encoder precision served by auto: {c.get('encoder_precision', 'fp32')} "
+           f"(start-up timing, ms: {c.get('encoder_selection', {}).get('median_ms') or 'one encoder, not timed'})",
            "", "| k grasps | " + " | ".join(ks) + " |", "|---|" + "---:|" * len(ks),
            line("VGQ-CNN prediction, ms (median / p99)", ms("vgq")),
            line("Fast-VGQ-CNN prediction (encoder + head), ms", ms("fast")),
@@ -298,6 +327,12 @@ def markdown(report: dict) -> str:
            line("MatMul peak in the same window, GFLOP/s", lambda r: f"{r['matmul_peak_gflops']:.0f}"),
            line("Fast FLOP floor, ms (head alone)", lambda r: f"{r['flop_floor_ms']:.2f} ({r['head_flop_floor_ms']:.2f})"),
            line("Fast time / FLOP floor (head alone)", lambda r: f"{r['fast_over_floor']:.2f} ({r['head_over_floor']:.2f})"),
+           *[x for p in variants for x in (
+               line(f"encoder {p}: encoder only, ms", ms(f"encoder_{p}")),
+               line(f"encoder {p}: encoder + head, ms", ms(f"fast_{p}")),
+               line(f"encoder {p}: (encoder + head) / fp32 FLOP floor (encoder alone)",
+                    lambda r, p=p: f"{r['variants'][p]['fast_over_floor']:.2f} ({r['variants'][p]['encoder_over_floor']:.2f})"),
+               line(f"encoder {p}: speed-up VGQ / Fast, prediction", lambda r, p=p: f"{r['variants'][p]['speedup_prediction']:.1f}x"))],
            line("VGQ-CNN runs", lambda r: str(r["vgq"]["runs"]))]
     out += [f"- {n}" for n in report["notes"]]
     return "\n".join(out)

@@ -88,14 +88,13 @@ def main(argv=None) -> int:
     import dataclasses
 
     from vgq import atomic
-    from vgq.camera import Intrinsics
 
     try:
         from service.runtime import FastModel, ModelError
     except ImportError as e:
         print(f"vgq-plan: error: onnxruntime is needed ({e}); install the service extra", file=sys.stderr)
         return 2
-    from .policy import plan
+    from .policy import camera_for, plan
     from .types import PlanParams
 
     try:
@@ -108,17 +107,7 @@ def main(argv=None) -> int:
         if args.threads < 1:
             raise InputError(f"--threads must be >= 1, got {args.threads}")
         model = FastModel(args.model, threads=args.threads)
-        m = model.card.intrinsics
-        h, w = depth.shape
-        same = (h, w) == (m.height, m.width)
-        try:
-            intr = Intrinsics(
-                fx=args.fx if args.fx is not None else m.fx, fy=args.fy if args.fy is not None else m.fy,
-                cx=args.cx if args.cx is not None else (m.cx if same else (w - 1) / 2),
-                cy=args.cy if args.cy is not None else (m.cy if same else (h - 1) / 2), width=w, height=h,
-            )
-        except ValueError as e:
-            raise InputError(f"intrinsics: {e}") from None
+        intr = camera_for(depth.shape, model.card.intrinsics, args.fx, args.fy, args.cx, args.cy)
         params = dataclasses.replace(PlanParams(), cem_iterations=args.cem)
         result = plan(depth, intr, model, k=args.k, roi=roi, seed=args.seed, params=params)
     except (InputError, ModelError) as e:

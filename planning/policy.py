@@ -45,6 +45,21 @@ def check_depth(depth, intr: Intrinsics) -> np.ndarray:
     return d
 
 
+def camera_for(shape: tuple[int, int], model: Intrinsics, fx: float | None = None, fy: float | None = None,
+               cx: float | None = None, cy: float | None = None) -> Intrinsics:
+    """The intrinsics (pixels) of an (H, W) image: each value given, else the model's focal
+    lengths and, when the image has the model's size, its principal point, otherwise the
+    image centre. PlanningError ``intrinsics`` for values no camera has."""
+    h, w = shape
+    same = (h, w) == (model.height, model.width)
+    try:
+        return Intrinsics(fx=model.fx if fx is None else fx, fy=model.fy if fy is None else fy,
+                          cx=cx if cx is not None else (model.cx if same else (w - 1) / 2),
+                          cy=cy if cy is not None else (model.cy if same else (h - 1) / 2), width=w, height=h)
+    except ValueError as e:
+        raise PlanningError("intrinsics", str(e)) from None
+
+
 def check_k(k) -> int:
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= int(k) <= MAX_K:
         raise PlanningError("k", f"k must be an integer in [1, {MAX_K}], got {k!r}")

@@ -15,14 +15,14 @@ DATA=data/recipe
 RUN=${RUN:-runs/fast}
 OUT=${OUT:-models/fast-vgqcnn-default}
 
-$PY -m datagen recipe --out "$DATA"
+$PY -m datagen recipe --version v1 --out "$DATA"
 $PY -m training train --data "$DATA/crops" --arch fast_vgqcnn --out "$RUN" --resume --seed 0 \
   --samples "$SAMPLES" --optimizer adamw --base-lr 0.0002 --decay-every-samples 100000 \
   --class-balance loss_weights --val-every-samples 25000 --val-max-samples 6000 --checkpoint-every-samples 20000
 $PY -m training evaluate --run "$RUN" --data "$DATA/crops"
 $PY -m training baseline --data "$DATA/crops" --model mlp --out runs/baseline
 $PY -m export --run "$RUN" --data "$DATA/crops" --out "$OUT" \
-  --recipe "python -m datagen recipe --out $DATA" --baseline runs/baseline/baseline_mlp.json --int8-head
+  --recipe "python -m datagen recipe --version v1 --out $DATA" --baseline runs/baseline/baseline_mlp.json --int8-head
 cp "$RUN/eval/heatmap_test.png" "$RUN/eval/curves.png" "$OUT/"
 # golden end-to-end scores of the new model on the example image (tests/test_golden_scores.py)
 if [ "$OUT" = models/fast-vgqcnn-default ]; then $PY examples/golden.py --model-dir "$OUT"; fi

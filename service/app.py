@@ -1,10 +1,12 @@
 """The HTTP API (FastAPI), wired together: settings -> ``Service`` (scoring.py), the routes
 (routes.py), the limits middleware (limits.py), error handlers, offline docs. Endpoints:
 
-* ``POST /v1/images``: upload a depth image; it is cropped (vgq.crop), encoded once and cached
-  under a content-addressed id.
-* ``POST /v1/images/{image_id}/scores``: score k grasps against a cached image.
+* ``POST /v1/images``: upload a depth image (+ camera intrinsics); it is resampled to the
+  model's focal length (vgq.camera) and cached under a content-addressed id.
+* ``POST /v1/images/{image_id}/scores``: score k grasps anywhere in a cached image; the crop
+  windows they need (vgq.crop's grid) are encoded once, lazily, in one batch.
 * ``POST /v1/score``: one-shot, depth + grasps in one request (multipart or .npz).
+* ``POST /v1/plan``: the best k grasps on a depth image (service/plan_routes.py).
 * ``GET /healthz``, ``/readyz``, ``/v1/model``, ``/v1/cache``, ``/metrics``, ``/docs``, ``/redoc``.
 
 Client errors answer ``{"error": {"status", "message", "details"}}``; so do the HTTP layer's
@@ -29,14 +31,17 @@ from .body import ClientGone
 from .config import Settings
 from .errors import ApiError
 from .limits import LimitsMiddleware
+from .plan_routes import router as plan_router
 from .routes import json_response, router
 from .runtime import FastModel
 from .scoring import Service
 
-GUARDED = ("/v1/images", "/v1/images/{image_id}/scores", "/v1/score")
+GUARDED = ("/v1/images", "/v1/images/{image_id}/scores", "/v1/score", "/v1/plan")
 DESCRIPTION = (
-    "Upload a depth image once (it is cropped and encoded by Fast-VGQ-CNN's encoder and cached), "
-    "then score batches of 6-DOF grasps (u, v, z, qw, qx, qy, qz) against it. "
+    "Upload a depth image once, with the camera's intrinsics (fx, fy, cx, cy; it is resampled to the model's focal "
+    "length and cached), then score batches of 6-DOF grasps (u, v, z, qw, qx, qy, qz) anywhere in it: each grasp's "
+    "crop window (on the grid the network was trained with) is encoded by Fast-VGQ-CNN's encoder once, when first "
+    "needed. Each score comes with its raw network output and out-of-distribution flags. "
     "Units: u, v image pixels (u = column), z metres in the camera frame, quaternion (w, x, y, z) in the camera frame."
 )
 
@@ -110,5 +115,6 @@ def create_app(settings: Settings | None = None, model: FastModel | None = None,
                        max_inflight=settings.max_inflight, max_buffered_bytes=settings.max_buffered_bytes)
     add_error_handlers(app, svc.log)
     app.include_router(router)
+    app.include_router(plan_router)
     app.openapi = _openapi_with_security(app, bool(settings.api_key))
     return app

@@ -1,8 +1,10 @@
-"""Cache of encoded images: id -> encoder output (+ the window it was cropped from).
+"""Cache of uploaded images: id -> the image at the model's focal length and the encoder
+terms of its crop windows, encoded lazily (a window the first time a grasp needs it).
 
-``MemoryCache`` is a bounded LRU (entries and bytes) for one process. The Redis backend
-(``service.redis_cache``) shares entries between replicas. Both count hits, misses and
-evictions.
+``MemoryCache`` is a bounded LRU (entries and bytes) for one process; an entry's bytes are
+its depth image plus its window terms, re-counted each time windows are added
+(``add_windows``). The Redis backend (``service.redis_cache``) shares entries between
+replicas. Both count hits, misses and evictions.
 """
 
 from __future__ import annotations
@@ -10,27 +12,71 @@ from __future__ import annotations
 import hashlib
 import threading
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-ENTRY_OVERHEAD_BYTES = 256  # key, object headers, window centre
+from vgq.camera import Intrinsics
+
+ENTRY_OVERHEAD_BYTES = 512  # key, object headers, intrinsics
+WINDOW_OVERHEAD_BYTES = 128  # dict slot, origin tuple, missing fraction
+
+Origin = tuple[int, int]  # top-left pixel (u, v) of a crop window in the resampled image
 
 
 @dataclass(frozen=True)
-class CachedImage:
-    image_term: np.ndarray  # (1, 1024) float32 encoder output
-    window_center: np.ndarray  # (2,) float64, image px (u, v)
-    image_shape: tuple[int, int]  # (H, W)
-    missing_fraction: float = 0.0  # fraction of the crop window without a depth reading (filled)
+class EncodedWindow:
+    """One crop window's encoder output."""
+
+    term: np.ndarray  # (1, 1024) float32
+    missing_fraction: float  # share of the window's pixels without a depth reading (filled before encoding)
 
     @property
     def nbytes(self) -> int:
-        return int(self.image_term.nbytes) + ENTRY_OVERHEAD_BYTES
+        return int(self.term.nbytes) + WINDOW_OVERHEAD_BYTES
+
+
+@dataclass
+class CachedImage:
+    """An uploaded image, resampled to the model's focal lengths (``resampled``), as the
+    client's camera saw it (``camera``), and its windows encoded so far.
+
+    ``depth`` (H', W') float32 metres, 0 = no reading (kept to encode new windows and flag
+    grasps on missing pixels). ``fixed_center``: the one window centre (resampled px) when
+    the upload named one (``center_u`` / ``center_v``); None = windows on the training grid.
+    ``assumed``: the intrinsics the client did not send (model's focal lengths, image centre)."""
+
+    depth: np.ndarray
+    camera: Intrinsics
+    resampled: Intrinsics
+    assumed: tuple[str, ...] = ()
+    fixed_center: np.ndarray | None = None
+    windows: dict[Origin, EncodedWindow] = field(default_factory=dict)
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        """(H, W) of the upload (client pixels)."""
+        return self.camera.height, self.camera.width
+
+    @property
+    def scale(self) -> tuple[float, float]:
+        """(sx, sy): resampled pixels per client pixel."""
+        return self.resampled.width / self.camera.width, self.resampled.height / self.camera.height
+
+    @property
+    def missing_fraction(self) -> float:
+        """Share of the image's pixels (grid mode) or of the fixed window's (fixed mode) without a reading."""
+        if self.fixed_center is not None and len(self.windows) == 1:
+            return next(iter(self.windows.values())).missing_fraction
+        return float(np.mean(self.depth <= 0))
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.depth.nbytes) + ENTRY_OVERHEAD_BYTES + sum(w.nbytes for w in self.windows.values())
 
 
 def image_id(body: bytes, params: str, model_version: str) -> str:
-    """Content address of an upload: hash of model version, crop parameters and bytes."""
+    """Content address of an upload: hash of model version, crop / camera parameters and bytes."""
     h = hashlib.sha256()
     h.update(model_version.encode())
     h.update(b"\0")
@@ -41,7 +87,8 @@ def image_id(body: bytes, params: str, model_version: str) -> str:
 
 
 class MemoryCache:
-    """Thread-safe LRU bounded by entry count and bytes."""
+    """Thread-safe LRU bounded by entry count and bytes (an entry's size as of its last
+    ``put`` / ``add_windows``)."""
 
     backend = "memory"
 
@@ -49,9 +96,11 @@ class MemoryCache:
         self.max_entries = max_entries
         self.max_bytes = max_bytes
         self._d: OrderedDict[str, CachedImage] = OrderedDict()
+        self._size: dict[str, int] = {}
         self._lock = threading.Lock()
         self.bytes = 0
         self.hits = self.misses = self.evictions = 0
+        self.windows_encoded = self.windows_fetched = 0
 
     def get(self, key: str) -> CachedImage | None:
         with self._lock:
@@ -65,19 +114,37 @@ class MemoryCache:
 
     def put(self, key: str, entry: CachedImage) -> None:
         with self._lock:
-            old = self._d.pop(key, None)
-            if old is not None:
-                self.bytes -= old.nbytes
-            self._d[key] = entry
-            self.bytes += entry.nbytes
-            while len(self._d) > self.max_entries or (self.bytes > self.max_bytes and len(self._d) > 1):
-                _, ev = self._d.popitem(last=False)
-                self.bytes -= ev.nbytes
-                self.evictions += 1
+            self._put(key, entry)
+
+    def _put(self, key: str, entry: CachedImage) -> None:
+        if self._d.pop(key, None) is not None:
+            self.bytes -= self._size.pop(key)
+        self._d[key] = entry
+        self._size[key] = entry.nbytes
+        self.bytes += self._size[key]
+        while len(self._d) > self.max_entries or (self.bytes > self.max_bytes and len(self._d) > 1):
+            old, _ = self._d.popitem(last=False)
+            self.bytes -= self._size.pop(old)
+            self.evictions += 1
+
+    def fetch_windows(self, key: str, entry: CachedImage, origins) -> None:
+        """Windows of ``entry`` held elsewhere (another replica): none in one process."""
+
+    def add_windows(self, key: str, entry: CachedImage, new: dict) -> None:
+        """``new`` windows (origin -> EncodedWindow) were just encoded for ``entry``: keep
+        them and re-count its bytes (may evict older images)."""
+        with self._lock:
+            entry.windows.update(new)
+            self.windows_encoded += len(new)
+            if key in self._d:
+                self._put(key, entry)
 
     def __len__(self) -> int:
         return len(self._d)
 
     def stats(self) -> dict:
+        with self._lock:
+            windows = sum(len(e.windows) for e in self._d.values())
         return {"backend": self.backend, "entries": len(self._d), "bytes": self.bytes, "max_entries": self.max_entries,
-                "max_bytes": self.max_bytes, "hits": self.hits, "misses": self.misses, "evictions": self.evictions}
+                "max_bytes": self.max_bytes, "hits": self.hits, "misses": self.misses, "evictions": self.evictions,
+                "windows": windows, "windows_encoded": self.windows_encoded, "windows_fetched": self.windows_fetched}

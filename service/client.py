@@ -2,13 +2,20 @@
 
     from service.client import ServiceClient
     c = ServiceClient("http://127.0.0.1:8000")
-    image_id = c.upload(depth)                  # (H, W) float32 metres
-    p = c.score(image_id, grasps)               # (k, 7): u, v, z, qw, qx, qy, qz -> (k,) probabilities
+    image_id = c.upload(depth, intrinsics=(615.0, 615.0, 319.5, 239.5))  # (H, W) float32 metres; fx, fy, cx, cy px
+    p = c.score(image_id, grasps)               # (k, 7): u, v, z, qw, qx, qy, qz anywhere in the image -> (k,)
+    r = c.score_details(image_id, grasps)       # + raw_score, ood (names per grasp), ood_mask, calibrated
+    plan = c.plan(depth, k=5)                   # the best 5 grasps: plan.rows (n, 7), plan.poses (n, 4, 4)
+
+Intrinsics: a tuple (fx, fy, cx, cy), a dict with those keys (any subset) or a
+``vgq.camera.Intrinsics``; omitted, the service assumes the model's (``last_upload`` says so).
 """
 
 from __future__ import annotations
 
 import io
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 import httpx
 import numpy as np
@@ -20,11 +27,52 @@ class ServiceError(RuntimeError):
         self.status, self.message, self.details = status, message, details or {}
 
 
+def intrinsics_params(intrinsics) -> dict:
+    """``{"fx": ..., "fy": ..., "cx": ..., "cy": ...}`` of a tuple, dict or Intrinsics (None: {})."""
+    if intrinsics is None:
+        return {}
+    if hasattr(intrinsics, "fx"):
+        return {k: float(getattr(intrinsics, k)) for k in ("fx", "fy", "cx", "cy")}
+    if isinstance(intrinsics, dict):
+        return {k: float(v) for k, v in intrinsics.items() if k in ("fx", "fy", "cx", "cy") and v is not None}
+    return dict(zip(("fx", "fy", "cx", "cy"), (float(x) for x in intrinsics)))
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The answer of ``POST /v1/plan``: ``grasps`` best first, each a dict with ``row`` (u, v,
+    z, qw, qx, qy, qz), ``pose`` (4 x 4, camera frame, metres), ``width`` (m), ``contacts``
+    (2 x 3, camera frame, m), ``score``, ``ood_flags`` and ``ood``; ``reason`` says why when
+    there are none; ``intrinsics`` the camera planned with (px); ``answer`` the whole JSON."""
+
+    grasps: list[dict]
+    reason: str | None
+    intrinsics: dict
+    model_version: str
+    seconds: dict = field(default_factory=dict)
+    answer: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def rows(self) -> np.ndarray:
+        """(n, 7) grasp rows, best first: what ``score`` takes."""
+        return np.array([g["row"] for g in self.grasps], dtype=np.float64).reshape(-1, 7)
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(n, 4, 4) grasp frames in the camera frame (x = jaw axis, z = approach), metres."""
+        return np.array([g["pose"] for g in self.grasps], dtype=np.float64).reshape(-1, 4, 4)
+
+    @property
+    def scores(self) -> np.ndarray:
+        return np.array([g["score"] for g in self.grasps], dtype=np.float64)
+
+
 class ServiceClient:
     def __init__(self, url: str = "http://127.0.0.1:8000", api_key: str | None = None, timeout: float = 10.0):
         headers = {"X-API-Key": api_key} if api_key else {}
         self.http = httpx.Client(base_url=url.rstrip("/"), headers=headers, timeout=timeout)
         self.last_upload: dict = {}
+        self.last_ood_count = 0
 
     def close(self) -> None:
         self.http.close()
@@ -50,34 +98,90 @@ class ServiceClient:
         np.save(buf, np.ascontiguousarray(a, dtype=np.float32), allow_pickle=False)
         return buf.getvalue()
 
-    def upload(self, depth: np.ndarray, center: tuple[float, float] | None = None) -> str:
-        """Upload a (H, W) depth image in metres; returns its id. ``center``: crop window centre (u, v) px."""
+    def upload(self, depth: np.ndarray, center: tuple[float, float] | None = None, intrinsics=None) -> str:
+        """Upload a (H, W) depth image in metres; returns its id. ``intrinsics``: the camera's
+        (fx, fy, cx, cy) px. ``center``: one fixed crop window centre (u, v) px (default: grasps
+        anywhere, windows placed by the service)."""
         params = {} if center is None else {"center_u": center[0], "center_v": center[1]}
+        params.update(intrinsics_params(intrinsics))
         r = self.http.post("/v1/images", content=self._npy(depth), params=params,
                            headers={"content-type": "application/x-npy"})
         self._raise(r)
         self.last_upload = r.json()
         return self.last_upload["image_id"]
 
-    def score(self, image_id: str, grasps: np.ndarray) -> np.ndarray:
-        """Score (k, 7) grasps (u, v, z, qw, qx, qy, qz) against an uploaded image -> (k,) float32."""
+    @staticmethod
+    def _strict(strict: bool) -> dict:
+        return {"strict": "true"} if strict else {}
+
+    def score(self, image_id: str, grasps: np.ndarray, strict: bool = False) -> np.ndarray:
+        """Score (k, 7) grasps (u, v, z, qw, qx, qy, qz) against an uploaded image -> (k,) float32
+        p_success. ``last_ood_count``: how many were flagged (``score_details`` says why);
+        ``strict``: a flagged grasp raises ServiceError 422."""
         body = np.ascontiguousarray(grasps, dtype="<f4").tobytes()
-        r = self.http.post(f"/v1/images/{image_id}/scores", content=body,
+        r = self.http.post(f"/v1/images/{image_id}/scores", content=body, params=self._strict(strict),
                            headers={"content-type": "application/octet-stream", "accept": "application/octet-stream"})
         self._raise(r)
+        self.last_ood_count = int(r.headers.get("x-ood-count", 0))
         return np.frombuffer(r.content, dtype="<f4").copy()
 
-    def score_once(self, depth: np.ndarray, grasps: np.ndarray, center: tuple[float, float] | None = None) -> np.ndarray:
-        """Upload + score in one request (fills the service's cache too)."""
+    def score_details(self, image_id: str, grasps: np.ndarray, strict: bool = False) -> dict:
+        """Like ``score``, with everything the service answers: ``p_success`` (calibrated when
+        ``calibrated``), ``raw_score`` (the network's output), ``ood`` (flag names per grasp),
+        ``ood_mask`` (bits), ``windows``, ``windows_encoded``; arrays as numpy."""
+        body = np.ascontiguousarray(grasps, dtype="<f4").tobytes()
+        r = self.http.post(f"/v1/images/{image_id}/scores", content=body, params=self._strict(strict),
+                           headers={"content-type": "application/octet-stream"})
+        self._raise(r)
+        return self._details(r.json())
+
+    @staticmethod
+    def _details(d: dict) -> dict:
+        d["p_success"] = np.asarray(d["p_success"], np.float64)
+        d["raw_score"] = np.asarray(d["raw_score"], np.float32)
+        d["ood_mask"] = np.asarray(d["ood_mask"], np.uint8)
+        return d
+
+    def score_once(self, depth: np.ndarray, grasps: np.ndarray, center: tuple[float, float] | None = None,
+                   intrinsics=None, strict: bool = False, details: bool = False):
+        """Upload + score in one request (fills the service's cache too): (k,) float32 p_success,
+        or the whole answer (see ``score_details``) with ``details=True``."""
         arrays = {"depth": np.asarray(depth, np.float32), "grasps": np.asarray(grasps, np.float32)}
         if center is not None:
             arrays["center"] = np.asarray(center, np.float64)
+        intr = intrinsics_params(intrinsics)
+        if intr:
+            if len(intr) != 4:
+                raise ValueError("score_once needs all four intrinsics (fx, fy, cx, cy) or none")
+            arrays["intrinsics"] = np.array([intr[k] for k in ("fx", "fy", "cx", "cy")], np.float64)
         buf = io.BytesIO()
         np.savez(buf, **arrays)
-        r = self.http.post("/v1/score", content=buf.getvalue(),
-                           headers={"content-type": "application/x-npz", "accept": "application/octet-stream"})
+        accept = {} if details else {"accept": "application/octet-stream"}
+        r = self.http.post("/v1/score", content=buf.getvalue(), params=self._strict(strict),
+                           headers={"content-type": "application/x-npz", **accept})
         self._raise(r)
+        if details:
+            return self._details(r.json())
+        self.last_ood_count = int(r.headers.get("x-ood-count", 0))
         return np.frombuffer(r.content, dtype="<f4").copy()
+
+    def plan(self, depth: np.ndarray, k: int = 5, intrinsics=None, roi=None, seed: int = 0, cem: int = 0) -> Plan:
+        """The best ``k`` grasps on a (H, W) depth image in metres (0 = no reading).
+        ``intrinsics``: the camera's fx, fy, cx, cy in px (a mapping or an object with those
+        attributes, e.g. ``vgq.camera.Intrinsics``; default: the model's); ``roi``: (u0, v0,
+        u1, v1) px where grasps may lie; ``seed``: repeatable sampling; ``cem``: refinement
+        iterations. Raises ServiceError (422 naming the field) for input it cannot plan on."""
+        params: dict = {"k": k, "seed": seed, "cem": cem}
+        if intrinsics is not None:
+            for name in ("fx", "fy", "cx", "cy"):
+                v = intrinsics[name] if isinstance(intrinsics, Mapping) else getattr(intrinsics, name)
+                params[name] = repr(float(v))
+        if roi is not None:
+            params["roi"] = ",".join(repr(float(x)) for x in roi)
+        r = self.http.post("/v1/plan", content=self._npy(depth), params=params, headers={"content-type": "application/x-npy"})
+        self._raise(r)
+        d = r.json()
+        return Plan(d["grasps"], d["reason"], d["intrinsics"], d["model_version"], d.get("seconds", {}), d)
 
     def model(self) -> dict:
         r = self.http.get("/v1/model")

@@ -10,6 +10,7 @@ from pathlib import Path
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent.parent / "models" / "fast-vgqcnn-default"
 
 HEAD_PRECISIONS = ("auto", "fp32", "int8")
+ENCODER_PRECISIONS = ("auto", "fp32", "int8")
 
 
 @dataclass
@@ -20,6 +21,7 @@ class Settings:
     workers: int = 1
     threads: int = 0  # onnxruntime intra-op threads per session; 0 = cores / workers
     head_precision: str = "auto"  # auto (int8 when the model ships a checked int8 head) | fp32 | int8
+    encoder_precision: str = "auto"  # auto (the fastest checked encoder, timed at start-up) | fp32 | int8
     max_grasps: int = 2048  # grasps per request
     max_body_bytes: int = 32 * 1024 * 1024  # request body limit
     max_buffered_bytes: int = 128 * 1024 * 1024  # request bodies held in memory at once, all requests together
@@ -29,12 +31,13 @@ class Settings:
     max_url_bytes: int = 8 * 1024  # request target (path + query)
     max_image_side: int = 4096  # pixels, either dimension of an uploaded depth image
     cache_entries: int = 4096
-    cache_bytes: int = 64 * 1024 * 1024
+    cache_bytes: int = 256 * 1024 * 1024  # an image holds its depth (4 B/px) and 4.2 kB per encoded window
     cache_backend: str = "memory"  # memory | redis
     redis_url: str = "redis://127.0.0.1:6379/0"
     cache_ttl_s: float = 86400.0  # redis backend: an image unused this long expires (each hit renews it)
     request_timeout_s: float = 10.0
     max_missing_fraction: float = 0.5  # a crop window with more pixels without depth (0) is refused (422)
+    ood_window_missing: float = 0.25  # a window with more pixels without depth flags its grasps window_mostly_missing
     api_key: str = ""  # when set, upload and score need header X-API-Key
     log_level: str = "info"
     access_log: bool = False  # one structured line per request
@@ -51,12 +54,15 @@ class Settings:
                              f"({self.max_body_bytes}): one largest body must fit")
         if self.head_precision not in HEAD_PRECISIONS:
             raise ValueError(f"setting head_precision must be one of {HEAD_PRECISIONS}, got {self.head_precision!r}")
+        if self.encoder_precision not in ENCODER_PRECISIONS:
+            raise ValueError(f"setting encoder_precision must be one of {ENCODER_PRECISIONS}, got {self.encoder_precision!r}")
         if self.cache_backend not in ("memory", "redis"):
             raise ValueError(f"setting cache_backend must be 'memory' or 'redis', got {self.cache_backend!r}")
         if self.cache_backend == "redis" and not self.redis_url.startswith(("redis://", "rediss://", "unix://")):
             raise ValueError(f"setting redis_url must be a redis://, rediss:// or unix:// URL, got {self.redis_url!r}")
-        if not 0 <= self.max_missing_fraction <= 1:
-            raise ValueError(f"setting max_missing_fraction must be in [0, 1], got {self.max_missing_fraction!r}")
+        for name in ("max_missing_fraction", "ood_window_missing"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"setting {name} must be in [0, 1], got {getattr(self, name)!r}")
         for name in ("request_timeout_s", "cache_ttl_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"setting {name} must be > 0, got {getattr(self, name)!r}")

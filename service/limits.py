@@ -79,7 +79,7 @@ def _endpoint(path: str) -> str:
     if path.startswith("/v1/images/") and path.endswith("/scores"):
         return "score"
     return {"/v1/images": "upload", "/v1/score": "score_once", "/metrics": "metrics", "/healthz": "healthz",
-            "/readyz": "readyz", "/v1/model": "model", "/v1/cache": "cache"}.get(path, "other")
+            "/readyz": "readyz", "/v1/model": "model", "/v1/cache": "cache", "/v1/plan": "plan"}.get(path, "other")
 
 
 async def _send_overloaded(send, message: str) -> None:

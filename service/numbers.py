@@ -65,7 +65,7 @@ class Number:
 
     def _fail(self, raw, what: str):
         shown = raw if not isinstance(raw, str) or len(raw) <= 24 else raw[:20] + "..."
-        raise ApiError(422, f"field {self.name} must be {what}, got {shown!r}")
+        raise ApiError(422, f"field {self.name} must be {what}, got {shown!r}", {"field": self.name})
 
     def schema(self) -> dict:
         s: dict = {"type": "integer" if self.integer else "number", "description": self.description}
@@ -88,12 +88,35 @@ CENTER_V = Number("center_v", "crop window centre, row (image px, v); default: t
                   minimum=0.0)
 WIDTH = Number("width", "image width (px), raw float32 bodies only", integer=True, minimum=1)
 HEIGHT = Number("height", "image height (px), raw float32 bodies only", integer=True, minimum=1)
-FX = Number("fx", "the camera's focal length along u (px); checked against the model's", exclusive_minimum=0.0)
-FY = Number("fy", "the camera's focal length along v (px); checked against the model's", exclusive_minimum=0.0)
+FX = Number("fx", "the camera's focal length along u (px); the image is resampled to the model's (range: GET /v1/model, "
+                 "camera.focal_range_px); default: the model's", exclusive_minimum=0.0)
+FY = Number("fy", "the camera's focal length along v (px); default: fx when fx is given, else the model's",
+            exclusive_minimum=0.0)
+CX = Number("cx", "the camera's principal point, column (image px); must lie in the image; default: the image centre")
+CY = Number("cy", "the camera's principal point, row (image px); must lie in the image; default: the image centre")
+INTRINSICS = (FX, FY, CX, CY)
 
 #: the numeric query parameters of an upload, and the numeric fields of a multipart one-shot
-UPLOAD_NUMBERS = (CENTER_U, CENTER_V, WIDTH, HEIGHT, FX, FY)
-ONE_SHOT_NUMBERS = (CENTER_U, CENTER_V, WIDTH, HEIGHT)
+UPLOAD_NUMBERS = (CENTER_U, CENTER_V, WIDTH, HEIGHT, *INTRINSICS)
+ONE_SHOT_NUMBERS = UPLOAD_NUMBERS
+
+TRUE, FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off", "")
+
+
+def parse_flag(name: str, raw) -> bool:
+    """A boolean query parameter (true / false / 1 / 0; absent = false); 422 naming it otherwise."""
+    text = "" if raw is None else str(raw).strip().lower()
+    if text in TRUE:
+        return True
+    if text in FALSE:
+        return False
+    shown = text if len(text) <= 24 else text[:20] + "..."
+    raise ApiError(422, f"field {name} must be true or false, got {shown!r}", {"field": name})
+
+
+def request_key(content_type: str, numbers: dict) -> str:
+    """The parameters that, with the body, make an upload's cache id (content type, shape, window, camera)."""
+    return ";".join([content_type, *(repr(numbers.get(n.name)) for n in UPLOAD_NUMBERS)])
 
 
 def parse_all(numbers, source) -> dict:

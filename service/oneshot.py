@@ -2,11 +2,12 @@
 
 * ``multipart/form-data``: parts ``depth`` (a file: .npy, 16-bit PNG, or raw float32 with
   ``width`` / ``height`` fields), ``grasps`` (JSON text or a float32 k x 7 file with content
-  type application/octet-stream) and optional ``center_u`` / ``center_v`` fields. The body is
+  type application/octet-stream) and optional fields ``center_u`` / ``center_v`` and the
+  camera's ``fx``, ``fy``, ``cx``, ``cy``. The body is
   already in memory: parts are parsed from it with python-multipart's streaming parser and
   kept as views into it where possible (no temporary files, no second copy).
 * ``application/x-npz``: arrays ``depth`` (H, W) float metres, ``grasps`` (k, 7) and optional
-  ``center`` (2,) = (u, v); every .npy header is checked before anything is allocated.
+  ``center`` (2,) = (u, v) and ``intrinsics`` (4,) = (fx, fy, cx, cy) px; every .npy header is checked before anything is allocated.
 
 Every number goes through ``service.numbers``. Returns a ``OneShot``.
 """
@@ -24,9 +25,16 @@ from .depth_io import NPY_TYPES, decode_depth, parse_npy, read_npz, validate_dep
 from .errors import ApiError
 from .grasps import parse_binary, parse_json
 from .media import OCTET, media_type
-from .numbers import CENTER_U, CENTER_V, ONE_SHOT_NUMBERS, parse_all
+from .numbers import (
+    CENTER_U,
+    CENTER_V,
+    INTRINSICS,
+    ONE_SHOT_NUMBERS,
+    parse_all,
+    request_key,
+)
 
-MAX_PARTS = 8
+MAX_PARTS = 12  # depth, grasps and up to 8 numeric fields (width, height, fx, fy, cx, cy, center_u, center_v)
 MAX_PART_HEADER_BYTES = 4096
 
 
@@ -42,8 +50,7 @@ class OneShot:
     depth: np.ndarray | None = None  # already decoded (.npz)
 
     def cache_params(self) -> str:
-        n = self.numbers
-        return f"{self.depth_type};{n['width']};{n['height']};{n['center_u']};{n['center_v']}"
+        return request_key(self.depth_type, self.numbers)
 
     def decode(self, max_side: int) -> np.ndarray:
         if self.depth is not None:
@@ -169,10 +176,16 @@ def parse_npz(body, max_total_bytes: int, max_side: int, max_grasps: int) -> One
     grasps = parse_npy(members["grasps"], "grasps", max_grasps * GRASP_WIDTH + GRASP_WIDTH)
     if grasps.ndim != 2 or grasps.shape[1] != GRASP_WIDTH:
         raise ApiError(422, f"grasps has shape {grasps.shape}; expected (k, 7)")
-    numbers = {"width": None, "height": None, "center_u": None, "center_v": None}
+    numbers = {n.name: None for n in ONE_SHOT_NUMBERS}
     if "center" in members:
         center = parse_npy(members["center"], "center", 2).reshape(-1)
         if center.shape != (2,):
             raise ApiError(422, "center must hold 2 values (u, v)")
         numbers["center_u"], numbers["center_v"] = CENTER_U.parse(center[0]), CENTER_V.parse(center[1])
+    if "intrinsics" in members:
+        intr = parse_npy(members["intrinsics"], "intrinsics", 4).reshape(-1)
+        if intr.shape != (4,):
+            raise ApiError(422, "intrinsics must hold 4 values (fx, fy, cx, cy) px")
+        for number, value in zip(INTRINSICS, intr):
+            numbers[number.name] = number.parse(value)
     return OneShot(members["depth"], NPY_TYPES[0], grasps.astype(np.float64), numbers, depth)

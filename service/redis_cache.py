@@ -4,8 +4,10 @@ An id uploaded to one replica can be scored on any other. Entries are immutable 
 a content address of the bytes, crop parameters and model version), so a small in-process
 LRU (``MemoryCache``, bounded by ``max_entries`` / ``max_bytes``) sits in front of Redis
 with no invalidation needed. Redis holds one string per image, ``<prefix><id>`` ->
-``pack_entry`` bytes (about 4.1 kB), written with a TTL that each hit renews (GETEX), so
-idle images expire; give the Redis server a ``maxmemory`` and ``maxmemory-policy
+``pack_entry`` bytes (the depth image at the model's focal length, zlib-compressed, and its
+camera), and one string per encoded window, ``<prefix><id>:w:<ou>,<ov>`` -> ``pack_window``
+bytes (about 4.1 kB), each written with a TTL that each hit renews (GETEX), so idle images
+expire; a window another replica encoded is read, not encoded again; give the Redis server a ``maxmemory`` and ``maxmemory-policy
 allkeys-lru`` (or volatile-lru) and it evicts the least recently used images under pressure.
 
 If Redis is unreachable the service keeps answering: ``get`` falls back to the local LRU
@@ -21,35 +23,74 @@ import logging
 import struct
 import threading
 import time
+import zlib
 from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
+import orjson
+
+from vgq.camera import Intrinsics
 
 from . import logs
-from .cache import CachedImage, MemoryCache
+from .cache import CachedImage, EncodedWindow, MemoryCache
 
-MAGIC = b"VGQ2"
-_HEADER = struct.Struct("<4sIIdddI")  # magic, H, W, window centre u, v (px), missing fraction, n float32 values
+MAGIC = b"VGQ3"
+_HEADER = struct.Struct("<4sI")  # magic, length of the JSON metadata that follows; then zlib(float32 depth)
+_WINDOW = struct.Struct("<4sdI")  # magic, missing fraction, n float32 values
+WINDOW_MAGIC = b"VGW1"
 KEY_PREFIX = "vgq:img:"
 
 
+def window_key(prefix: str, key: str, origin) -> str:
+    """Redis key of one window's encoder term: ``<prefix><id>:w:<ou>,<ov>``."""
+    return f"{prefix}{key}:w:{int(origin[0])},{int(origin[1])}"
+
+
 def pack_entry(entry: CachedImage) -> bytes:
-    """Bytes of a cache entry: header (image shape, window centre) + little-endian float32 image term."""
-    term = np.ascontiguousarray(entry.image_term, dtype="<f4").reshape(-1)
-    h, w = entry.image_shape
-    c = entry.window_center
-    return _HEADER.pack(MAGIC, int(h), int(w), float(c[0]), float(c[1]), float(entry.missing_fraction), term.size) + term.tobytes()
+    """Bytes of an image entry (without its windows): JSON metadata (shape, intrinsics, window
+    mode) + the zlib-compressed little-endian float32 depth image at the model's focal length."""
+    meta = {"shape": list(entry.depth.shape), "camera": entry.camera.to_dict(), "resampled": entry.resampled.to_dict(),
+            "assumed": list(entry.assumed),
+            "fixed_center": None if entry.fixed_center is None else [float(x) for x in entry.fixed_center]}
+    m = orjson.dumps(meta)
+    depth = zlib.compress(np.ascontiguousarray(entry.depth, dtype="<f4").tobytes(), 1)
+    return _HEADER.pack(MAGIC, len(m)) + m + depth
 
 
 def unpack_entry(data: bytes) -> CachedImage:
     """Inverse of ``pack_entry``; raises ValueError for bytes that are not an entry."""
     if len(data) < _HEADER.size:
         raise ValueError(f"cache entry of {len(data)} bytes is shorter than its header")
-    magic, h, w, cu, cv, missing, n = _HEADER.unpack_from(data)
-    if magic != MAGIC or len(data) != _HEADER.size + 4 * n:
+    magic, n = _HEADER.unpack_from(data)
+    if magic != MAGIC or len(data) < _HEADER.size + n:
         raise ValueError("cache entry has a wrong magic or length")
-    term = np.frombuffer(data, dtype="<f4", count=n, offset=_HEADER.size).astype(np.float32).reshape(1, n)
-    return CachedImage(term, np.array([cu, cv], dtype=np.float64), (h, w), missing)
+    try:
+        meta = orjson.loads(data[_HEADER.size:_HEADER.size + n])
+        h, w = (int(x) for x in meta["shape"])
+        raw = zlib.decompress(data[_HEADER.size + n:])
+        if len(raw) != 4 * h * w:
+            raise ValueError("depth has a wrong length")
+        depth = np.frombuffer(raw, dtype="<f4").astype(np.float32).reshape(h, w)
+        fc = meta["fixed_center"]
+        return CachedImage(depth, Intrinsics.from_dict(meta["camera"]), Intrinsics.from_dict(meta["resampled"]),
+                           tuple(meta["assumed"]), None if fc is None else np.array(fc, dtype=np.float64))
+    except (orjson.JSONDecodeError, zlib.error, KeyError, TypeError) as e:
+        raise ValueError(f"cache entry is corrupt: {e}") from None
+
+
+def pack_window(win: EncodedWindow) -> bytes:
+    term = np.ascontiguousarray(win.term, dtype="<f4").reshape(-1)
+    return _WINDOW.pack(WINDOW_MAGIC, float(win.missing_fraction), term.size) + term.tobytes()
+
+
+def unpack_window(data: bytes) -> EncodedWindow:
+    if len(data) < _WINDOW.size:
+        raise ValueError(f"window entry of {len(data)} bytes is shorter than its header")
+    magic, missing, n = _WINDOW.unpack_from(data)
+    if magic != WINDOW_MAGIC or len(data) != _WINDOW.size + 4 * n:
+        raise ValueError("window entry has a wrong magic or length")
+    term = np.frombuffer(data, dtype="<f4", count=n, offset=_WINDOW.size).astype(np.float32).reshape(1, n)
+    return EncodedWindow(term, missing)
 
 
 def redacted(url: str) -> str:
@@ -121,6 +162,41 @@ class RedisCache:
     def put(self, key: str, entry: CachedImage) -> None:
         self.local.put(key, entry)
         self._call("put", self.redis.set, self.prefix + key, pack_entry(entry), px=self.ttl_ms)
+        if entry.windows:
+            self._put_windows(key, entry.windows)
+
+    def fetch_windows(self, key: str, entry: CachedImage, origins) -> None:
+        """Windows of ``entry`` another replica encoded: read from Redis into ``entry`` (TTL renewed)."""
+        want = [o for o in origins if o not in entry.windows]
+        if not want:
+            return
+        pipe = self.redis.pipeline(transaction=False)
+        for o in want:
+            pipe.getex(window_key(self.prefix, key, o), px=self.ttl_ms)
+        got = self._call("fetch windows", pipe.execute) or [None] * len(want)
+        found = {}
+        for o, data in zip(want, got):
+            if data is None:
+                continue
+            try:
+                found[o] = unpack_window(data)
+            except ValueError as err:
+                logs.event(self.log, "window entry in redis is corrupt; encoded again", logging.WARNING, key=key, error=str(err))
+        if found:
+            self.local.add_windows(key, entry, found)
+            with self._lock:
+                self.local.windows_encoded -= len(found)  # fetched, not encoded here
+                self.local.windows_fetched += len(found)
+
+    def add_windows(self, key: str, entry: CachedImage, new: dict) -> None:
+        self.local.add_windows(key, entry, new)
+        self._put_windows(key, new)
+
+    def _put_windows(self, key: str, windows: dict) -> None:
+        pipe = self.redis.pipeline(transaction=False)
+        for o, win in windows.items():
+            pipe.set(window_key(self.prefix, key, o), pack_window(win), px=self.ttl_ms)
+        self._call("put windows", pipe.execute)
 
     def __len__(self) -> int:
         return len(self.local)

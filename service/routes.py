@@ -15,16 +15,20 @@ import orjson
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import Response
 
+from vgq.camera import FOCAL_RATIO_RANGE
+from vgq.ood import OOD_FLAGS
+
 from . import openapi as doc
 from .body import read_body
 from .cache import image_id
+from .camera import focal_range
 from .depth_io import DEPTH_TYPES, decode_depth
 from .errors import ApiError, redact_paths
 from .grasps import parse_binary, parse_json
 from .media import JSON, MULTIPART, NPZ, OCTET, accepts, media_type
-from .numbers import UPLOAD_NUMBERS, parse_all
+from .numbers import UPLOAD_NUMBERS, parse_all, parse_flag, request_key
 from .oneshot import parse_multipart, parse_npz
-from .scoring import Service
+from .scoring import Scores, Service
 
 router = APIRouter()
 
@@ -53,11 +57,20 @@ async def authorized(request: Request) -> Service:
 Authorized = Annotated[Service, Depends(authorized)]
 
 
-def _scores_response(request: Request, payload: dict, p: np.ndarray) -> Response:
+def _scores_response(request: Request, svc: Service, payload: dict, s: Scores) -> Response:
+    """JSON (``p_success``, ``raw_score``, ``ood``, ``ood_mask`` per grasp) or, with ``Accept:
+    application/octet-stream``, little-endian float32 ``p_success`` (k,) with the rest in headers:
+    ``x-calibrated``, ``x-ood-count`` (grasps with a flag; their flags need the JSON answer)."""
     if accepts(request.headers.get("accept"), OCTET):
-        return Response(p.astype("<f4").tobytes(), media_type=OCTET, headers={"x-image-id": payload["image_id"]})
-    payload["p_success"] = p
+        return Response(s.p_success.astype("<f4").tobytes(), media_type=OCTET, headers={
+            "x-image-id": payload["image_id"], "x-calibrated": str(svc.calibration is not None).lower(),
+            "x-ood-count": str(int(np.count_nonzero(s.ood_mask))), "x-windows-encoded": str(s.windows_encoded)})
+    payload.update(svc.scores_info(s))
     return json_response(payload)
+
+
+def _strict(request: Request) -> bool:
+    return parse_flag("strict", request.query_params.get("strict"))
 
 
 async def _body(request: Request, svc: Service):
@@ -90,8 +103,17 @@ async def model_info(request: Request):
     limits = {name: getattr(s, name) for name in ("max_grasps", "max_body_bytes", "max_buffered_bytes", "max_inflight",
                                                    "max_image_side", "max_header_bytes", "max_headers", "max_url_bytes",
                                                    "request_timeout_s")}
-    return json_response(redact_paths({"model_card": svc.model.card.to_dict(), "head_precision": svc.model.head_precision,
-                                       "limits": limits, "depth_content_types": list(DEPTH_TYPES)}))
+    card = svc.model.card
+    lo, hi = svc.z_range
+    return json_response(redact_paths({
+        "model_card": card.to_dict(), "head_precision": svc.model.head_precision, "encoder": svc.model.encoder_info,
+        "limits": limits,
+        "depth_content_types": list(DEPTH_TYPES),
+        "camera": {"intrinsics": card.intrinsics.to_dict(), "focal_range_px": focal_range(card.intrinsics),
+                   "focal_ratio_range": list(FOCAL_RATIO_RANGE)},
+        "calibrated": svc.calibration is not None, "calibration": card.calibration or None,
+        "ood": {"flags": {str(bit): name for bit, name in OOD_FLAGS.items()}, "z_range": [lo, hi],
+                "z_range_source": svc.z_range_source, "window_missing_fraction": s.ood_window_missing}}))
 
 
 @router.get("/v1/cache", summary="Image cache statistics", responses={200: doc.CACHE_RESPONSE, **doc.errors(doc.PROTOCOL)})
@@ -110,28 +132,35 @@ async def metrics(request: Request):
              openapi_extra={"requestBody": doc.UPLOAD_BODY, "parameters": [n.query_parameter() for n in UPLOAD_NUMBERS]},
              responses={200: doc.UPLOAD_RESPONSE, **doc.errors(doc.BODY_ERRORS)})
 async def upload(request: Request, svc: Authorized):
-    """Body: the depth image (see the content types). ``center_u`` / ``center_v``: the crop window centre
-    in image pixels (default: image centre); grasps must lie within ``kappa_px`` of it. ``width`` / ``height``:
-    only for raw float32 bodies. ``fx`` / ``fy``: the camera's focal lengths, checked against the model's."""
+    """Body: the depth image (see the content types). ``fx``, ``fy``, ``cx``, ``cy``: the camera's
+    intrinsics (px); the image is resampled to the model's focal length (omitted: the model's are
+    assumed, and the answer's ``intrinsics_assumed`` says so). Grasps may then lie anywhere in the
+    image: each gets a window on the training grid, encoded when first needed. ``center_u`` /
+    ``center_v`` (image px): one fixed window instead, encoded now; grasps must lie within
+    ``kappa_px`` of it. ``width`` / ``height``: only for raw float32 bodies."""
     n = parse_all(UPLOAD_NUMBERS, request.query_params)
-    svc.check_intrinsics(n["fx"], n["fy"])
     body = await _body(request, svc)
     ct = media_type(request.headers.get("content-type"))
-    key = image_id(body, f"{ct};{n['width']};{n['height']};{n['center_u']};{n['center_v']}", svc.model.version)
+    key = image_id(body, request_key(ct, n), svc.model.version)
     entry = svc.cache.get(key)
     if entry is not None:
         return json_response(svc.image_info(key, entry, True))
     depth = decode_depth(body, ct, width=n["width"], height=n["height"], max_side=svc.settings.max_image_side)
-    entry = svc.encode_image(key, depth, svc.requested_center(depth.shape, n["center_u"], n["center_v"]))
+    entry = svc.prepare_image(depth, n)
+    svc.encode_fixed_window(entry)  # with center_u / center_v: encoded now, its missing depth checked (422)
+    svc.put(key, entry)
     return json_response(svc.image_info(key, entry, False))
 
 
 @router.post("/v1/images/{image_id}/scores", summary="Score k grasps against an uploaded image",
-             openapi_extra={"requestBody": doc.SCORE_BODY}, responses={200: doc.SCORE_RESPONSE, **doc.errors(doc.BODY_ERRORS)})
+             openapi_extra={"requestBody": doc.SCORE_BODY, "parameters": [doc.STRICT]}, responses={200: doc.SCORE_RESPONSE, **doc.errors(doc.BODY_ERRORS)})
 async def score(image_id: str, request: Request, svc: Authorized):
     """Body: JSON ``{"grasps": [[u, v, z, qw, qx, qy, qz], ...]}`` or little-endian float32 k x 7
-    (``application/octet-stream``). Returns ``p_success`` in the order given (binary float32 with
-    ``Accept: application/octet-stream``)."""
+    (``application/octet-stream``), u, v in the uploaded image's pixels. Returns per grasp, in the
+    order given, ``p_success`` (calibrated; the raw score when the model has no calibration),
+    ``raw_score``, ``ood`` (names) and ``ood_mask`` (bits); binary float32 ``p_success`` with
+    ``Accept: application/octet-stream``. ``strict=true``: any flagged grasp is a 422."""
+    strict = _strict(request)
     body = await _body(request, svc)
     entry = svc.cache.get(image_id)
     if entry is None:
@@ -143,18 +172,21 @@ async def score(image_id: str, request: Request, svc: Authorized):
         grasps = parse_binary(body)
     else:
         raise ApiError(415, f"unsupported grasp content type {ct!r}; use {JSON} or {OCTET}")
-    p = svc.score(entry, grasps)
-    return _scores_response(request, {"image_id": image_id, "model_version": svc.model.version}, p)
+    result = svc.score(image_id, entry, grasps, strict)
+    return _scores_response(request, svc, {"image_id": image_id, "model_version": svc.model.version,
+                                           **svc.camera_info(entry)}, result)
 
 
 @router.post("/v1/score", summary="One-shot: upload + score in one request (fills the cache)",
-             openapi_extra={"requestBody": doc.ONE_SHOT_BODY}, responses={200: doc.SCORE_RESPONSE, **doc.errors(doc.BODY_ERRORS)})
+             openapi_extra={"requestBody": doc.ONE_SHOT_BODY, "parameters": [doc.STRICT]}, responses={200: doc.SCORE_RESPONSE, **doc.errors(doc.BODY_ERRORS)})
 async def score_once(request: Request, svc: Authorized):
     """``multipart/form-data`` with parts ``depth`` (a file: .npy, 16-bit PNG, or raw float32 with
     ``width``/``height`` fields) and ``grasps`` (JSON text or a float32 k x 7 file), optional fields
-    ``center_u``, ``center_v``; or ``application/x-npz`` with arrays ``depth`` (H, W) metres,
-    ``grasps`` (k, 7) and optional ``center`` (2,)."""
+    ``fx``, ``fy``, ``cx``, ``cy``, ``center_u``, ``center_v``; or ``application/x-npz`` with arrays
+    ``depth`` (H, W) metres, ``grasps`` (k, 7) and optional ``intrinsics`` (4,) = fx, fy, cx, cy and
+    ``center`` (2,). Answers as the score route; ``strict=true`` likewise."""
     s = svc.settings
+    strict = _strict(request)
     body = await _body(request, svc)
     header = request.headers.get("content-type", "")
     ct = media_type(header)
@@ -169,9 +201,9 @@ async def score_once(request: Request, svc: Authorized):
     cached = entry is not None
     if entry is None:
         depth = shot.decode(s.max_image_side)
-        center = svc.requested_center(depth.shape, shot.numbers["center_u"], shot.numbers["center_v"])
-        svc.check_grasps(shot.grasps, center)  # a bad batch costs no inference
-        entry = svc.encode_image(key, depth, center)
-    p = svc.score(entry, shot.grasps)
-    return _scores_response(request, {"image_id": key, "cached": cached, "model_version": svc.model.version,
-                                      "missing_fraction": entry.missing_fraction}, p)
+        entry = svc.prepare_image(depth, shot.numbers)
+        svc.place(entry, shot.grasps)  # a bad batch costs no inference and fills no cache
+        svc.put(key, entry)
+    result = svc.score(key, entry, shot.grasps, strict)
+    return _scores_response(request, svc, {"image_id": key, "cached": cached, "model_version": svc.model.version,
+                                           **svc.camera_info(entry)}, result)

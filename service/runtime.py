@@ -10,7 +10,10 @@ import onnxruntime as ort
 
 from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT, ModelCard
 
-from .config import HEAD_PRECISIONS
+from .config import ENCODER_PRECISIONS, HEAD_PRECISIONS
+
+#: card file role of each encoder precision (export: encoder.onnx; export.int8_encoder: encoder_int8.onnx)
+ENCODER_FILES = {"fp32": "encoder", "int8": "encoder_int8"}
 
 
 class ModelError(RuntimeError):
@@ -33,9 +36,13 @@ def session_options(threads: int) -> ort.SessionOptions:
 class FastModel:
     """Fast-VGQ-CNN: ``encode`` (1 crop -> 1024 image term) and ``score`` (k poses)."""
 
-    def __init__(self, model_dir: str | Path, threads: int = 1, head_precision: str = "auto"):
+    def __init__(self, model_dir: str | Path, threads: int = 1, head_precision: str = "auto", encoder_precision: str = "auto",
+                 select_s: float = 0.3):
         """``head_precision``: ``fp32``, ``int8`` (the card's checked ``head_int8`` graph, see
-        export/quantize.py) or ``auto`` (int8 when the model folder has one)."""
+        export/quantize.py) or ``auto`` (int8 when the model folder has one).
+        ``encoder_precision``: ``fp32``, ``int8`` (the card's checked ``encoder_int8`` graph, see
+        export/int8_encoder.py) or ``auto``: every encoder the card holds is timed on this machine
+        for about ``select_s`` seconds and the fastest is served (``encoder_info`` says which and why)."""
         model_dir = Path(model_dir)
         try:
             self.card = ModelCard.load(model_dir)
@@ -51,22 +58,35 @@ class FastModel:
                              "(export it with --int8-head)")
         self.head_precision = "int8" if has_int8 and head_precision != "fp32" else "fp32"
         head_file = self.card.files["head_int8" if self.head_precision == "int8" else "head"]
+        if encoder_precision not in ENCODER_PRECISIONS:
+            raise ModelError(f"encoder_precision must be one of {ENCODER_PRECISIONS}, got {encoder_precision!r}")
+        available = [p for p, role in ENCODER_FILES.items() if role in self.card.files]
+        if encoder_precision != "auto" and encoder_precision not in available:
+            raise ModelError(f"{model_dir}: encoder_precision {encoder_precision} asked for, but the model has no such encoder "
+                             "(export it with python -m export.int8_encoder)")
         so = session_options(threads)
         try:
-            self.encoder = ort.InferenceSession(str(model_dir / self.card.files["encoder"]), so, providers=["CPUExecutionProvider"])
+            encoders = {p: ort.InferenceSession(str(model_dir / self.card.files[ENCODER_FILES[p]]), so, providers=["CPUExecutionProvider"])
+                        for p in (available if encoder_precision == "auto" else [encoder_precision])}
             self.head = ort.InferenceSession(str(model_dir / head_file), so, providers=["CPUExecutionProvider"])
         except Exception as e:  # onnxruntime raises its own exception types
             raise ModelError(f"cannot open ONNX graphs in {model_dir}: {e}") from e
         self.geometry = self.card.geometry
+        timings = time_encoders(encoders, self.geometry.out, select_s) if len(encoders) > 1 else {}
+        self.encoder_precision = min(timings, key=timings.get) if timings else next(iter(encoders))
+        self.encoder = encoders[self.encoder_precision]  # the others are dropped
+        #: how the encoder was chosen: reported by /v1/model and the start-up log
+        self.encoder_info = {"precision": self.encoder_precision, "requested": encoder_precision, "available": available,
+                             "median_ms": {p: round(t * 1e3, 4) for p, t in timings.items()}, "threads": threads}
         self.version = self.card.model_version
         self.n_pose = len(self.card.normalization.pose_columns)
         self.encode_seconds = 0.0
         self.score_seconds = 0.0
 
     def encode(self, crop: np.ndarray) -> np.ndarray:
-        """(out, out) float32 crop in metres -> (1, 1024) float32 image term."""
+        """(out, out) or (n, out, out) float32 crops in metres -> (n, 1024) float32 image terms."""
         t = time.perf_counter()
-        x = np.ascontiguousarray(crop, dtype=np.float32).reshape(1, 1, *crop.shape[-2:])
+        x = np.ascontiguousarray(crop, dtype=np.float32).reshape(-1, 1, *crop.shape[-2:])
         term = self.encoder.run([ENCODER_OUTPUT], {ENCODER_INPUT: x})[0]
         self.encode_seconds = time.perf_counter() - t
         return term
@@ -87,3 +107,22 @@ class FastModel:
         poses[:, 3] = 1.0
         for _ in range(rounds):
             self.score(self.encode(crop), poses)
+
+
+def time_encoders(encoders: dict[str, ort.InferenceSession], side: int, seconds: float) -> dict[str, float]:
+    """Median seconds per one-crop call of each encoder session, calls interleaved (so load from
+    other processes hits them alike) for about ``seconds`` in all, after a short warm-up."""
+    rng = np.random.default_rng(0)
+    x = (0.6 + 0.01 * rng.standard_normal((1, 1, side, side))).astype(np.float32)
+    feed = {ENCODER_INPUT: x}
+    for s in encoders.values():
+        for _ in range(5):
+            s.run([ENCODER_OUTPUT], feed)
+    times: dict[str, list[float]] = {p: [] for p in encoders}
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end or min(len(t) for t in times.values()) < 5:
+        for p, s in encoders.items():
+            t = time.perf_counter()
+            s.run([ENCODER_OUTPUT], feed)
+            times[p].append(time.perf_counter() - t)
+    return {p: float(np.median(t)) for p, t in times.items()}

@@ -1,30 +1,71 @@
 """State of one service instance (settings, model, cache, metrics) and the steps a request
-takes: check the camera, crop + encode + cache an image, score grasps against it."""
+takes: bring the image to the model's camera, place each grasp's crop window, encode the
+windows not yet cached (one batched encoder call), score, flag what the model never saw,
+calibrate."""
 
 from __future__ import annotations
 
 import gc
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 
-from vgq.crop import window_center, window_origin
+from vgq.camera import map_pixels
+from vgq.crop import (
+    crop_window,
+    grid_window_centers,
+    in_training_range,
+    window_center,
+    window_origin,
+)
 from vgq.grasps import GraspError, pose_rows
+from vgq.inpaint import missing_mask
+from vgq.ood import flag_names, ood_flags
 
 from . import logs
-from .cache import CachedImage, MemoryCache
+from .cache import CachedImage, EncodedWindow, MemoryCache
+from .camera import client_camera, to_model_camera
 from .config import Settings
 from .errors import ApiError
 from .metrics import Metrics
 from .preprocess import window_input
 from .runtime import FastModel
 
-INTRINSICS_TOLERANCE = 0.02  # relative focal length mismatch accepted
+#: z range derived from the card's normalisation when the card records none: mean +/- this many std
+Z_RANGE_STDS = 2.0
 
 
 def grasp_error(e: GraspError) -> ApiError:
     """The contract's GraspError as the HTTP edge answers it: 422 naming the rows."""
     return ApiError(422, str(e), {"grasps": e.indices} if e.indices else None)
+
+
+def training_z_range(card) -> tuple[tuple[float, float], str]:
+    """(z_min, z_max) metres of the grasps the model was trained on and where it comes from:
+    the card's ``dataset.z_range`` when recorded, else its pose normalisation (z mean +/- 2 std)."""
+    rec = card.dataset.get("z_range") if isinstance(card.dataset, dict) else None
+    if rec is not None and len(rec) == 2:
+        return (float(rec[0]), float(rec[1])), "model card dataset.z_range"
+    norm = card.normalization
+    i = list(norm.pose_columns).index("z")
+    m, s = float(norm.pose_mean[i]), float(norm.pose_std[i])
+    return (m - Z_RANGE_STDS * s, m + Z_RANGE_STDS * s), f"model card normalization: z mean +/- {Z_RANGE_STDS:g} std"
+
+
+@dataclass(frozen=True)
+class Scores:
+    """What one score request produced, per grasp in request order."""
+
+    p_success: np.ndarray  # (k,) float64: calibrated P(success) (the raw score when the model has no calibration)
+    raw_score: np.ndarray  # (k,) float32: the network's output
+    ood_mask: np.ndarray  # (k,) uint8 bitmask of vgq.ood.OOD_FLAGS
+    windows: int  # crop windows the grasps fell in
+    windows_encoded: int  # of them, encoded by this request (the rest were cached)
+    missing_fraction: float  # largest share of missing depth among those windows
+
+    def ood(self) -> list[list[str]]:
+        return [flag_names(m) for m in self.ood_mask]
 
 
 class Service:
@@ -38,73 +79,181 @@ class Service:
         self.metrics = Metrics(self.cache)
         self.ready = False
         self.load_error: str | None = None
+        self.calibration = None
+        self.z_range, self.z_range_source = (0.0, np.inf), ""
 
     def load(self) -> None:
         """Load (unless given) and warm up the model; then mark ready."""
         try:
             if self.model is None:
                 self.model = FastModel(self.settings.model_dir, threads=self.settings.ort_threads,
-                                       head_precision=self.settings.head_precision)
+                                       head_precision=self.settings.head_precision,
+                                       encoder_precision=self.settings.encoder_precision)
+            self.calibration = self.model.card.calibrator()
+            self.z_range, self.z_range_source = training_z_range(self.model.card)
             self.model.warm_up()
             gc.collect()
             gc.freeze()  # start-up objects out of the collector's way: no GC pauses on them later
             self.ready = True
             self.metrics.ready.set(1)
             logs.event(self.log, "ready", model_version=self.model.version, head=self.model.head_precision,
-                       threads=self.settings.ort_threads, cache=self.cache.backend)
+                       encoder=self.model.encoder_info, threads=self.settings.ort_threads, cache=self.cache.backend,
+                       calibrated=self.calibration is not None)
         except Exception as e:  # reported by /readyz and the log; the process stays up for diagnosis
             self.load_error = str(e)
             logs.event(self.log, "model load failed", logging.ERROR, error=str(e))
 
-    # ---- request steps ----------------------------------------------------------------
-    def requested_center(self, shape, center_u, center_v) -> np.ndarray:
-        h, w = shape
-        cu = (w - 1) / 2 if center_u is None else center_u
-        cv = (h - 1) / 2 if center_v is None else center_v
-        if not (0 <= cu <= w - 1 and 0 <= cv <= h - 1):
-            raise ApiError(422, f"window centre ({cu}, {cv}) must lie inside the {h}x{w} image (u in [0, {w - 1}], v in [0, {h - 1}])")
-        return np.array([cu, cv], dtype=np.float64)
-
-    def check_intrinsics(self, fx, fy) -> None:
-        intr = self.model.card.intrinsics
-        for name, given, trained in (("fx", fx, intr.fx), ("fy", fy, intr.fy)):
-            if given is not None and not abs(given / trained - 1) <= INTRINSICS_TOLERANCE:
-                raise ApiError(422, f"{name} = {given} px, but the model was trained for {name} = {trained} px "
-                                    f"(within {INTRINSICS_TOLERANCE:.0%}); resample the image to that focal length")
-
-    def check_grasps(self, grasps: np.ndarray, center: np.ndarray) -> None:
-        """Check grasps against the window an image cropped at ``center`` gets, before encoding it."""
-        geom = self.model.geometry
-        self.pose_rows(grasps, window_center(window_origin(center, geom), geom))
-
-    def pose_rows(self, grasps: np.ndarray, center: np.ndarray) -> np.ndarray:
-        try:
-            return pose_rows(grasps, center, self.model.geometry, self.settings.max_grasps)
-        except GraspError as e:
-            raise grasp_error(e) from None
-
-    def encode_image(self, key: str, depth: np.ndarray, center) -> CachedImage:
-        geom = self.model.geometry
-        win = window_input(depth, window_origin(center, geom), geom, self.settings.max_missing_fraction)
-        term = self.model.encode(win.image)
-        self.metrics.encoder.observe(self.model.encode_seconds)
-        entry = CachedImage(term, win.center, depth.shape, win.missing_fraction)
-        self.cache.put(key, entry)
+    # ---- upload ---------------------------------------------------------------------------------
+    def prepare_image(self, depth: np.ndarray, numbers: dict) -> CachedImage:
+        """An upload as the cache keeps it: resampled to the model's focal lengths, windows not
+        yet encoded; with ``center_u`` / ``center_v`` (client px) its one fixed window placed."""
+        model = self.model.card.intrinsics
+        camera, assumed = client_camera(numbers, depth.shape, model)
+        cu, cv = numbers.get("center_u"), numbers.get("center_v")
+        if cu is not None or cv is not None:
+            h, w = depth.shape
+            cu = (w - 1) / 2 if cu is None else cu
+            cv = (h - 1) / 2 if cv is None else cv
+            if not (0 <= cu <= w - 1 and 0 <= cv <= h - 1):
+                raise ApiError(422, f"window centre ({cu}, {cv}) must lie inside the {h}x{w} image "
+                                    f"(u in [0, {w - 1}], v in [0, {h - 1}])")
+        resampled_depth, resampled = to_model_camera(depth, camera, model, self.settings.max_image_side, assumed)
+        entry = CachedImage(resampled_depth, camera, resampled, assumed)
+        if cu is not None:
+            c = map_pixels([[cu, cv]], camera, resampled)[0]
+            geom = self.model.geometry
+            origin = window_origin(c, geom)
+            entry.fixed_center = window_center(origin, geom)
         return entry
 
-    def score(self, entry: CachedImage, grasps: np.ndarray) -> np.ndarray:
-        poses = self.pose_rows(grasps, entry.window_center)
-        p = self.model.score(entry.image_term, poses)
-        self.metrics.head.observe(self.model.score_seconds)
-        self.metrics.grasps.observe(len(p))
-        return p
+    def encode_fixed_window(self, entry: CachedImage) -> None:
+        """Encode the fixed window of ``entry`` (if it has one) now: 422 when mostly missing."""
+        if entry.fixed_center is not None and not entry.windows:
+            o = window_origin(entry.fixed_center, self.model.geometry)
+            new = self._encode({(int(o[0]), int(o[1])): None}, entry, {})
+            entry.windows.update(new)
+
+    def put(self, key: str, entry: CachedImage) -> None:
+        self.cache.put(key, entry)
+
+    # ---- scoring --------------------------------------------------------------------------------
+    def place(self, entry: CachedImage, grasps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Check (k, 7) client grasps against ``entry``: (pose rows (k, 7) float32, window
+        origins (k, 2) int64 in the resampled image, grasp pixels (k, 2) there). Raises 422."""
+        g = np.asarray(grasps, dtype=np.float64)
+        if g.ndim != 2 or g.shape[1] != 7:
+            raise grasp_error(GraspError(f"grasps must be (k, 7) rows u, v, z, qw, qx, qy, qz; got shape {g.shape}"))
+        geom = self.model.geometry
+        uv = map_pixels(g[:, :2], entry.camera, entry.resampled)
+        finite = np.isfinite(uv).all(axis=1)
+        safe = np.where(finite[:, None], uv, 0.0)
+        if entry.fixed_center is not None:
+            centres = np.broadcast_to(entry.fixed_center, safe.shape)
+            bad = finite & ~in_training_range(safe, entry.fixed_center, geom)
+            if bad.any():
+                sx, sy = entry.scale
+                c = map_pixels(entry.fixed_center[None], entry.resampled, entry.camera)[0]
+                ru, rv = geom.kappa_px / sx, geom.kappa_px / sy
+                raise ApiError(422, f"{int(bad.sum())} grasps lie outside the window the model was trained for: u in "
+                                    f"[{c[0] - ru:g}, {c[0] + ru:g}], v in [{c[1] - rv:g}, {c[1] + rv:g}] (image px); upload "
+                                    "without center_u / center_v to have windows placed for every grasp",
+                               {"grasps": np.flatnonzero(bad)[:20].tolist()})
+        else:
+            h, w = entry.image_shape
+            u, v = g[:, 0], g[:, 1]
+            bad = finite & ~((u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5))
+            if bad.any():
+                raise ApiError(422, f"{int(bad.sum())} grasps lie outside the {h}x{w} image (u in [-0.5, {w - 0.5}], "
+                                    f"v in [-0.5, {h - 0.5}] px)", {"grasps": np.flatnonzero(bad)[:20].tolist()})
+            centres = grid_window_centers(safe, entry.depth.shape, geom)
+        mapped = g.copy()
+        mapped[:, :2] = uv
+        try:
+            rows = pose_rows(mapped, centres, geom, self.settings.max_grasps)
+        except GraspError as e:
+            raise grasp_error(e) from None
+        return rows, window_origin(centres, geom), uv
+
+    def _encode(self, wanted: dict, entry: CachedImage, where: dict) -> dict:
+        """Encode the windows ``wanted`` (origin -> None) of ``entry`` in one encoder call.
+        ``where``: origin -> grasp indices (named in a 422). Returns origin -> EncodedWindow."""
+        geom, cap = self.model.geometry, self.settings.max_missing_fraction
+        origins, crops, missing = list(wanted), [], []
+        for o in origins:
+            try:
+                win = window_input(entry.depth, o, geom, cap)
+            except ApiError as e:
+                if o in where:
+                    e.details = {**e.details, "grasps": where[o][:20].tolist()}
+                raise
+            crops.append(win.image)
+            missing.append(win.missing_fraction)
+        if not origins:
+            return {}
+        terms = self.model.encode(np.stack(crops))
+        self.metrics.encoder.observe(self.model.encode_seconds)
+        self.metrics.windows_encoded.inc(len(origins))
+        return {o: EncodedWindow(terms[i:i + 1].copy(), m) for i, (o, m) in enumerate(zip(origins, missing))}
+
+    def score(self, key: str, entry: CachedImage, grasps: np.ndarray, strict: bool = False) -> Scores:
+        rows, origins, uv = self.place(entry, grasps)
+        uniq, inverse = np.unique(origins, axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        order = np.argsort(inverse, kind="stable")
+        groups = np.split(order, np.cumsum(np.bincount(inverse, minlength=len(uniq)))[:-1])
+        where = {(int(o[0]), int(o[1])): ix for o, ix in zip(uniq, groups)}  # window origin -> grasp indices
+        new = [o for o in where if o not in entry.windows]
+        if new:
+            self.cache.fetch_windows(key, entry, new)
+            new = [o for o in new if o not in entry.windows]
+        # flags before any encoding: a strict request that fails costs no inference
+        geom, cap = self.model.geometry, self.settings.ood_window_missing
+        frac = {o: entry.windows[o].missing_fraction if o in entry.windows else
+                float(missing_mask(crop_window(entry.depth, o, geom)).mean()) for o in where}
+        win_missing = np.array([frac[o] > cap for o in where], dtype=bool)[inverse]
+        g = np.asarray(grasps, dtype=np.float64).copy()
+        g[:, :2] = uv
+        mask = ood_flags(g, entry.depth, self.z_range, win_missing)
+        if strict and mask.any():
+            bad = np.flatnonzero(mask)
+            raise ApiError(422, f"{len(bad)} grasps are outside what the model was trained on (strict=true): "
+                                + "; ".join(f"{i}: {', '.join(flag_names(mask[i]))}" for i in bad[:5]),
+                           {"grasps": bad[:20].tolist(), "ood": {str(i): flag_names(mask[i]) for i in bad[:20]}})
+        encoded = self._encode(dict.fromkeys(new), entry, where) if new else {}
+        if encoded:
+            self.cache.add_windows(key, entry, encoded)
+        raw = np.empty(len(rows), np.float32)
+        for o, ix in where.items():
+            raw[ix] = self.model.score(entry.windows[o].term, rows[ix])
+            self.metrics.head.observe(self.model.score_seconds)
+        self.metrics.grasps.observe(len(raw))
+        p = self.calibration.apply(raw) if self.calibration is not None else raw.astype(np.float64)
+        return Scores(p, raw, mask, len(where), len(encoded), float(max(frac.values())))
+
+    # ---- answers -------------------------------------------------------------------------------
+    def camera_info(self, entry: CachedImage) -> dict:
+        c, r = entry.camera, entry.resampled
+        return {"intrinsics": {k: getattr(c, k) for k in ("fx", "fy", "cx", "cy")}, "intrinsics_assumed": list(entry.assumed),
+                "resampled": {"image_shape": [r.height, r.width], "scale": list(entry.scale),
+                              "intrinsics": {k: getattr(r, k) for k in ("fx", "fy", "cx", "cy")}}}
 
     def image_info(self, key: str, entry: CachedImage, cached: bool) -> dict:
-        c, k = entry.window_center, self.model.geometry.kappa_px
-        return {"image_id": key, "cached": cached, "model_version": self.model.version,
-                "image_shape": list(entry.image_shape), "window_center": [float(c[0]), float(c[1])],
-                "missing_fraction": entry.missing_fraction,
-                "grasp_range": {"u": [float(c[0] - k), float(c[0] + k)], "v": [float(c[1] - k), float(c[1] + k)]}}
+        out = {"image_id": key, "cached": cached, "model_version": self.model.version,
+               "image_shape": list(entry.image_shape), "missing_fraction": entry.missing_fraction, **self.camera_info(entry)}
+        if entry.fixed_center is None:
+            out["windows"] = "grid"
+            return out
+        k = self.model.geometry.kappa_px
+        sx, sy = entry.scale
+        c = map_pixels(entry.fixed_center[None], entry.resampled, entry.camera)[0]
+        out.update(windows="fixed", window_center=[float(c[0]), float(c[1])],
+                   grasp_range={"u": [float(c[0] - k / sx), float(c[0] + k / sx)], "v": [float(c[1] - k / sy), float(c[1] + k / sy)]})
+        return out
+
+    def scores_info(self, s: Scores) -> dict:
+        return {"p_success": s.p_success, "raw_score": s.raw_score, "calibrated": self.calibration is not None,
+                "ood": s.ood(), "ood_mask": s.ood_mask, "windows": s.windows, "windows_encoded": s.windows_encoded,
+                "missing_fraction": s.missing_fraction}
 
 
 def make_cache(settings: Settings, log: logging.Logger):

@@ -12,15 +12,15 @@ pytest.importorskip("trimesh")
 
 from datagen.camera import CameraParams, sample_cameras
 from datagen.config import DatagenConfig
-from datagen.gripper import align_to_table, grasp_frames
 from datagen.grasps import sample_antipodal_grasps
+from datagen.gripper import align_to_table, grasp_frames
 from datagen.mesh import load_object, mesh_sources, stable_poses
 from datagen.project import project_grasps
 from datagen.render import render_depth
-from service.grasps import to_network_poses
 from service.runtime import FastModel
 from vgq.camera import Intrinsics, map_pixels, resample_depth
 from vgq.crop import crop, grid_window_centers
+from vgq.grasps import pose_rows
 
 MODEL_DIR = "models/fast-vgqcnn-default"
 
@@ -31,7 +31,7 @@ def _score(model, depth, rows):
     for c in np.unique(centres, axis=0):
         m = np.all(centres == c, axis=1)
         img, actual = crop(depth, c, model.geometry)
-        p[m] = model.score(model.encode(img), to_network_poses(rows[m], actual, model.geometry, 4096))
+        p[m] = model.score(model.encode(img), pose_rows(rows[m], actual, model.geometry, 4096))
     return p
 
 
@@ -81,3 +81,42 @@ def test_other_focal_lengths_score_like_the_native_camera(scene, fx):
     # measured: mean |dp| 0.001 resampled vs 0.04-0.07 unresampled (issue 11 asks <= 0.05)
     assert d.mean() <= 0.01, f"mean |dp| {d.mean():.4f} over {len(d)} grasps"
     assert control.mean() >= 4 * d.mean(), "the control should show what a focal-length mismatch costs"
+
+
+def test_the_service_path_scores_other_cameras_like_the_native_one(scene):
+    """The same check through the service's own steps (``Service.prepare_image`` + ``score``):
+    client intrinsics, client pixels, windows on the grid. fx 450 / 525 / 615 px renders."""
+    from service.config import Settings
+    from service.scoring import Service
+
+    mesh, T_wg, T_wcs = scene
+    svc = Service(Settings(threads=1, head_precision="fp32", model_dir=MODEL_DIR))
+    svc.load()
+    native = svc.model.card.intrinsics
+    cams = {fx: Intrinsics(fx=fx, fy=fx, cx=(s - 1) / 2, cy=(s - 1) / 2, width=s, height=s)
+            for fx in (450.0, 525.0, 615.0) for s in [int(round(native.width * fx / native.fx))]}
+    p = {fx: [] for fx in cams}
+    unsent = {fx: [] for fx in cams}  # control: the same uploads without intrinsics (the model's assumed)
+    for n, T_wc in enumerate(T_wcs):
+        proj = {fx: project_grasps(T_wg, T_wc, cam) for fx, cam in cams.items()}
+        ok = np.logical_and.reduce([pr["in_image"] for pr in proj.values()]) & (proj[525.0]["psi"] < np.pi / 2)
+        if not ok.any():
+            continue
+        for fx, cam in cams.items():
+            pr = proj[fx]
+            depth = render_depth(mesh, T_wc, cam)
+            entry = svc.prepare_image(depth, {"fx": fx, "fy": fx, "cx": cam.cx, "cy": cam.cy})
+            rows = np.column_stack([pr["u"], pr["v"], pr["z"], pr["q"]])[ok]
+            p[fx].append(svc.score(f"{fx}-{n}", entry, rows).raw_score)
+            unsent[fx].append(svc.score(f"{fx}-{n}-unsent", svc.prepare_image(depth, {}), rows).raw_score)
+    ref = np.concatenate(p[525.0])
+    assert len(ref) >= 50
+    for fx in (450.0, 615.0):
+        d = np.abs(np.concatenate(p[fx]) - ref)
+        control = np.abs(np.concatenate(unsent[fx]) - ref)
+        print(f"fx {fx}: mean |dp| {d.mean():.4f} over {len(d)} grasps; without intrinsics {control.mean():.4f}")
+        # measured: 0.0009 (450 px) and 0.0006 (615 px); without intrinsics 0.04-0.07 (issue 11 asks <= 0.05)
+        assert d.mean() <= 0.01, f"fx {fx}: mean |dp| {d.mean():.4f} over {len(d)} grasps"
+        assert control.mean() >= 4 * d.mean()
+        # the same decisions at 0.5 for nearly every grasp
+        assert np.mean((np.concatenate(p[fx]) > 0.5) == (ref > 0.5)) >= 0.95

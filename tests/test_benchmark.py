@@ -7,7 +7,7 @@ import onnxruntime as ort
 import torch
 
 from conftest import synthetic_crops
-from export.benchmark import graph_flops, markdown, run_benchmark
+from export.benchmark import graph_flops, isa_flags, markdown, run_benchmark
 from export.from_onnx import fast_net_from_model_dir, vgq_net_like
 
 # multiply-adds of the 32 x 32 encoder: conv1_1, conv1_2, LRN band, conv2_1, conv2_2, LRN band, fc3, fc4_image
@@ -51,7 +51,31 @@ def test_benchmark_table_has_a_column_per_k_and_every_row(model_dir):
     header = next(line for line in lines if line.startswith("| k grasps"))
     rows = [line for line in lines if line.startswith("| ") and line is not header]
     assert header.split("|")[2:4] == [" 8 ", " 16 "]
-    assert len(rows) == 13 and all(len(r.split("|")) == 5 for r in rows)
+    assert len(rows) == 13 + 4 and all(len(r.split("|")) == 5 for r in rows)  # + 4 rows for the fp32 encoder
     r = report["rows"]["16"]
     assert r["fast"]["runs"] == 5 and r["vgq"]["runs"] == 5 and r["speedup_prediction"] > 0
     assert r["fast_mflop"] == (2 * ENCODER_MACS + 2 * 16 * HEAD_MACS_PER_GRASP) / 1e6
+
+
+def test_benchmark_compares_every_encoder_precision_in_one_run(model_dir, tmp_path):
+    import shutil
+
+    from export.int8_encoder import add_int8_encoder
+
+    m = tmp_path / "m"
+    shutil.copytree(model_dir, m)
+    add_int8_encoder(m, synthetic_crops(32, np.random.default_rng(5))[0], synthetic_crops(300, np.random.default_rng(6)))
+    report = run_benchmark(m, ks=(8,), runs=5, threads=1, vgq_budget_s=0.01, log=lambda s: None)
+    r = report["rows"]["8"]
+    assert set(r["variants"]) == {"fp32", "int8"} and r["encoder_int8"]["runs"] == r["fast_fp32"]["runs"] == 5
+    assert all(v["fast_over_floor"] > 0 and v["encoder_over_floor"] > 0 for v in r["variants"].values())
+    assert report["config"]["encoder_precision"] in ("fp32", "int8")
+    table = markdown(report)
+    assert "encoder int8: (encoder + head) / fp32 FLOP floor" in table and "ISA " in table
+
+
+def test_isa_flags_picks_the_precision_relevant_flags(tmp_path):
+    f = tmp_path / "cpuinfo"
+    f.write_text("processor\t: 0\nflags\t\t: fpu sse avx2 fma avx512f avx512_vnni amx_tile amx_int8\n")
+    assert isa_flags(str(f)) == ["avx2", "fma", "avx512f", "avx512_vnni", "amx_tile", "amx_int8"]
+    assert isa_flags(str(tmp_path / "none")) == []

@@ -103,3 +103,19 @@ def test_model_directory_comes_from_configuration(final_stage):
     copied = [shlex.split(a)[-1] for a in args(final_stage, "COPY")]
     workdir = args(final_stage, "WORKDIR")[-1]
     assert any(str(Path(workdir) / c).rstrip("/") == model_dir.rstrip("/") for c in copied)
+
+
+def test_copies_every_first_party_package_the_service_imports(final_stage):
+    """What ``vgq-serve`` imports (the app, in a fresh interpreter) must be in the image."""
+    import subprocess
+    import sys
+
+    first_party = {p.parent.name for p in ROOT.glob("*/__init__.py")}
+    code = "import sys, service.__main__, service.app; print(' '.join(sorted({m.split('.')[0] for m in sys.modules})))"
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120,
+                       env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    assert r.returncode == 0, r.stderr
+    imported = set(r.stdout.split()) & first_party
+    assert {"service", "vgq", "planning"} <= imported
+    copied = {shlex.split(a)[-1].strip("./").split("/")[0] for a in args(final_stage, "COPY")}
+    assert imported <= copied, f"the service imports {sorted(imported - copied)}, not copied into the image"

@@ -177,3 +177,46 @@ def test_collision_checker_rejects_bad_input():
 def test_gripper_geometry_rejects_non_positive_sizes():
     with pytest.raises(ValueError, match="finger_length"):
         GripperGeometry(finger_length=0.0)
+
+
+# ----------------------------------------------------------------------------- robust collision
+
+
+def test_robust_collision_flags_fingertips_2mm_above_the_table():
+    from datagen.collision import RobustCollisionParams, collision_free_probability
+
+    g = GripperGeometry()
+    mesh = _box_on_table([0.04, 0.04, 0.04])
+    T = grasp_frame([0.2, 0, g.tip_offset + 0.002], EX, -EZ)[None]  # top grasp, tips 2 mm above the table
+    assert not CollisionChecker(mesh, g).collides(T)[0]  # the paper's check: nominal pose, no clearance
+    robust = RobustCollisionParams(num_samples=64)
+    checker = CollisionChecker(mesh, g, clearance=robust.clearance)
+    high = grasp_frame([0.2, 0, g.tip_offset + 0.03], EX, -EZ)[None]
+    p = collision_free_probability(checker, np.concatenate([T, high]), robust, np.random.default_rng(0))
+    assert p[0] < 0.75 and p[1] == 1.0  # 5 mm of noise per axis plus the clearance: many executions hit the table
+    assert CollisionChecker(mesh, g, clearance=0.003).collides(T)[0]  # a 3 mm clearance alone flags it
+
+
+def test_robust_collision_keeps_a_grasp_with_room_to_spare():
+    from datagen.collision import RobustCollisionParams, collision_free_probability
+
+    g = GripperGeometry()
+    mesh = _box_on_table([0.02, 0.04, 0.06])  # 2 cm wide in a 5 cm opening
+    T = grasp_frame([0, 0, 0.045], EX, -EZ)[None]
+    robust = RobustCollisionParams(num_samples=32)
+    checker = CollisionChecker(mesh, g, clearance=robust.clearance)
+    p = collision_free_probability(checker, T, robust, np.random.default_rng(0))
+    assert p[0] == 1.0
+    p2 = collision_free_probability(checker, T, robust, np.random.default_rng(0))
+    np.testing.assert_array_equal(p, p2)
+
+
+def test_clearance_grows_the_gripper_towards_the_object():
+    g = GripperGeometry()
+    mesh = _box_on_table([0.046, 0.04, 0.04])  # 2 mm gap on each side of the open jaws
+    T = grasp_frame([0, 0, 0.03], EX, -EZ)[None]
+    assert not CollisionChecker(mesh, g).collides(T)[0]
+    assert not CollisionChecker(mesh, g, clearance=0.001).collides(T)[0]
+    assert CollisionChecker(mesh, g, clearance=0.003).collides(T)[0]
+    with pytest.raises(ValueError, match="clearance"):
+        CollisionChecker(mesh, g, clearance=-0.001)

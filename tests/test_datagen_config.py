@@ -15,7 +15,8 @@ def test_defaults_follow_the_spec():
     assert c.cameras_per_pose == 10
     assert c.stable_pose_min_probability == 0.01
     assert c.camera.phi_range[1] == pytest.approx(math.radians(70))
-    assert c.label_threshold == 0.002
+    assert c.with_overrides({"label.kind": "paper"}).label_threshold == 0.002  # the paper's label
+    assert c.label.kind == "physics" and c.label_threshold == 0.5  # issue 17's default: see docs/labels.md
 
 
 def test_json_round_trip(tmp_path):

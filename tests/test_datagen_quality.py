@@ -163,3 +163,23 @@ def test_bad_quality_params_raise_value_error():
         QualityParams(num_samples=0)
     with pytest.raises(ValueError, match="sigma"):
         QualityParams(sigma_friction=-1.0)
+
+
+def test_jaw_axis_pushes_equal_contact_line_pushes_for_contacts_on_the_line():
+    axes = (BOX_CONTACTS[1] - BOX_CONTACTS[0])[None] / 0.03
+    W0, ok0 = contact_wrenches(BOX_CONTACTS[None], BOX_NORMALS[None], 0.5, P, SCALE)
+    W1, ok1 = contact_wrenches(BOX_CONTACTS[None], BOX_NORMALS[None], 0.5, P, SCALE, axes=axes)
+    np.testing.assert_allclose(W0, W1, atol=1e-12)
+    assert ok0[0] and ok1[0]
+
+
+def test_pads_pushing_along_the_jaw_axis_off_the_contact_line_do_not_slip():
+    from datagen.quality import ferrari_canny_batch
+
+    c = np.array([[-0.015, 0.01, 0.0], [0.015, -0.01, 0.0]])  # diagonal: the line leaves both cones
+    line = ferrari_canny_batch(c[None], BOX_NORMALS[None], 0.5, P, SCALE)
+    pads = ferrari_canny_batch(c[None], BOX_NORMALS[None], 0.5, P, SCALE, axes=np.array([[1.0, 0.0, 0.0]]))
+    assert line[0] == 0.0
+    assert pads[0] >= 0.0
+    W, ok = contact_wrenches(c[None], BOX_NORMALS[None], 0.5, P, SCALE, axes=np.array([[1.0, 0.0, 0.0]]))
+    assert ok[0]

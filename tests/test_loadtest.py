@@ -1,4 +1,4 @@
-"""service.loadtest against the real service on loopback, and its guards."""
+"""tools.loadtest (the load-test package) against the real service on loopback, and its guards."""
 
 from __future__ import annotations
 
@@ -7,7 +7,10 @@ import os
 
 import pytest
 
-from service.loadtest import Mix, check_target, main, server_latency_totals, server_rss_bytes
+from tools.loadtest.cli import main
+from tools.loadtest.client import check_target
+from tools.loadtest.report import server_latency_totals, server_rss_bytes
+from tools.loadtest.workload import Mix
 from servers import running_service
 
 
@@ -78,3 +81,37 @@ def test_server_latency_totals_sum_over_status_labels():
         'vgq_request_seconds_sum{endpoint="upload"} 0.005',
     ])
     assert server_latency_totals(text) == {"score": (0.008, 4.0), "upload": (0.005, 1.0)}
+
+
+def test_locustfile_runs_the_same_cycle_headless(url, tmp_path):
+    """tools/loadtest/locustfile.py with Locust (optional extra ``locust``): every request type
+    is sent and none fails."""
+    import csv
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import importlib.util
+
+    if importlib.util.find_spec("locust") is None:  # not imported here: gevent would patch this process
+        pytest.skip("locust not installed (pip install 'vgq-cnn[locust]')")
+    root = Path(__file__).resolve().parent.parent
+    prefix = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "locust", "-f", str(root / "tools" / "loadtest" / "locustfile.py"), "--host", url,
+                        "--headless", "--users", "2", "--spawn-rate", "2", "--run-time", "3s", "--csv", str(prefix),
+                        "--only-summary"], cwd=root, env={**os.environ, "VGQ_LOADTEST_K": "16", "VGQ_LOADTEST_MIX": "upload=1,score=2,once=1"},
+                       capture_output=True, text=True, timeout=60)
+    rows = {row["Name"]: row for row in csv.DictReader(open(f"{prefix}_stats.csv"))}
+    assert {"upload", "score", "score_once"} <= set(rows), r.stderr[-2000:]
+    assert all(int(rows[n]["Request Count"]) > 0 and int(rows[n]["Failure Count"]) == 0 for n in ("upload", "score", "score_once"))
+
+
+def test_sweep_measures_each_setting_and_plots(model_dir, tmp_path):
+    from tools.loadtest.sweep import main as sweep_main
+
+    png = tmp_path / "sweep.png"
+    points = sweep_main(["--clients", "1,2", "--workers", "1", "--threads", "1", "--duration", "1.5", "--k", "16", "--mix", "upload=1,score=1,once=1",
+                         "--model-dir", str(model_dir), "--plot", str(png), "--json", str(tmp_path / "s.json")])
+    assert [(p["workers"], p["threads"], p["clients"]) for p in points] == [(1, 1, 1), (1, 1, 2)]
+    assert all(p["errors"] == 0 and p["endpoints"]["score_once"]["requests"] > 0 for p in points)
+    assert png.read_bytes()[:4] == b"\x89PNG" and json.loads((tmp_path / "s.json").read_text())[1]["clients"] == 2

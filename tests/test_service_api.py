@@ -135,8 +135,8 @@ def test_unknown_image_id_is_404_asking_for_upload(client):
     assert e.value.status == 404 and "upload" in e.value.message
 
 
-def test_grasp_outside_trained_window_is_422_naming_it(client, scene):
-    iid = client.upload(scene)
+def test_grasp_outside_a_fixed_window_is_422_naming_it(client, scene):
+    iid = client.upload(scene, center=(149.5, 149.5))
     g = grasps_at(k=5)
     g[3, 0] = 10.0
     with pytest.raises(ServiceError) as e:
@@ -198,9 +198,10 @@ def test_wrong_content_type_is_415(url, scene):
     assert r.status_code == 415
 
 
-def test_focal_length_mismatch_is_422(url, scene):
-    r = httpx.post(f"{url}/v1/images", content=npy(scene), headers=NPY, params={"fx": 600})
+def test_focal_length_outside_the_served_range_is_422(url, scene):
+    r = httpx.post(f"{url}/v1/images", content=npy(scene), headers=NPY, params={"fx": 1200})
     assert r.status_code == 422 and "fx" in r.json()["error"]["message"]
+    assert httpx.post(f"{url}/v1/images", content=npy(scene), headers=NPY, params={"fx": 600}).status_code == 200
 
 
 def test_health_ready_model_and_metrics(url, client, scene):

@@ -221,8 +221,8 @@ SCORES = [
     ("zero-quaternion", lambda: _bin(_g(r4c3=0, r4c4=0, r4c5=0, r4c6=0)), "application/octet-stream", 422, ["zero quaternion"]),
     ("tiny-quaternion", lambda: _json({"grasps": (_g() * [1, 1, 1, 1e-300, 1e-300, 1e-300, 1e-300]).tolist()}),
      "application/json", 422, ["zero quaternion"]),
-    ("outside-window-u", lambda: _bin(_g(r5c0=10.0)), "application/octet-stream", 422, ["outside the window"]),
-    ("outside-window-v", lambda: _bin(_g(r5c1=1e30)), "application/octet-stream", 422, ["outside the window"]),
+    ("outside-image-u", lambda: _bin(_g(r5c0=-10.0)), "application/octet-stream", 422, ["outside the 300x300 image"]),
+    ("outside-image-v", lambda: _bin(_g(r5c1=1e30)), "application/octet-stream", 422, ["outside the 300x300 image"]),
     ("text-plain", lambda: _bin(grasps_at(k=8)), "text/plain", 415, ["text/plain"]),
     ("no-content-type", lambda: _bin(grasps_at(k=8)), None, 415, ["content type"]),
 ]
@@ -364,7 +364,7 @@ def test_multipart_with_bad_depth_names_it(url):
 
 
 # ---- size limits and timeouts -----------------------------------------------------------------------------------------
-@pytest.mark.parametrize("path", ["/v1/images", "/v1/images/{iid}/scores", "/v1/score"])
+@pytest.mark.parametrize("path", ["/v1/images", "/v1/images/{iid}/scores", "/v1/score", "/v1/plan"])
 def test_body_over_limit_with_content_length_is_413(url, image_id, path):
     r = httpx.post(url + path.format(iid=image_id), content=b"\0" * (MAX_BODY + 1), headers={"content-type": NPY})
     assert_error(r, 413, f"limit of {MAX_BODY} bytes")
@@ -402,7 +402,7 @@ def _slow_request(url: str, path: str, ct: str, declared: int, sent: bytes) -> t
         return data.split(b"\r\n", 1)[0], time.monotonic() - t0
 
 
-@pytest.mark.parametrize("path,ct", [("/v1/images", NPY), ("/v1/score", "application/x-npz")])
+@pytest.mark.parametrize("path,ct", [("/v1/images", NPY), ("/v1/score", "application/x-npz"), ("/v1/plan", NPY)])
 def test_slow_loris_body_is_408(url, path, ct):
     status, dt = _slow_request(url, path, ct, 100_000, b"\x93NUMPY")
     assert status.split(b" ")[1] == b"408", status

@@ -61,6 +61,8 @@ def url(model_dir):
 
 
 def upload(url, depth, **params):
+    """Upload with the one fixed window at the image centre (the window these tests make holes in)."""
+    params = {"center_u": 149.5, "center_v": 149.5, **params}
     return httpx.post(f"{url}/v1/images", content=ServiceClient._npy(depth), params=params,
                       headers={"content-type": "application/x-npy"})
 
@@ -83,8 +85,8 @@ def test_the_encoder_sees_the_filled_window_not_zeros(url):
     complete[origin[1] : origin[1] + 96, origin[0] : origin[0] + 96] = win
     g = grasps_at(k=32)
     with ServiceClient(url) as c:
-        p_holed = c.score(c.upload(d), g)
-        p_complete = c.score(c.upload(complete), g)
+        p_holed = c.score(c.upload(d, center=(149.5, 149.5)), g)
+        p_complete = c.score(c.upload(complete, center=(149.5, 149.5)), g)
         assert c.last_upload["missing_fraction"] == 0.0
     np.testing.assert_allclose(p_holed, p_complete, atol=1e-6)
 
@@ -127,11 +129,11 @@ def test_one_shot_reports_and_refuses_the_same_way(url):
 
 
 def test_shared_cache_entries_keep_the_missing_fraction():
-    from service.cache import CachedImage
-    from service.redis_cache import pack_entry, unpack_entry
+    from service.cache import EncodedWindow
+    from service.redis_cache import pack_window, unpack_window
 
-    e = CachedImage(np.ones((1, 1024), np.float32), np.array([149.5, 149.5]), (300, 300), 0.0375)
-    assert unpack_entry(pack_entry(e)).missing_fraction == 0.0375
+    e = EncodedWindow(np.ones((1, 1024), np.float32), 0.0375)
+    assert unpack_window(pack_window(e)).missing_fraction == 0.0375
 
 
 def test_max_missing_fraction_is_a_setting(model_dir):

@@ -16,8 +16,9 @@ import pytest
 
 from conftest import skip_or_fail_in_ci, table_scene
 from servers import free_port, grasps_at, running_service
-from service.cache import CachedImage
+from service.cache import CachedImage, EncodedWindow
 from service.client import ServiceClient, ServiceError
+from vgq.camera import Intrinsics
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -83,8 +84,11 @@ def test_image_uploaded_on_a_is_scored_on_b(shared):
     depth, g = table_scene() + 0.004, grasps_at()
     with ServiceClient(a) as ca, ServiceClient(b) as cb:
         iid = ca.upload(depth)
-        assert np.allclose(cb.score(iid, g), ca.score(iid, g), atol=1e-6)
-    assert httpx.get(f"{b}/v1/cache").json()["hits"] >= 1
+        p_a = ca.score(iid, g)
+        fetched = httpx.get(f"{b}/v1/cache").json()["windows_fetched"]
+        assert np.allclose(cb.score_details(iid, g)["p_success"], p_a, atol=1e-6)
+    stats = httpx.get(f"{b}/v1/cache").json()
+    assert stats["hits"] >= 1 and stats["windows_fetched"] == fetched + 1  # A's window read, not encoded again
 
 
 def test_one_shot_on_a_fills_the_cache_of_b(shared):
@@ -106,7 +110,12 @@ def test_entries_are_bytes_with_a_ttl(shared):
     r = redis.Redis.from_url(rurl)
     key = f"vgq:img:{iid}"
     assert 0 < r.pttl(key) <= 86400 * 1000
-    assert 4096 < r.strlen(key) < 4300  # 1024 float32 + a small header
+    assert 1000 < r.strlen(key) < 300 * 300 * 4  # the depth image, compressed, + its camera
+    with ServiceClient(a) as ca:
+        ca.score(iid, grasps_at(k=2))
+    (wkey,) = r.keys(f"{key}:w:*")
+    assert 0 < r.pttl(wkey) <= 86400 * 1000
+    assert 4096 < r.strlen(wkey) < 4200  # 1024 float32 + a small header
     assert metric(a, "vgq_cache_backend_errors_total") == 0
 
 
@@ -119,7 +128,7 @@ def test_service_degrades_when_redis_goes_away_and_recovers(model_dir):
         held = c.upload(table_scene() + 0.007)  # in S's local LRU and in Redis
         other = RedisCache(rurl, 8, 1 << 20)  # another replica's upload: in Redis only
         other_id = "f" * 32
-        other.put(other_id, CachedImage(np.zeros((1, 1024), np.float32), np.array([149.5, 149.5]), (300, 300)))
+        other.put(other_id, entry(h=300, w=300))
         assert len(c.score(other_id, grasps_at(k=2))) == 2
 
         stop(rproc)
@@ -150,9 +159,13 @@ def rurl():
         yield url, proc
 
 
-def entry(seed=0) -> CachedImage:
+def entry(seed=0, h=40, w=48) -> CachedImage:
+    """A small image entry (H x W px at the model's focal length) with one encoded window."""
     rng = np.random.default_rng(seed)
-    return CachedImage(rng.standard_normal((1, 1024)).astype(np.float32), np.array([140.5, 150.5]), (300, 320))
+    cam = Intrinsics(cx=(w - 1) / 2, cy=(h - 1) / 2, width=w, height=h)
+    e = CachedImage(rng.uniform(0.5, 0.8, (h, w)).astype(np.float32), cam, cam, ("fx", "fy", "cx", "cy"))
+    e.windows[(-24, -28)] = EncodedWindow(rng.standard_normal((1, 1024)).astype(np.float32), 0.0)
+    return e
 
 
 class ListHandler(logging.Handler):
@@ -171,8 +184,11 @@ def test_two_replicas_share_entries_and_count_hits(rurl):
     e = entry()
     a.put("k1", e)
     got = b.get("k1")
-    assert np.array_equal(got.image_term, e.image_term) and np.array_equal(got.window_center, e.window_center)
-    assert got.image_shape == (300, 320)
+    assert np.array_equal(got.depth, e.depth) and got.camera == e.camera and got.image_shape == (40, 48)
+    assert got.windows == {}  # windows are read when a grasp needs them
+    b.fetch_windows("k1", got, [(-24, -28), (48, -28)])
+    assert list(got.windows) == [(-24, -28)] and np.array_equal(got.windows[(-24, -28)].term, e.windows[(-24, -28)].term)
+    assert b.stats()["windows_fetched"] == 1 and b.stats()["windows_encoded"] == 0
     assert b.get("nope") is None
     assert (b.stats()["hits"], b.stats()["misses"], b.stats()["errors"]) == (1, 1, 0)
     assert len(b) == 1  # the hit is now held in b's local LRU

@@ -10,11 +10,18 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from service.cache import CachedImage
+from service.cache import CachedImage, EncodedWindow, MemoryCache
 from service.config import Settings, from_env
 from service.depth_io import decode_depth, encode_npy, parse_npy, png_header, read_npz
 from service.errors import ApiError
-from service.redis_cache import pack_entry, redacted, unpack_entry
+from service.redis_cache import (
+    pack_entry,
+    pack_window,
+    redacted,
+    unpack_entry,
+    unpack_window,
+)
+from vgq.camera import Intrinsics, resampled_intrinsics
 from vgq.crop import CropGeometry
 from vgq.grasps import MAX_Z_M, GraspError, pose_rows
 
@@ -156,25 +163,58 @@ def test_depth_beyond_bound_is_rejected():
 
 
 # ---- redis entry format -------------------------------------------------------------------------------------------
-def test_cache_entry_bytes_round_trip():
-    e = CachedImage(np.arange(1024, dtype=np.float32).reshape(1, 1024), np.array([140.5, 151.5]), (300, 320))
-    data = pack_entry(e)
-    assert len(data) < 4096 + 64
-    back = unpack_entry(data)
-    assert np.array_equal(back.image_term, e.image_term) and back.image_term.shape == (1, 1024)
-    assert np.array_equal(back.window_center, e.window_center) and back.image_shape == (300, 320)
+def _entry(fixed=True) -> CachedImage:
+    cam = Intrinsics(fx=600.0, fy=610.0, cx=170.0, cy=160.0, width=320, height=300)
+    res = resampled_intrinsics(cam, 525 / 600, 525 / 610)
+    depth = np.random.default_rng(0).uniform(0.5, 0.8, (res.height, res.width)).astype(np.float32)
+    depth[:10] = 0.0
+    return CachedImage(depth, cam, res, ("cy",), np.array([140.5, 151.5]) if fixed else None)
 
 
-@pytest.mark.parametrize("data", [b"", b"VGQ1", b"XXXX" + b"\0" * 4200])
+@pytest.mark.parametrize("fixed", [True, False])
+def test_cache_entry_bytes_round_trip(fixed):
+    e = _entry(fixed)
+    back = unpack_entry(pack_entry(e))
+    assert np.array_equal(back.depth, e.depth) and back.depth.dtype == np.float32
+    assert back.camera == e.camera and back.resampled == e.resampled and back.assumed == ("cy",)
+    assert (back.fixed_center is None) == (not fixed) and (not fixed or np.array_equal(back.fixed_center, e.fixed_center))
+    assert back.windows == {}
+
+
+def test_window_entry_bytes_round_trip():
+    w = EncodedWindow(np.arange(1024, dtype=np.float32).reshape(1, 1024), 0.0375)
+    data = pack_window(w)
+    assert len(data) < 4096 + 32
+    back = unpack_window(data)
+    assert np.array_equal(back.term, w.term) and back.term.shape == (1, 1024) and back.missing_fraction == 0.0375
+    with pytest.raises(ValueError):
+        unpack_window(data[:-4])
+
+
+@pytest.mark.parametrize("data", [b"", b"VGQ1", b"XXXX" + b"\0" * 4200, b"VGQ3" + b"\xff" * 40])
 def test_cache_entry_garbage_is_a_value_error(data):
     with pytest.raises(ValueError):
         unpack_entry(data)
 
 
 def test_cache_entry_truncated_is_a_value_error():
-    e = CachedImage(np.zeros((1, 1024), np.float32), np.array([1.0, 2.0]), (300, 300))
     with pytest.raises(ValueError):
-        unpack_entry(pack_entry(e)[:-4])
+        unpack_entry(pack_entry(_entry())[:-4])
+
+
+def test_memory_cache_recounts_bytes_when_windows_are_added_and_evicts_by_bytes():
+    e1, e2 = _entry(), _entry(False)
+    n1, n2 = e1.nbytes, e2.nbytes
+    w = EncodedWindow(np.zeros((1, 1024), np.float32), 0.0)
+    cache = MemoryCache(10, n1 + n2 + w.nbytes + 1000)
+    cache.put("a", e1)
+    cache.put("b", e2)
+    assert cache.bytes == n1 + n2 and cache.evictions == 0
+    cache.add_windows("b", e2, {(0, 0): w})
+    assert cache.bytes == n1 + n2 + w.nbytes and len(cache) == 2  # 4.2 kB more still fits
+    cache.add_windows("b", e2, {(72, 0): w})  # now it does not: the least recently used image goes
+    assert cache.get("a") is None and cache.get("b") is e2 and cache.evictions == 1 and cache.bytes == e2.nbytes
+    assert cache.stats()["windows"] == 2 and cache.stats()["windows_encoded"] == 2
 
 
 def test_redis_url_password_is_redacted():

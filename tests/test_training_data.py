@@ -100,3 +100,20 @@ def test_crops_of_a_sampled_dataset_record_the_positivity_before_sampling(tmp_pa
     native = stats["steps"]["native"]
     assert (m["native_counts"]["n"], m["native_counts"]["positive"]) == (native["grasps"], native["positive"])
     assert m["native_counts"]["n"] > sum(c["n"] for c in m["counts"].values())  # sampling dropped grasps
+
+
+def test_dataset_info_records_label_sensor_and_z_range(tmp_path):
+    """What the model card inherits: the label the crops carry (the paper's for datasets made
+    before the label setting), the sensor model and the train split's z range."""
+    from datagen_fakes import fake_dataset
+
+    from datagen.crops import make_crops
+
+    fake_dataset(tmp_path / "g", n_objects=10, n_images=1, n_grasps=5)
+    make_crops(tmp_path / "g", tmp_path / "c", "fast_vgqcnn", log=lambda s: None, sensor="clean")
+    ds = open_crop_dataset(tmp_path / "c")
+    info = ds.info()
+    assert info["label"]["kind"] == "paper" and info["label"]["threshold"] == ds.label_threshold
+    assert info["sensor"]["name"] == "clean"
+    z = np.asarray(ds.split("train").arrays["poses"])[:, 2]
+    assert info["z_range"] == [float(z.min()), float(z.max())]

@@ -26,7 +26,7 @@ import torch
 
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
 from vgq.crop import CropGeometry
-from vgq.pose import POSE_COLUMNS, pose_column_indices
+from vgq.pose import FULL_POSE_COLUMNS, POSE_COLUMNS, pose_column_indices
 from vgq.schema import CROP_FIELDS, CROP_FORMAT, SPLITS, check_fields, read_manifest
 
 
@@ -104,7 +104,27 @@ class CropDataset:
             "counts": self.counts(),
             "source": self.manifest.get("source"),
             "recipe": self.manifest.get("recipe"),
+            "label": self.label_info(),
+            "sensor": self.manifest.get("sensor", {"name": "clean"}),
+            "z_range": self.z_range(),
         }
+
+    def label_info(self) -> dict:
+        """Which label the crops carry: the grasp dataset's ``label`` setting (datagen.labels),
+        or the paper's (robust Ferrari-Canny > threshold, nominal collision) for datasets made
+        before that setting existed."""
+        cfg = (self.manifest.get("source") or {}).get("config") or {}
+        label = dict(cfg.get("label") or {"kind": "paper"})
+        label["threshold"] = self.label_threshold
+        return label
+
+    def z_range(self) -> list[float] | None:
+        """[min, max] TCP depth z (metres) of the train split: the range the model was trained on."""
+        tr = self.split("train")
+        if len(tr) == 0:
+            return None
+        z = np.asarray(tr.arrays["poses"][:, FULL_POSE_COLUMNS.index("z")], dtype=np.float64)
+        return [float(z.min()), float(z.max())]
 
     def check_arch(self, arch: str) -> None:
         """Raise DatasetError unless crops of this dataset suit ``arch``.

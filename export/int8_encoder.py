@@ -1,0 +1,121 @@
+"""Add a checked int8 encoder (``encoder_int8.onnx``) to an exported Fast-VGQ-CNN model folder.
+
+    python -m export.int8_encoder --model-dir models/fast-vgqcnn-default \\
+        --calibration data/calib/crops --check data/calib/crops
+
+Calibration crops: the ``train`` split of a crop dataset (``datagen crops --arch fast_vgqcnn``).
+Check crops: the ``val`` and ``test`` splits of a crop dataset (objects the calibration did
+not see), or a .npz with ``images`` (n, 1, S, S), ``poses`` (n, 7) and ``labels`` (n,). The
+variant is written and recorded in the model card (``files.encoder_int8``,
+``export.int8_encoder``) only if it passes ``export.quantize.check_encoder_variant``; the
+service then measures it against fp32 at start-up (``encoder_precision auto``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import logging
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from vgq.model_card import ModelCard
+
+from .quantize import EncoderCheck, QuantizationError, check_encoder_variant, quantize_encoder
+
+INT8_ENCODER_FILE = "encoder_int8.onnx"
+
+
+def crop_split(path: str | Path, splits: tuple[str, ...], n: int | None = None, seed: int = 0):
+    """(crops (n, 1, S, S), poses (n, 7), labels (n,)) as numpy: up to ``n`` random rows of the
+    named splits of a Fast-VGQ-CNN crop dataset, or all rows of a .npz (images, poses, labels)."""
+    path = Path(path)
+    if path.suffix == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            try:
+                return z["images"].astype(np.float32), z["poses"].astype(np.float32), z["labels"].astype(np.uint8)
+            except KeyError as e:
+                raise ValueError(f"{path}: no {e} array (expected images, poses, labels)") from None
+    from training.data import open_crop_dataset
+
+    ds = open_crop_dataset(path)
+    parts = []
+    for name in splits:
+        split = ds.splits.get(name)
+        if split is not None and len(split):
+            parts.append([t.numpy() for t in split.batch(np.arange(len(split)), "fast_vgqcnn")])
+    if not parts:
+        raise ValueError(f"{path}: none of the splits {splits} holds crops")
+    crops, poses, labels = (np.concatenate([p[i] for p in parts]) for i in range(3))
+    if n is not None and len(crops) > n:
+        idx = np.sort(np.random.default_rng(seed).choice(len(crops), n, replace=False))
+        crops, poses, labels = crops[idx], poses[idx], labels[idx]
+    return crops.astype(np.float32), poses.astype(np.float32), labels
+
+
+def add_int8_encoder(model_dir: str | Path, calibration_crops: np.ndarray, check: tuple[np.ndarray, np.ndarray, np.ndarray],
+                     check_data: str = "", calibration: str = "") -> EncoderCheck:
+    """Quantise the folder's encoder, check it, and only then move ``encoder_int8.onnx`` into the
+    folder and record it in the card (both writes atomic). Raises QuantizationError when refused."""
+    model_dir = Path(model_dir)
+    card = ModelCard.load(model_dir)
+    if card.architecture != "fast_vgqcnn":
+        raise QuantizationError(f"{model_dir}: an int8 encoder exists for fast_vgqcnn only, not {card.architecture}")
+    fd, tmp = tempfile.mkstemp(prefix=f".{INT8_ENCODER_FILE}.", suffix=".tmp", dir=model_dir)
+    os.close(fd)
+    try:
+        nodes = quantize_encoder(model_dir / card.files["encoder"], tmp, calibration_crops)
+        result = check_encoder_variant(model_dir / card.files["encoder"], tmp, model_dir / card.files["head"], *check,
+                                       precision="int8", quantized_nodes=nodes, check_data=check_data,
+                                       calibration=calibration)
+        digest = hashlib.sha256(Path(tmp).read_bytes()).hexdigest()
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, model_dir / INT8_ENCODER_FILE)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+    import onnxruntime as ort
+
+    card.files["encoder_int8"] = INT8_ENCODER_FILE
+    card.export["int8_encoder"] = {**result.to_dict(), "sha256": digest, "onnxruntime": ort.__version__,
+                                   "n_calibration": int(len(calibration_crops))}
+    card.save(model_dir)
+    return result
+
+
+def main(argv=None) -> EncoderCheck:
+    p = argparse.ArgumentParser(prog="python -m export.int8_encoder", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model-dir", required=True, help="exported Fast-VGQ-CNN model folder (updated in place)")
+    p.add_argument("--calibration", required=True, help="crop dataset whose train split calibrates the activation ranges")
+    p.add_argument("--check", required=True, help="crop dataset (val + test splits) or .npz of labelled crops for the check")
+    p.add_argument("--calibration-n", type=int, default=2048, help="calibration crops (default 2048)")
+    p.add_argument("--seed", type=int, default=0)
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="[int8-encoder] %(message)s")
+    if a.calibration_n < 16:
+        p.error("--calibration-n must be >= 16")
+    if not (Path(a.model_dir) / "model_card.json").is_file():
+        p.error(f"--model-dir {a.model_dir!r} holds no model_card.json")
+    try:
+        calib = crop_split(a.calibration, ("train",), a.calibration_n, a.seed)[0]
+        check = crop_split(a.check, ("val", "test"))
+        if Path(a.check).resolve() == Path(a.calibration).resolve() and Path(a.check).suffix == ".npz":
+            raise ValueError("--check must not be the calibration crops")
+        logging.info("calibrating on %d crops of %s, checking on %d crops of %s", len(calib), a.calibration, len(check[0]), a.check)
+        result = add_int8_encoder(a.model_dir, calib, check, check_data=f"{a.check} (val + test)",
+                                  calibration=f"{a.calibration} (train, {len(calib)} crops)")
+    except (QuantizationError, ValueError, FileNotFoundError) as e:
+        print(f"int8-encoder: {e}", file=sys.stderr)
+        sys.exit(2)
+    logging.info("int8 encoder kept: balanced accuracy %.4f (fp32 %.4f), mean |dp| %.4f, max %.4f, %d of %d decisions changed",
+                 result.balanced_accuracy_variant, result.balanced_accuracy_fp32, result.mean_abs_diff_probability,
+                 result.max_abs_diff_probability, result.decisions_changed, result.n)
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,63 @@
+"""The client's camera at the HTTP edge: intrinsics from the request (the model's assumed
+where omitted), checked and applied by the shared contract (``vgq.camera``: the image is
+resampled to the model's focal lengths); ``CameraMismatch`` becomes a 422 naming the field."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vgq.camera import (
+    FOCAL_RATIO_RANGE,
+    CameraMismatch,
+    Intrinsics,
+    check_client_intrinsics,
+    resample_depth,
+    resampled_intrinsics,
+)
+
+from .errors import ApiError
+
+
+def client_camera(numbers: dict, shape: tuple[int, int], model: Intrinsics) -> tuple[Intrinsics, tuple[str, ...]]:
+    """Intrinsics of the camera that took an (H, W) image, from the request's ``fx``, ``fy``,
+    ``cx``, ``cy`` (already checked finite, focal lengths > 0). Omitted: fx the model's, fy
+    = fx, (cx, cy) the image centre. Returns (intrinsics, names of the assumed values)."""
+    h, w = shape
+    fx, fy, cx, cy = (numbers.get(k) for k in ("fx", "fy", "cx", "cy"))
+    assumed = tuple(k for k, v in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)) if v is None)
+    if fx is None:
+        fx = model.fx if fy is None else fy * model.fx / model.fy
+    if fy is None:
+        fy = fx * model.fy / model.fx
+    cx = (w - 1) / 2 if cx is None else cx
+    cy = (h - 1) / 2 if cy is None else cy
+    try:
+        return Intrinsics(fx=float(fx), fy=float(fy), cx=float(cx), cy=float(cy), width=w, height=h), assumed
+    except ValueError as e:  # already excluded by service.numbers; kept as a 422, never a 500
+        raise ApiError(422, f"invalid intrinsics: {e}") from None
+
+
+def focal_range(model: Intrinsics) -> dict:
+    """Focal lengths (px) this model serves, per axis: the image is resampled by model / camera."""
+    lo, hi = FOCAL_RATIO_RANGE
+    return {"fx": [model.fx / hi, model.fx / lo], "fy": [model.fy / hi, model.fy / lo]}
+
+
+def to_model_camera(depth: np.ndarray, camera: Intrinsics, model: Intrinsics, max_side: int,
+                    assumed: tuple[str, ...] = ()) -> tuple[np.ndarray, Intrinsics]:
+    """(depth at the model's focal lengths, its intrinsics); 422 naming the field the model
+    cannot serve (focal length outside the range, principal point outside the image) or when
+    the resampled image would exceed ``max_side``."""
+    try:
+        sx, sy = check_client_intrinsics(camera, model)
+        dst = resampled_intrinsics(camera, sx, sy)
+        if max(dst.width, dst.height) > max_side:
+            raise ApiError(422, f"the image resampled to the model's focal length would be {dst.width}x{dst.height} px, "
+                                f"over max_image_side {max_side}; send a smaller image", {"field": "fx"})
+        return resample_depth(depth, camera, model)
+    except CameraMismatch as e:
+        field, note = e.field, ""
+        if field in assumed and field in ("fx", "fy"):  # derived from the other one, which is what was sent
+            field = "fy" if field == "fx" else "fx"
+            note = f" ({e.field} was not given and is derived from {field})"
+        raise ApiError(422, f"field {field}: {e}{note}", {"field": field}) from None

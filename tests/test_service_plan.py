@@ -1,0 +1,198 @@
+"""POST /v1/plan on the real service (uvicorn subprocess, the bundled model) with scenes
+rendered by datagen: k distinct grasps whose rows are their poses, in every upload format;
+bad input answers 422 naming it; nothing to grasp answers 200 with a reason; the client's
+plan()."""
+
+from __future__ import annotations
+
+import io
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+
+pytest.importorskip("trimesh")
+pytest.importorskip("scipy")
+
+from servers import ROOT, running_service
+
+from planning.policy import frame_from_row
+from service.client import ServiceClient, ServiceError
+from tests.planning_scenes import boxes_scene
+from vgq.camera import DEFAULT_INTRINSICS, Intrinsics, project
+
+MODEL_DIR = ROOT / "models" / "fast-vgqcnn-default"
+
+
+def npy(a) -> bytes:
+    b = io.BytesIO()
+    np.save(b, np.asarray(a, np.float32), allow_pickle=False)
+    return b.getvalue()
+
+
+def png_mm(a) -> bytes:
+    b = io.BytesIO()
+    Image.fromarray(np.round(np.asarray(a) * 1000).astype(np.uint16)).save(b, format="PNG")
+    return b.getvalue()
+
+
+@pytest.fixture(scope="module")
+def url():
+    with running_service(MODEL_DIR, "--threads", "1") as u:
+        yield u
+
+
+@pytest.fixture(scope="module")
+def two_boxes():
+    return boxes_scene(extents=((0.03, 0.04, 0.05), (0.035, 0.03, 0.04)), at=((-0.07, 0.0), (0.07, 0.02)))
+
+
+@pytest.fixture(scope="module")
+def table_only():
+    from datagen.camera import look_at_table_origin
+    from datagen.render import render_depth
+
+    return render_depth(None, look_at_table_origin(0.6, 0.3, 0.2)[0], DEFAULT_INTRINSICS)
+
+
+def post_plan(url, depth, params=None, body=None, content_type="application/x-npy") -> httpx.Response:
+    return httpx.post(f"{url}/v1/plan", content=npy(depth) if body is None else body, params=params or {},
+                      headers={"content-type": content_type}, timeout=60)
+
+
+def test_plan_returns_k_distinct_grasps_whose_rows_are_their_poses(url, two_boxes):
+    depth = two_boxes[0]
+    r = post_plan(url, depth, {"k": 5, "seed": 0})
+    assert r.status_code == 200, r.text
+    d = r.json()
+    assert d["reason"] is None and len(d["grasps"]) == 5 and d["k"] == 5 and d["seed"] == 0
+    assert d["intrinsics"] == DEFAULT_INTRINSICS.to_dict()  # the model's camera by default
+    intr = Intrinsics.from_dict(d["intrinsics"])
+    scores = [g["score"] for g in d["grasps"]]
+    assert scores == sorted(scores, reverse=True) and all(0 <= s <= 1 for s in scores)
+    poses = np.array([g["pose"] for g in d["grasps"]])
+    for g, pose in zip(d["grasps"], poses):
+        row = np.array(g["row"])
+        assert row.tolist() == [g["u"], g["v"], g["z"], *g["q"]]
+        assert np.allclose(frame_from_row(row, intr), pose, atol=1e-6)  # row -> pose
+        assert np.allclose(project(pose[None, :3, 3], intr)[0], row[:3], atol=1e-6)  # pose -> row
+        contacts = np.array(g["contacts"])
+        assert np.allclose(pose[:3, 3], contacts.mean(axis=0), atol=1e-6)
+        assert np.isclose(g["width"], np.linalg.norm(contacts[1] - contacts[0]), atol=1e-6)
+        assert g["ood_flags"] == 0 and g["ood"] == []
+    # distinct: no two share both their centre (1 cm) and their jaw axis (30 degrees)
+    for i in range(5):
+        for j in range(i):
+            near = np.linalg.norm(poses[i, :3, 3] - poses[j, :3, 3]) < 0.01
+            parallel = abs(poses[i, :3, 0] @ poses[j, :3, 0]) > np.cos(np.radians(30))
+            assert not (near and parallel)
+    assert set(d["seconds"]) >= {"scene", "sample", "score", "total"}
+
+
+@pytest.mark.parametrize("fmt", ["png", "raw"])
+def test_every_upload_format_is_planned(url, two_boxes, fmt):
+    depth = two_boxes[0]
+    if fmt == "png":
+        r = post_plan(url, depth, {"k": 3}, png_mm(depth), "image/png")
+    else:
+        h, w = depth.shape
+        r = post_plan(url, depth, {"k": 3, "width": w, "height": h}, depth.astype("<f4").tobytes(), "application/octet-stream")
+    assert r.status_code == 200, r.text
+    assert len(r.json()["grasps"]) == 3
+
+
+def test_the_same_seed_plans_the_same_grasps(url, two_boxes):
+    a, b = (post_plan(url, two_boxes[0], {"k": 3, "seed": 11}).json() for _ in range(2))
+    assert [g["row"] for g in a["grasps"]] == [g["row"] for g in b["grasps"]]
+
+
+def test_roi_and_camera_reach_the_planner(url, two_boxes):
+    depth, T_wc, meshes = two_boxes
+    T_cw = np.linalg.inv(T_wc)
+    uv = project(meshes[1].vertices @ T_cw[:3, :3].T + T_cw[:3, 3], DEFAULT_INTRINSICS)[:, :2]
+    (u0, v0), (u1, v1) = uv.min(axis=0) - 3, uv.max(axis=0) + 3
+    intr = {"fx": 525.0, "fy": 525.0, "cx": 149.5, "cy": 149.5}
+    r = post_plan(url, depth, {"k": 4, "roi": f"{u0},{v0},{u1},{v1}", **intr})
+    assert r.status_code == 200, r.text
+    grasps = r.json()["grasps"]
+    assert grasps
+    for g in grasps:
+        c0 = project(np.array(g["contacts"][:1]), DEFAULT_INTRINSICS)[0]
+        assert u0 <= c0[0] <= u1 and v0 <= c0[1] <= v1
+
+
+@pytest.mark.parametrize(
+    "params, field",
+    [
+        ({"roi": "400,400,500,500"}, "roi"),  # outside the image: empty
+        ({"roi": "50,50,10,10"}, "roi"),  # u1 < u0
+        ({"roi": "1,2,3"}, "roi"),
+        ({"roi": "1,2,nan,4"}, "roi"),
+        ({"roi": "1,-2,3,4"}, "roi"),
+        ({"k": 0}, "k"),
+        ({"k": 101}, "k"),
+        ({"k": 2.5}, "k"),
+        ({"k": "true"}, "k"),
+        ({"fx": "nan"}, "fx"),
+        ({"fx": "-525"}, "fx"),
+        ({"fy": "1e999"}, "fy"),
+        ({"fx": 2000}, "intrinsics"),  # a focal length the model cannot be resampled to
+        ({"seed": -1}, "seed"),
+        ({"cem": 11}, "cem"),
+    ],
+)
+def test_bad_parameters_answer_422_naming_them(url, two_boxes, params, field):
+    r = post_plan(url, two_boxes[0], params)
+    assert r.status_code == 422, r.text
+    assert field in r.json()["error"]["message"]
+
+
+def test_an_image_without_valid_depth_answers_422_naming_the_depth(url):
+    r = post_plan(url, np.zeros((300, 300), np.float32))
+    assert r.status_code == 422 and "depth" in r.json()["error"]["message"]
+
+
+def test_a_bare_table_answers_200_with_no_grasps_and_a_reason(url, table_only):
+    r = post_plan(url, table_only, {"k": 5})
+    assert r.status_code == 200, r.text
+    d = r.json()
+    assert d["grasps"] == [] and "no object" in d["reason"]
+
+
+def test_plans_are_counted_in_the_metrics(url, two_boxes, table_only):
+    post_plan(url, two_boxes[0], {"k": 1})
+    post_plan(url, table_only, {"k": 1})
+    text = httpx.get(f"{url}/metrics").text
+    assert 'vgq_plans_total{outcome="grasps"}' in text and 'vgq_plans_total{outcome="none"}' in text
+    assert 'vgq_requests_total{endpoint="plan",status="200"}' in text and "vgq_plan_seconds_count" in text
+
+
+def test_client_plan(url, two_boxes, table_only):
+    depth = two_boxes[0]
+    with ServiceClient(url, timeout=60) as c:
+        plan = c.plan(depth, k=3, intrinsics=DEFAULT_INTRINSICS, seed=11)
+        assert len(plan.grasps) == 3 and plan.reason is None
+        assert plan.rows.shape == (3, 7) and plan.poses.shape == (3, 4, 4)
+        assert np.all(np.diff(plan.scores) <= 0)
+        # the same grasps as the HTTP answer for the same image and seed
+        assert plan.rows.tolist() == [g["row"] for g in post_plan(url, depth, {"k": 3, "seed": 11}).json()["grasps"]]
+        empty = c.plan(table_only)
+        assert empty.grasps == [] and empty.reason and empty.rows.shape == (0, 7)
+        with pytest.raises(ServiceError) as e:
+            c.plan(depth, k=0)
+        assert e.value.status == 422 and "k" in e.value.message
+
+
+def test_an_image_id_is_not_a_depth_image(url):
+    r = httpx.post(f"{url}/v1/plan", json={"image_id": "0" * 32})
+    assert r.status_code == 415 and "image/png" in r.json()["error"]["message"]
+
+
+def test_plan_needs_the_api_key_when_one_is_set(two_boxes):
+    with running_service(MODEL_DIR, "--api-key", "s3cret") as u:
+        assert post_plan(u, two_boxes[0], {"k": 1}).status_code == 401
+        with ServiceClient(u, api_key="s3cret", timeout=60) as c:
+            assert len(c.plan(two_boxes[0], k=1).grasps) == 1
+        spec = httpx.get(f"{u}/openapi.json").json()
+        assert spec["paths"]["/v1/plan"]["post"]["security"] == [{"ApiKey": []}]
