@@ -8,7 +8,8 @@ Accepted bodies (by Content-Type):
 * ``application/octet-stream``: raw little-endian float32 metres, row-major, with the
   ``width`` and ``height`` given alongside.
 
-Depth must be finite and >= 0 (0 means no reading). Image sides must lie in
+Depth must be finite and >= 0 (0 means no reading; values beyond vgq.camera.MAX_DEPTH_M = 10 m
+count as no reading too and are filled like 0). Image sides must lie in
 [min_side, max_side]; sizes are checked before any pixel buffer is allocated.
 """
 

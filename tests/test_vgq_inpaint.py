@@ -109,3 +109,17 @@ def test_bench_prints_numbers(capsys):
     assert main(["--bench", "--reps", "3"]) == 0
     out = capsys.readouterr().out
     assert "ms" in out and "missing" in out
+
+
+def test_depth_beyond_the_maximum_is_missing_and_filled():
+    """A finite but absurd reading (1e30 m, or 65.535 m from a 16-bit 'invalid') is no reading:
+    filled like a 0, so the encoder never sees it (it overflowed to a null score before)."""
+    from vgq.camera import MAX_DEPTH_M
+    from vgq.crop import CropGeometry
+    from vgq.inpaint import crop_filled, missing_mask
+
+    d = np.full((120, 120), 0.7, np.float32)
+    d[60, 60], d[10, 10], d[20, 20] = 1e30, 65.535, MAX_DEPTH_M
+    assert missing_mask(d)[60, 60] and missing_mask(d)[10, 10] and not missing_mask(d)[20, 20]
+    img, _, frac = crop_filled(d, (12, 12), CropGeometry())
+    assert np.isfinite(img).all() and img.max() <= MAX_DEPTH_M and frac > 0

@@ -66,6 +66,22 @@ def deproject(uvz: np.ndarray, intr: Intrinsics = DEFAULT_INTRINSICS) -> np.ndar
     return np.stack([x, y, a[:, 2]], axis=1)
 
 
+# ----------------------------------------------------------------------------- valid depth
+
+#: Depth beyond this (metres) is no reading: far past any grasp (grasp z is refused above
+#: 10 m), and what 16-bit sensors write for "invalid" (65535 mm). A finite but absurd value
+#: (1e30 m) would otherwise overflow the encoder.
+MAX_DEPTH_M: float = 10.0
+
+
+def valid_depth(depth: np.ndarray) -> np.ndarray:
+    """Boolean mask (same shape) of pixels with a depth reading: finite, > 0 and <= MAX_DEPTH_M
+    metres. Everything else is *missing* (0 is how uploads say "no reading")."""
+    d = np.asarray(depth)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(d) & (d > 0) & (d <= MAX_DEPTH_M)
+
+
 # ----------------------------------------------------------------------------- resampling
 
 #: Focal lengths a client camera may have, as a ratio of the model's (fx_model / fx_camera):
@@ -130,7 +146,7 @@ def map_pixels(uv: np.ndarray, src: Intrinsics, dst: Intrinsics) -> np.ndarray:
 
 
 def resample_depth(depth: np.ndarray, camera: Intrinsics, model: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
-    """Resize a depth image (H, W, metres; 0 or non-finite = no reading) taken with
+    """Resize a depth image (H, W, metres; :func:`valid_depth` tells readings) taken with
     ``camera`` to ``model``'s focal lengths: returns (depth', intrinsics').
 
     Depth values are metric and stay as they are; only the pixel grid changes. Bilinear
@@ -146,7 +162,7 @@ def resample_depth(depth: np.ndarray, camera: Intrinsics, model: Intrinsics) -> 
     if sx == 1.0 and sy == 1.0:
         return d, camera
     dst = resampled_intrinsics(camera, sx, sy)
-    valid = np.isfinite(d) & (d > 0)
+    valid = valid_depth(d)
     size = (dst.width, dst.height)
 
     def _resize(a: np.ndarray) -> np.ndarray:

@@ -1,8 +1,8 @@
 """Missing depth: how a depth image with holes becomes a complete network input.
 
 Real depth sensors return 0 ("no reading") at depth discontinuities, in the projector's
-occlusion shadows and on dark or shiny spots. A pixel is *missing* when its depth is not
-finite or not > 0. The network never saw a missing pixel in training, so every crop is
+occlusion shadows and on dark or shiny spots. A pixel is *missing* when it is not a
+reading by :func:`vgq.camera.valid_depth` (not finite, not > 0, or beyond 10 m). The network never saw a missing pixel in training, so every crop is
 filled before it is resized. One definition, used by datagen's crop stage (training data)
 and by the service (uploads), so training and serving see identical inputs.
 
@@ -29,20 +29,19 @@ import time
 import cv2
 import numpy as np
 
+from .camera import valid_depth
 from .crop import CropGeometry, crop_window, resize, window_center
 
 MARGIN_PX = 12  # source px around the window that the fill may draw from
 
 
 class NoValidDepth(ValueError):
-    """A region to be filled holds no valid (finite, > 0) depth pixel."""
+    """A region to be filled holds no valid depth pixel (:func:`vgq.camera.valid_depth`)."""
 
 
 def missing_mask(depth: np.ndarray) -> np.ndarray:
-    """Boolean mask (same shape) of missing pixels: depth not finite or not > 0."""
-    d = np.asarray(depth)
-    with np.errstate(invalid="ignore"):
-        return ~(np.isfinite(d) & (d > 0))
+    """Boolean mask (same shape) of missing pixels: not :func:`vgq.camera.valid_depth`."""
+    return ~valid_depth(depth)
 
 
 def fill_nearest(depth: np.ndarray, missing: np.ndarray | None = None) -> np.ndarray:

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .camera import valid_depth
+
 #: bit -> name, in bit order
 OOD_FLAGS: dict[int, str] = {
     1: "approach_away_from_camera",  # psi >= 90 deg: the training data filtered these out
@@ -28,13 +30,12 @@ def approach_away(q: np.ndarray) -> np.ndarray:
 
 
 def center_missing(uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """(k,) bool: the nearest pixel to each (u, v) (k, 2) has no reading (0 or non-finite)."""
+    """(k,) bool: the nearest pixel to each (u, v) (k, 2) has no reading (:func:`vgq.camera.valid_depth`)."""
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     h, w = depth.shape
     cols = np.clip(np.floor(uv[:, 0] + 0.5).astype(np.int64), 0, w - 1)
     rows = np.clip(np.floor(uv[:, 1] + 0.5).astype(np.int64), 0, h - 1)
-    d = depth[rows, cols]
-    return ~(np.isfinite(d) & (d > 0))
+    return ~valid_depth(depth[rows, cols])
 
 
 def ood_flags(
