@@ -120,3 +120,13 @@ def test_rotated_crop_by_quarter_turns_is_numpys_rotation():
         # PIL turns by +angle counter-clockwise as displayed: np.rot90 with the same k
         turned, _ = crop(np.pad(np.rot90(window, k), 102, mode="edge"), c, g)
         np.testing.assert_allclose(rotated_crop(depth, c, k * np.pi / 2, g), turned, atol=1e-5)
+
+
+def test_constant_images_normalise_with_unit_std():
+    """A constant image set has no spread: std 1 (no scaling), not rounding noise (~1e-8) that
+    would blow inputs up by 1e8."""
+    from vgq.normalization import Normalization
+
+    cols = ["u", "v", "z", "qw", "qx", "qy", "qz"]
+    n = Normalization.from_data(np.full((10, 32, 32), 0.7, np.float32), np.zeros((10, 7)), cols)
+    assert n.image_std == 1.0 and abs(n.image_mean - 0.7) < 1e-6

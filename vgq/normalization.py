@@ -37,17 +37,20 @@ class Normalization:
         """Statistics of training images (any shape, metres) and poses (n, len(pose_columns))."""
         pose_columns = tuple(pose_columns)
         images = np.asarray(images)
-        # float64 accumulation over possibly memory-mapped data, chunked
+        # float64 accumulation over possibly memory-mapped data, chunked, shifted by the first
+        # image's mean so that E[x^2] - E[x]^2 does not cancel to rounding noise
         flat = images.reshape(len(images), -1) if images.ndim > 1 else images.reshape(-1, 1)
+        shift = float(np.asarray(flat[0], dtype=np.float64).mean()) if len(flat) else 0.0
         s = s2 = 0.0
         n = 0
         for i in range(0, len(flat), 4096):
-            blk = np.asarray(flat[i : i + 4096], dtype=np.float64)
+            blk = np.asarray(flat[i : i + 4096], dtype=np.float64) - shift
             s += blk.sum()
             s2 += (blk**2).sum()
             n += blk.size
-        mean = s / max(n, 1)
-        std = float(np.sqrt(max(s2 / max(n, 1) - mean**2, 0.0)))
+        d = s / max(n, 1)
+        mean = shift + d
+        std = float(np.sqrt(max(s2 / max(n, 1) - d**2, 0.0)))
         poses = np.asarray(poses, dtype=np.float64).reshape(len(poses), len(pose_columns))
         pm = poses.mean(axis=0) if len(poses) else np.zeros(len(pose_columns))
         ps = poses.std(axis=0) if len(poses) else np.ones(len(pose_columns))
