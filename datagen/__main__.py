@@ -105,7 +105,10 @@ def _nonneg_int(s):
 def _add_config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", help="JSON config file (see `datagen config`)")
     p.add_argument(
-        "--set", metavar="KEY=VALUE", action="append", default=[],
+        "--set",
+        metavar="KEY=VALUE",
+        action="append",
+        default=[],
         help="override one config field, e.g. --set quality.num_samples=10 --set camera.d_range=[0.5,0.9]",
     )
 
@@ -134,8 +137,12 @@ def cmd_generate(args) -> int:
 
         base = DatagenConfig.from_dict(recorded_config(read_manifest(out, GRASP_FORMAT)["config"]))
     cfg = _build_config(
-        args, base, source=str(Path(args.source).resolve()) if args.source else None, num_objects=args.objects,
-        cameras_per_pose=args.cameras, seed=args.seed,
+        args,
+        base,
+        source=str(Path(args.source).resolve()) if args.source else None,
+        num_objects=args.objects,
+        cameras_per_pose=args.cameras,
+        seed=args.seed,
         families=parse_family_counts(args.families) if args.families else None,
     )
     if args.source and not Path(args.source).exists():
@@ -172,8 +179,16 @@ def cmd_crops(args) -> int:
     from .crops import make_crops
     from .sensor import parse_override
 
-    make_crops(args.inp, args.out, args.arch, args.kappa, seed=args.seed, progress=not args.quiet,
-               sensor=args.sensor, sensor_overrides=dict(parse_override(o) for o in args.sensor_set))
+    make_crops(
+        args.inp,
+        args.out,
+        args.arch,
+        args.kappa,
+        seed=args.seed,
+        progress=not args.quiet,
+        sensor=args.sensor,
+        sensor_overrides=dict(parse_override(o) for o in args.sensor_set),
+    )
     return 0
 
 
@@ -181,8 +196,11 @@ def cmd_bench(args) -> int:
     from .bench import run_bench
 
     cfg = _build_config(
-        args, source=str(Path(args.source).resolve()) if args.source else None, num_objects=args.objects,
-        cameras_per_pose=args.cameras, seed=args.seed,
+        args,
+        source=str(Path(args.source).resolve()) if args.source else None,
+        num_objects=args.objects,
+        cameras_per_pose=args.cameras,
+        seed=args.seed,
     )
     if args.physics:
         from .bench import run_physics_bench
@@ -199,15 +217,27 @@ def cmd_labelstudy(args) -> int:
     from .label_study import StudyParams, augment, run_study, summarise, write_report
 
     out = Path(args.out)
-    params = StudyParams(grasps=args.grasps, label_trials=args.label_trials, eval_trials=args.eval_trials,
-                         per_family=args.per_family, random_urdfs=args.random_urdfs, seed=args.seed)
+    params = StudyParams(
+        grasps=args.grasps,
+        label_trials=args.label_trials,
+        eval_trials=args.eval_trials,
+        per_family=args.per_family,
+        random_urdfs=args.random_urdfs,
+        seed=args.seed,
+    )
     cfg = _build_config(args)
     results = run_study(out, params, cfg, workers=args.workers) if not args.summary_only else None
     if args.more_label_trials:
         from .label_study import add_label_trials, load_results
 
-        add_label_trials(out, args.more_label_trials, cfg, params, workers=args.workers,
-                         upto=args.label_trials + args.more_label_trials)
+        add_label_trials(
+            out,
+            args.more_label_trials,
+            cfg,
+            params,
+            workers=args.workers,
+            upto=args.label_trials + args.more_label_trials,
+        )
         results = load_results(out)
     if results is None:
         from .label_study import load_results
@@ -263,9 +293,10 @@ def cmd_recipe(args) -> int:
 
 
 def cmd_objects(args) -> int:
+    from vgq import atomic
+
     from .families import FAMILIES, family_names, get_family, make_object
     from .families.sheet import contact_sheet
-    from vgq import atomic
 
     if args.list:
         for f in FAMILIES.values():
@@ -281,18 +312,34 @@ def cmd_objects(args) -> int:
         for i, o in enumerate(objs):
             rel = f"{fam}/{o.name}.stl"
             atomic.write_bytes(out / rel, o.mesh.export(file_type="stl"))
-            entries.append({"name": o.name, "family": fam, "index": i, "seed": args.seed, "params": o.params, "file": rel,
-                            "extents_m": [round(float(x), 5) for x in o.mesh.extents], "volume_m3": float(o.mesh.volume),
-                            "watertight": bool(o.mesh.is_watertight)})
+            entries.append(
+                {
+                    "name": o.name,
+                    "family": fam,
+                    "index": i,
+                    "seed": args.seed,
+                    "params": o.params,
+                    "file": rel,
+                    "extents_m": [round(float(x), 5) for x in o.mesh.extents],
+                    "volume_m3": float(o.mesh.volume),
+                    "watertight": bool(o.mesh.is_watertight),
+                }
+            )
         if not args.no_sheet:
-            sheet = contact_sheet([(fam, objs)], out / f"{fam}.png", f"{fam}: {FAMILIES[fam].summary} (seed {args.seed})", cols=5,
-                                  cache=views)
+            sheet = contact_sheet(
+                [(fam, objs)],
+                out / f"{fam}.png",
+                f"{fam}: {FAMILIES[fam].summary} (seed {args.seed})",
+                cols=5,
+                cache=views,
+            )
             print(f"{sheet}: {len(objs)} objects")
         rows.append((fam, objs))
     atomic.write_json(out / "objects.json", {"seed": args.seed, "objects": entries})
     if len(names) > 1 and not args.no_sheet:
-        sheet = contact_sheet([(f, o[:6]) for f, o in rows], out / "families.png", f"object families (seed {args.seed})",
-                              cache=views)
+        sheet = contact_sheet(
+            [(f, o[:6]) for f, o in rows], out / "families.png", f"object families (seed {args.seed})", cache=views
+        )
         print(f"{sheet}: {len(names)} families")
     print(f"{out}: {len(entries)} meshes (.stl, metres) and objects.json (family, parameters)")
     return 0
@@ -311,8 +358,12 @@ def build_parser() -> argparse.ArgumentParser:
     g = sub.add_parser("generate", help="render a grasp dataset (vgq-grasps) from meshes; rerun to resume")
     g.add_argument("--out", required=True, help="output folder")
     g.add_argument("--source", help="mesh folder or file (default: pybullet_data random_urdfs)")
-    g.add_argument("--objects", type=_count("--objects"), help="use the first N objects of --source (sorted by name; 0: none)")
-    g.add_argument("--families", metavar="FAMILY=N,...", help="add N procedural objects per family, e.g. mug=5,box=5 or all=5")
+    g.add_argument(
+        "--objects", type=_count("--objects"), help="use the first N objects of --source (sorted by name; 0: none)"
+    )
+    g.add_argument(
+        "--families", metavar="FAMILY=N,...", help="add N procedural objects per family, e.g. mug=5,box=5 or all=5"
+    )
     g.add_argument("--cameras", type=_positive_int("--cameras"), help="camera poses per stable pose (default 10)")
     g.add_argument("--workers", type=_positive_int("--workers"), help="worker processes (default: CPU cores)")
     g.add_argument("--ray", action="store_true", help="run the per-object tasks on Ray (pip install vgq-cnn[ray])")
@@ -335,11 +386,21 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True, help="output folder")
     c.add_argument("--arch", required=True, choices=("fast_vgqcnn", "vgqcnn", "gqcnn"))
     c.add_argument("--kappa", type=float, help="Fast-VGQ-CNN offset range, source px (default 36)")
-    c.add_argument("--seed", type=_nonneg_int, default=0, help="window offsets and the sensor model's noise (default 0)")
-    c.add_argument("--sensor", default="realistic",
-                   help="depth-sensor model: a preset (clean, realistic; default realistic) or a .json file of settings")
-    c.add_argument("--sensor-set", metavar="NAME=VALUE", action="append", default=[],
-                   help="override one sensor setting, e.g. --sensor-set baseline_m=0.05 --sensor-set blob_rate=4")
+    c.add_argument(
+        "--seed", type=_nonneg_int, default=0, help="window offsets and the sensor model's noise (default 0)"
+    )
+    c.add_argument(
+        "--sensor",
+        default="realistic",
+        help="depth-sensor model: a preset (clean, realistic; default realistic) or a .json file of settings",
+    )
+    c.add_argument(
+        "--sensor-set",
+        metavar="NAME=VALUE",
+        action="append",
+        default=[],
+        help="override one sensor setting, e.g. --sensor-set baseline_m=0.05 --sensor-set blob_rate=4",
+    )
     c.add_argument("--quiet", action="store_true")
     c.set_defaults(func=cmd_crops)
 
@@ -366,16 +427,24 @@ def build_parser() -> argparse.ArgumentParser:
     ls.add_argument("--workers", type=_positive_int("--workers"), default=1)
     ls.add_argument("--seed", type=_nonneg_int, default=17)
     ls.add_argument("--summary-only", action="store_true", help="only summarise the cached results")
-    ls.add_argument("--more-label-trials", type=_nonneg_int, default=0,
-                    help="add this many label trials per grasp to the cached objects (AUC vs label trials)")
+    ls.add_argument(
+        "--more-label-trials",
+        type=_nonneg_int,
+        default=0,
+        help="add this many label trials per grasp to the cached objects (AUC vs label trials)",
+    )
     _add_config_args(ls)
     ls.set_defaults(func=cmd_labelstudy)
 
     r = sub.add_parser("recipe", help="build a bundled model's dataset (generate -> sample -> crops)")
     r.add_argument("--out", required=True)
-    r.add_argument("--version", choices=sorted(RECIPES), default="v2",
-                   help="v1: the model bundled today (random_urdfs, paper label, clean); v2 (default): families, "
-                        "physics label, sensor model")
+    r.add_argument(
+        "--version",
+        choices=sorted(RECIPES),
+        default="v2",
+        help="v1: the model bundled today (random_urdfs, paper label, clean); v2 (default): families, "
+        "physics label, sensor model",
+    )
     r.add_argument("--objects", type=_positive_int("--objects"), help="random_urdfs objects (default: the recipe's)")
     r.add_argument("--workers", type=_positive_int("--workers"))
     r.add_argument("--dry-run", action="store_true", help="only print the commands")

@@ -5,13 +5,15 @@ from __future__ import annotations
 
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from .config import DatagenConfig
 
 
-def run_bench(config: DatagenConfig, workers: int = 1, out: str | Path | None = None, log: Callable[[str], None] = print) -> dict:
+def run_bench(
+    config: DatagenConfig, workers: int = 1, out: str | Path | None = None, log: Callable[[str], None] = print
+) -> dict:
     """Generate ``config`` (use a small ``num_objects``) into ``out`` (a temporary folder when
     None) and report wall time, datapoints per minute and positivity."""
     from .pipeline import run_generate
@@ -78,8 +80,14 @@ def physics_grasps(src, config: DatagenConfig, num_grasps: int, seed: int):
     return (obj.mesh, T_poses[0], T) if len(T) else None
 
 
-def run_physics_bench(config: DatagenConfig, workers: int = 1, grasps: int = 16, trials: int = 4,
-                      chunk: int = 4, log: Callable[[str], None] = print) -> dict:
+def run_physics_bench(
+    config: DatagenConfig,
+    workers: int = 1,
+    grasps: int = 16,
+    trials: int = 4,
+    chunk: int = 4,
+    log: Callable[[str], None] = print,
+) -> dict:
     """Physics trials per second: ``trials`` noisy trials of up to ``grasps`` collision-free
     grasps on each of the config's first objects, ``chunk`` grasps per task on ``workers``
     processes (datagen's pool). Object set-up (V-HACD, cached on disk) is timed apart."""
@@ -105,9 +113,20 @@ def run_physics_bench(config: DatagenConfig, workers: int = 1, grasps: int = 16,
         sim.close()
         setup = time.perf_counter() - t0
         tasks = [
-            (np.asarray(mesh.vertices), np.asarray(mesh.faces), T_wo, T[s : s + chunk], config.gripper, config.physics,
-             trials, 1000 * k + s, cache, name)
-            for k, (name, mesh, T_wo, T) in enumerate(jobs) for s in range(0, len(T), chunk)
+            (
+                np.asarray(mesh.vertices),
+                np.asarray(mesh.faces),
+                T_wo,
+                T[s : s + chunk],
+                config.gripper,
+                config.physics,
+                trials,
+                1000 * k + s,
+                cache,
+                name,
+            )
+            for k, (name, mesh, T_wo, T) in enumerate(jobs)
+            for s in range(0, len(T), chunk)
         ]
         out: list[dict] = []
         t1 = time.perf_counter()
@@ -116,12 +135,21 @@ def run_physics_bench(config: DatagenConfig, workers: int = 1, grasps: int = 16,
     n = int(sum(r["held"].size for r in out))
     cpu = float(sum(r["seconds"] for r in out))
     res = {
-        "objects": len(jobs), "trials": n, "workers": workers, "wall_s": wall, "setup_s": setup,
-        "trials_per_second": n / wall if wall > 0 else 0.0, "trial_seconds_in_worker": cpu / n if n else 0.0,
+        "objects": len(jobs),
+        "trials": n,
+        "workers": workers,
+        "wall_s": wall,
+        "setup_s": setup,
+        "trials_per_second": n / wall if wall > 0 else 0.0,
+        "trial_seconds_in_worker": cpu / n if n else 0.0,
         "held_rate": float(np.mean(np.concatenate([r["held"].reshape(-1) for r in out]))) if n else 0.0,
     }
-    log(f"bench: {n} physics trials of {len(jobs)} objects in {wall:.1f} s with {workers} worker(s) "
-        f"(object set-up {setup:.1f} s, not counted)")
-    log(f"bench: {res['trials_per_second']:.2f} trials/s; {1000 * res['trial_seconds_in_worker']:.0f} ms per trial "
-        f"inside a worker; held {100 * res['held_rate']:.0f}%")
+    log(
+        f"bench: {n} physics trials of {len(jobs)} objects in {wall:.1f} s with {workers} worker(s) "
+        f"(object set-up {setup:.1f} s, not counted)"
+    )
+    log(
+        f"bench: {res['trials_per_second']:.2f} trials/s; {1000 * res['trial_seconds_in_worker']:.0f} ms per trial "
+        f"inside a worker; held {100 * res['held_rate']:.0f}%"
+    )
     return res

@@ -62,12 +62,12 @@ class DatagenConfig:
         return _to_jsonable(dataclasses.asdict(self))
 
     @classmethod
-    def from_dict(cls, d: dict) -> "DatagenConfig":
+    def from_dict(cls, d: dict) -> DatagenConfig:
         cfg = _build(cls, d, "")
         validate(cfg)
         return cfg
 
-    def with_overrides(self, overrides: dict) -> "DatagenConfig":
+    def with_overrides(self, overrides: dict) -> DatagenConfig:
         """A copy with ``{"section.field": value}`` overrides applied (and validated)."""
         d = self.to_dict()
         for key, value in overrides.items():

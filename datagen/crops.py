@@ -18,8 +18,8 @@ service does not serve).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -67,7 +67,12 @@ def fast_window_origins(grasp_uv: np.ndarray, geom: vcrop.CropGeometry, rng: np.
 
 
 def crop_grasps(
-    depth: np.ndarray, uv: np.ndarray, jaw_angle: np.ndarray, arch: str, geom: vcrop.CropGeometry, rng: np.random.Generator
+    depth: np.ndarray,
+    uv: np.ndarray,
+    jaw_angle: np.ndarray,
+    arch: str,
+    geom: vcrop.CropGeometry,
+    rng: np.random.Generator,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Crops of one depth image (H, W) metres (0 or non-finite = missing, filled by
     :mod:`vgq.inpaint`) for k grasps at ``uv`` (k, 2) image px.
@@ -100,9 +105,15 @@ def crop_grasps(
 
 
 def make_crops(
-    src: str | Path, out: str | Path, arch: str, kappa_px: float | None = None, seed: int = 0,
-    log: Callable[[str], None] = print, progress: bool = False,
-    sensor: str | sensor_model.SensorModel | dict | None = None, sensor_overrides: dict | None = None,
+    src: str | Path,
+    out: str | Path,
+    arch: str,
+    kappa_px: float | None = None,
+    seed: int = 0,
+    log: Callable[[str], None] = print,
+    progress: bool = False,
+    sensor: str | sensor_model.SensorModel | dict | None = None,
+    sensor_overrides: dict | None = None,
 ) -> dict:
     """Crop every grasp of the grasp dataset ``src`` into the ``vgq-crops`` dataset ``out``.
 
@@ -178,7 +189,9 @@ def make_crops(
         raise
     counts = {
         s: crop_counts(
-            n[s], pos[s], missing_fraction_mean=missing_sum[s] / n[s] if n[s] else 0.0,
+            n[s],
+            pos[s],
+            missing_fraction_mean=missing_sum[s] / n[s] if n[s] else 0.0,
             objects=sorted(i for i, v in split_of.items() if v == s),
         )
         for s in SPLITS
@@ -186,7 +199,11 @@ def make_crops(
     cfg = m_src.get("config", {})
     native = m_src.get("sampling", {}).get("stats", {}).get("steps", {}).get("native")  # before sampling
     m = write_crop_manifest(
-        out, arch, geom, counts, thr,
+        out,
+        arch,
+        geom,
+        counts,
+        thr,
         source={
             "dataset": str(Path(src).resolve()),
             "seed": m_src.get("seed"),
@@ -203,6 +220,8 @@ def make_crops(
         versions=storage.library_versions(),
     )
     for s in SPLITS:
-        log(f"{s}: {n[s]} crops, positivity {100 * counts[s]['positivity']:.1f}%, "
-            f"missing pixels {100 * counts[s]['missing_fraction_mean']:.2f}% (sensor {sensor_name})")
+        log(
+            f"{s}: {n[s]} crops, positivity {100 * counts[s]['positivity']:.1f}%, "
+            f"missing pixels {100 * counts[s]['missing_fraction_mean']:.2f}% (sensor {sensor_name})"
+        )
     return m

@@ -64,14 +64,14 @@ class AntipodalGrasps:
     def __len__(self) -> int:
         return len(self.centers)
 
-    def __getitem__(self, idx) -> "AntipodalGrasps":
+    def __getitem__(self, idx) -> AntipodalGrasps:
         """Subset by index array, mask or slice."""
         return AntipodalGrasps(
             self.centers[idx], self.axes[idx], self.contacts[idx], self.normals[idx], self.widths[idx]
         )
 
     @classmethod
-    def empty(cls) -> "AntipodalGrasps":
+    def empty(cls) -> AntipodalGrasps:
         return cls(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 2, 3)), np.zeros((0, 2, 3)), np.zeros(0))
 
 

@@ -155,12 +155,21 @@ def _select(src, config: DatagenConfig, params: StudyParams, seed: int, times: d
     if len(grasps) == 0:
         return {"status": "skipped", "reason": f"none of {n_sampled} antipodal grasps has a collision-free approach"}
     times["sample"] *= len(grasps) / n_sampled
-    return {"status": "ok", "obj": obj, "T_wo": T_wo, "grasps": grasps, "T_wg": T_wg, "n_sampled": n_sampled,
-            "ss": ss, "mesh_world": mesh_world}
+    return {
+        "status": "ok",
+        "obj": obj,
+        "T_wo": T_wo,
+        "grasps": grasps,
+        "T_wg": T_wg,
+        "n_sampled": n_sampled,
+        "ss": ss,
+        "mesh_world": mesh_world,
+    }
 
 
-def _analytic(sel: dict, config: DatagenConfig, robust: RobustCollisionParams, physics: PhysicsParams,
-              times: dict) -> dict:
+def _analytic(
+    sel: dict, config: DatagenConfig, robust: RobustCollisionParams, physics: PhysicsParams, times: dict
+) -> dict:
     """The analytic scores of the selected grasps (arrays), timing each stage into ``times``."""
     from .collision import CollisionChecker, collision_free_probability
     from .pads import pad_quality, robust_pad_quality
@@ -174,25 +183,58 @@ def _analytic(sel: dict, config: DatagenConfig, robust: RobustCollisionParams, p
     qf = dataclasses.replace(config.quality, torque_scaling=FIXED_TORQUE_SCALING)
     fc_fixed = robust_ferrari_canny(obj.mesh, grasps, qf, np.random.default_rng(ss[1]))
     checker = CollisionChecker(sel["mesh_world"], config.gripper, clearance=robust.clearance)
-    p_cf = _timed(times, "robust_collision", collision_free_probability, checker, T_wg, robust,
-                  np.random.default_rng(ss[3]))
+    p_cf = _timed(
+        times, "robust_collision", collision_free_probability, checker, T_wg, robust, np.random.default_rng(ss[3])
+    )
     pad_q, pad_ok, pad_c = _timed(times, "pad", pad_quality, obj.mesh, T_og, config.gripper, q, q.torque_scaling)
     pad_q_fixed = pad_quality(obj.mesh, T_og, config.gripper, qf, FIXED_TORQUE_SCALING)[0]
-    noise = RobustCollisionParams(num_samples=robust.num_samples, sigma_translation=physics.sigma_translation,
-                                  sigma_rotation=physics.sigma_rotation, clearance=0.0)
-    rpad_q, rpad_ok = _timed(times, "robust_pad", robust_pad_quality, obj.mesh, T_og, config.gripper, qf,
-                             FIXED_TORQUE_SCALING, noise, np.random.default_rng(ss[6]))
+    noise = RobustCollisionParams(
+        num_samples=robust.num_samples,
+        sigma_translation=physics.sigma_translation,
+        sigma_rotation=physics.sigma_rotation,
+        clearance=0.0,
+    )
+    rpad_q, rpad_ok = _timed(
+        times,
+        "robust_pad",
+        robust_pad_quality,
+        obj.mesh,
+        T_og,
+        config.gripper,
+        qf,
+        FIXED_TORQUE_SCALING,
+        noise,
+        np.random.default_rng(ss[6]),
+    )
     return {
-        "torque_scaling": float(q.torque_scaling), "extents": np.sort(obj.mesh.extents).tolist(),
-        "fc": fc, "fc_fixed": fc_fixed, "cf_nominal": np.ones(n, bool), "cf_clear": ~checker.collides(T_wg),
-        "p_cf": p_cf, "pad_q": pad_q, "pad_q_fixed": pad_q_fixed, "pad_ok": pad_ok, "pad_contacts": pad_c,
-        "robust_pad_q": rpad_q, "robust_pad_ok": rpad_ok,
-        "contacts": grasps.contacts, "beta": np.arccos(np.clip(-T_wg[:, 2, 2], -1, 1)),
+        "torque_scaling": float(q.torque_scaling),
+        "extents": np.sort(obj.mesh.extents).tolist(),
+        "fc": fc,
+        "fc_fixed": fc_fixed,
+        "cf_nominal": np.ones(n, bool),
+        "cf_clear": ~checker.collides(T_wg),
+        "p_cf": p_cf,
+        "pad_q": pad_q,
+        "pad_q_fixed": pad_q_fixed,
+        "pad_ok": pad_ok,
+        "pad_contacts": pad_c,
+        "robust_pad_q": rpad_q,
+        "robust_pad_ok": rpad_ok,
+        "contacts": grasps.contacts,
+        "beta": np.arccos(np.clip(-T_wg[:, 2, 2], -1, 1)),
     }
 
 
-def study_object(family: str, src, config: DatagenConfig, params: StudyParams, physics: PhysicsParams,
-                 robust: RobustCollisionParams, seed: int, cache_dir=None) -> dict:
+def study_object(
+    family: str,
+    src,
+    config: DatagenConfig,
+    params: StudyParams,
+    physics: PhysicsParams,
+    robust: RobustCollisionParams,
+    seed: int,
+    cache_dir=None,
+) -> dict:
     """All per-grasp scores and trial outcomes of one object (arrays), with stage times (s)."""
     from .physics import _worker_sim, run_trials
 
@@ -209,11 +251,23 @@ def study_object(family: str, src, config: DatagenConfig, params: StudyParams, p
     times["physics_label"] = lab.seconds
     ev = run_trials(sim, T_wg, params.eval_trials, np.random.default_rng(ss[5]))
     return {
-        "status": "done", "family": family, "name": src.name, "n": n, "n_sampled": sel["n_sampled"], "pose": pose,
-        "times": times, **feats,
-        "nominal_held": nominal.held[:, 0], "label_reason": lab.reason, "nominal_reason": nominal.reason[:, 0],
-        "first_touch": nominal.first_touch[:, 0], "label_held": lab.held, "label_firm": lab.firm,
-        "eval_held": ev.held, "eval_firm": ev.firm, "eval_reason": ev.reason,
+        "status": "done",
+        "family": family,
+        "name": src.name,
+        "n": n,
+        "n_sampled": sel["n_sampled"],
+        "pose": pose,
+        "times": times,
+        **feats,
+        "nominal_held": nominal.held[:, 0],
+        "label_reason": lab.reason,
+        "nominal_reason": nominal.reason[:, 0],
+        "first_touch": nominal.first_touch[:, 0],
+        "label_held": lab.held,
+        "label_firm": lab.firm,
+        "eval_held": ev.held,
+        "eval_firm": ev.firm,
+        "eval_reason": ev.reason,
     }
 
 
@@ -233,9 +287,15 @@ def _object_task(family, src, config, params, physics, robust, seed, path: str) 
     return meta
 
 
-def run_study(out: str | Path, params: StudyParams = StudyParams(), config: DatagenConfig | None = None,
-              physics: PhysicsParams = PhysicsParams(), robust: RobustCollisionParams = RobustCollisionParams(),
-              workers: int = 1, log=print) -> list[dict]:
+def run_study(
+    out: str | Path,
+    params: StudyParams = StudyParams(),
+    config: DatagenConfig | None = None,
+    physics: PhysicsParams = PhysicsParams(),
+    robust: RobustCollisionParams = RobustCollisionParams(),
+    workers: int = 1,
+    log=print,
+) -> list[dict]:
     """Run (or resume) the study into ``out``; returns the per-object results."""
     from .parallel import run_tasks
     from .pipeline import object_seed
@@ -243,9 +303,18 @@ def run_study(out: str | Path, params: StudyParams = StudyParams(), config: Data
     out = Path(out)
     (out / "objects").mkdir(parents=True, exist_ok=True)
     config = config or DatagenConfig()
-    atomic.write_bytes(out / "study.json", json.dumps({
-        "study": dataclasses.asdict(params), "physics": dataclasses.asdict(physics),
-        "robust_collision": dataclasses.asdict(robust), "config": config.to_dict()}, indent=2).encode())
+    atomic.write_bytes(
+        out / "study.json",
+        json.dumps(
+            {
+                "study": dataclasses.asdict(params),
+                "physics": dataclasses.asdict(physics),
+                "robust_collision": dataclasses.asdict(robust),
+                "config": config.to_dict(),
+            },
+            indent=2,
+        ).encode(),
+    )
     sources = study_sources(params, out)
     tasks = []
     for fam, src in sources:
@@ -257,9 +326,14 @@ def run_study(out: str | Path, params: StudyParams = StudyParams(), config: Data
     return load_results(out)
 
 
-def augment(out: str | Path, config: DatagenConfig | None = None, params: StudyParams = StudyParams(),
-            physics: PhysicsParams = PhysicsParams(), robust: RobustCollisionParams = RobustCollisionParams(),
-            log=print) -> int:
+def augment(
+    out: str | Path,
+    config: DatagenConfig | None = None,
+    params: StudyParams = StudyParams(),
+    physics: PhysicsParams = PhysicsParams(),
+    robust: RobustCollisionParams = RobustCollisionParams(),
+    log=print,
+) -> int:
     """Recompute the analytic scores of cached objects (same grasps: the selection is
     deterministic; checked against the cached ``fc``) and add new ones; trials are kept.
     Returns the number of objects updated."""
@@ -269,7 +343,7 @@ def augment(out: str | Path, config: DatagenConfig | None = None, params: StudyP
     config = config or DatagenConfig()
     done = {r["name"]: r for r in load_results(out) if r.get("status") == "done"}
     k = 0
-    for fam, src in study_sources(params, out):
+    for _fam, src in study_sources(params, out):
         r = done.get(src.name)
         if r is None or "robust_pad_q" in r:
             continue
@@ -315,9 +389,16 @@ def _more_trials_task(family, src, config, params, physics, robust, seed, path: 
     return {"name": src.name, "status": "done"}
 
 
-def add_label_trials(out: str | Path, k: int, config: DatagenConfig | None = None, params: StudyParams = StudyParams(),
-                     physics: PhysicsParams = PhysicsParams(), robust: RobustCollisionParams = RobustCollisionParams(),
-                     workers: int = 1, upto: int | None = None) -> None:
+def add_label_trials(
+    out: str | Path,
+    k: int,
+    config: DatagenConfig | None = None,
+    params: StudyParams = StudyParams(),
+    physics: PhysicsParams = PhysicsParams(),
+    robust: RobustCollisionParams = RobustCollisionParams(),
+    workers: int = 1,
+    upto: int | None = None,
+) -> None:
     """Run ``k`` more label trials per grasp on every cached object that has fewer than
     ``upto`` (default: current + k) (resumable: objects already there are skipped)."""
     from .parallel import run_tasks
@@ -331,8 +412,19 @@ def add_label_trials(out: str | Path, k: int, config: DatagenConfig | None = Non
         r = done.get(src.name)
         if r is None or (upto is not None and r["label_held"].shape[1] >= upto):
             continue
-        tasks.append((fam, src, config, params, physics, robust, object_seed(params.seed, src.name),
-                      str(out / "objects" / f"{src.name}.npz"), k))
+        tasks.append(
+            (
+                fam,
+                src,
+                config,
+                params,
+                physics,
+                robust,
+                object_seed(params.seed, src.name),
+                str(out / "objects" / f"{src.name}.npz"),
+                k,
+            )
+        )
     run_tasks(_more_trials_task, tasks, workers=workers, desc="label trials")
 
 
@@ -376,8 +468,11 @@ def roc_curve(score, y):
     return np.r_[0.0, fpr, 1.0], np.r_[0.0, tpr, 1.0]
 
 
-def candidate_labels(r: dict, label_threshold: float = 0.002, success_threshold: float = 0.5,
-                     ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def candidate_labels(
+    r: dict,
+    label_threshold: float = 0.002,
+    success_threshold: float = 0.5,
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """name -> (continuous score (n,), binary label (n,)) for one object's (or pooled) arrays:
     analytic labels are positive above ``label_threshold``, the physics label above
     ``success_threshold`` (as datagen's ``label`` setting)."""
@@ -399,9 +494,26 @@ def candidate_labels(r: dict, label_threshold: float = 0.002, success_threshold:
 
 
 def pooled(results: list[dict]) -> dict:
-    keys = ("fc", "fc_fixed", "cf_nominal", "cf_clear", "p_cf", "pad_q", "pad_q_fixed", "pad_ok", "label_held",
-            "robust_pad_q", "robust_pad_ok",
-            "eval_held", "eval_firm", "eval_reason", "nominal_held", "first_touch", "pad_contacts", "contacts")
+    keys = (
+        "fc",
+        "fc_fixed",
+        "cf_nominal",
+        "cf_clear",
+        "p_cf",
+        "pad_q",
+        "pad_q_fixed",
+        "pad_ok",
+        "label_held",
+        "robust_pad_q",
+        "robust_pad_ok",
+        "eval_held",
+        "eval_firm",
+        "eval_reason",
+        "nominal_held",
+        "first_touch",
+        "pad_contacts",
+        "contacts",
+    )
     done = [r for r in results if r.get("status") == "done"]
     out = {k: np.concatenate([r[k] for r in done]) for k in keys}
     out["family"] = np.concatenate([[r["family"]] * int(r["n"]) for r in done])
@@ -423,8 +535,9 @@ def _bootstrap_auc(score, y_trials, objects, rng, reps=200) -> tuple[float, floa
     return (float(np.percentile(vals, 2.5)), float(np.percentile(vals, 97.5))) if vals else (float("nan"),) * 2
 
 
-def summarise(results: list[dict], out: str | Path | None = None, label_threshold: float = 0.002,
-              success_threshold: float = 0.5) -> dict:
+def summarise(
+    results: list[dict], out: str | Path | None = None, label_threshold: float = 0.002, success_threshold: float = 0.5
+) -> dict:
     """AUC (trial level, against held in the evaluation trials), precision of positives,
     positivity and cost per grasp of every candidate label; pad-contact error; plots in
     ``out`` when given."""
@@ -434,15 +547,17 @@ def summarise(results: list[dict], out: str | Path | None = None, label_threshol
     y = P["eval_held"]
     k = y.shape[1]
     rng = np.random.default_rng(0)
-    cost_keys = {"paper (robust FC > 0.002, nominal collision)": ("fc", "collision"),
-                 "paper, fixed torque scaling": ("fc", "collision"),
-                 "robust FC x P(collision-free)": ("fc", "robust_collision"),
-                 "pad FC x nominal collision": ("pad", "collision"),
-                 "pad FC (fixed scaling) x P(cf)": ("pad", "robust_collision"),
-                 "P(collision-free) alone": ("robust_collision",),
-                 "robust pad FC (pads under noise)": ("robust_pad",),
-                 "robust pad FC x P(cf)": ("robust_pad", "robust_collision"),
-                 "physics (success rate of label trials)": ("physics_label", "physics_setup")}
+    cost_keys = {
+        "paper (robust FC > 0.002, nominal collision)": ("fc", "collision"),
+        "paper, fixed torque scaling": ("fc", "collision"),
+        "robust FC x P(collision-free)": ("fc", "robust_collision"),
+        "pad FC x nominal collision": ("pad", "collision"),
+        "pad FC (fixed scaling) x P(cf)": ("pad", "robust_collision"),
+        "P(collision-free) alone": ("robust_collision",),
+        "robust pad FC (pads under noise)": ("robust_pad",),
+        "robust pad FC x P(cf)": ("robust_pad", "robust_collision"),
+        "physics (success rate of label trials)": ("physics_label", "physics_setup"),
+    }
     tot = {}
     for r in done:
         for key, v in r["times"].items():
@@ -452,10 +567,13 @@ def summarise(results: list[dict], out: str | Path | None = None, label_threshol
         s_t = np.repeat(score, k)
         a = auc(s_t, y.reshape(-1))
         lo, hi = _bootstrap_auc(score, y, P["object"], rng)
-        fam_auc = {f: auc(np.repeat(score[P["family"] == f], k), y[P["family"] == f].reshape(-1))
-                   for f in np.unique(P["family"])}
+        fam_auc = {
+            f: auc(np.repeat(score[P["family"] == f], k), y[P["family"] == f].reshape(-1))
+            for f in np.unique(P["family"])
+        }
         rows[name] = {
-            "auc": a, "auc_ci95": [lo, hi],
+            "auc": a,
+            "auc_ci95": [lo, hi],
             "auc_firm": auc(s_t, P["eval_firm"].reshape(-1)),
             "positivity": float(lab.mean()),
             "precision": float(y[lab].mean()) if lab.any() else float("nan"),
@@ -478,16 +596,22 @@ def summarise(results: list[dict], out: str | Path | None = None, label_threshol
     err_line = np.linalg.norm(ft[both] - ac[both], axis=2).reshape(-1)
     ana_vs_pad = np.linalg.norm(pc[P["pad_ok"].astype(bool)] - ac[P["pad_ok"].astype(bool)], axis=2).max(axis=1)
     summary = {
-        "objects": len(done), "skipped": [(r["name"], r.get("reason")) for r in results if r.get("status") != "done"],
-        "grasps": n, "eval_trials_per_grasp": k, "label_trials_per_grasp": P["label_held"].shape[1],
+        "objects": len(done),
+        "skipped": [(r["name"], r.get("reason")) for r in results if r.get("status") != "done"],
+        "grasps": n,
+        "eval_trials_per_grasp": k,
+        "label_trials_per_grasp": P["label_held"].shape[1],
         "families": {f: int((P["family"] == f).sum()) for f in np.unique(P["family"])},
         "eval_success_rate": float(y.mean()),
         "eval_outcomes": {REASONS[i]: int(c) for i, c in enumerate(reasons)},
         "candidates": rows,
         "physics_auc_by_label_trials": curve,
-        "pad_contact_error_mm": {"pads_touched": int(both.sum()), "median_pad_model": 1000 * float(np.median(err_pad)),
-                                 "median_grasp_line": 1000 * float(np.median(err_line)),
-                                 "p90_pad_model": 1000 * float(np.percentile(err_pad, 90))},
+        "pad_contact_error_mm": {
+            "pads_touched": int(both.sum()),
+            "median_pad_model": 1000 * float(np.median(err_pad)),
+            "median_grasp_line": 1000 * float(np.median(err_line)),
+            "p90_pad_model": 1000 * float(np.percentile(err_pad, 90)),
+        },
         "pad_vs_line_3mm_fraction": float((ana_vs_pad > 0.003).mean()) if len(ana_vs_pad) else float("nan"),
         "stage_ms_per_grasp": {key: 1000 * v / n for key, v in sorted(tot.items())},
         "unstable_poses": [r["name"] for r in done if not r["pose"]["stable"]],
@@ -497,8 +621,9 @@ def summarise(results: list[dict], out: str | Path | None = None, label_threshol
     return summary
 
 
-def _plots(out: Path, P: dict, summary: dict, label_threshold: float, err_pad, err_line,
-           success_threshold: float = 0.5) -> None:
+def _plots(
+    out: Path, P: dict, summary: dict, label_threshold: float, err_pad, err_line, success_threshold: float = 0.5
+) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -551,14 +676,18 @@ def _plots(out: Path, P: dict, summary: dict, label_threshold: float, err_pad, e
 
 def markdown(summary: dict) -> str:
     """The candidates table (markdown) of a summary."""
-    header = ("| label | AUC (95% CI, by object) | AUC vs firm | positives | precision of positives | "
-              "success of negatives | cost per grasp (ms) |")
+    header = (
+        "| label | AUC (95% CI, by object) | AUC vs firm | positives | precision of positives | "
+        "success of negatives | cost per grasp (ms) |"
+    )
     lines = [header, "|---|---|---|---|---|---|---|"]
     for name, v in summary["candidates"].items():
         lo, hi = v["auc_ci95"]
-        lines.append(f"| {name} | {v['auc']:.2f} ({lo:.2f}-{hi:.2f}) | {v['auc_firm']:.2f} | "
-                     f"{100 * v['positivity']:.0f}% | {100 * v['precision']:.0f}% | "
-                     f"{100 * v['success_of_negatives']:.0f}% | {v['cost_ms_per_grasp']:.0f} |")
+        lines.append(
+            f"| {name} | {v['auc']:.2f} ({lo:.2f}-{hi:.2f}) | {v['auc_firm']:.2f} | "
+            f"{100 * v['positivity']:.0f}% | {100 * v['precision']:.0f}% | "
+            f"{100 * v['success_of_negatives']:.0f}% | {v['cost_ms_per_grasp']:.0f} |"
+        )
     return "\n".join(lines) + "\n"
 
 

@@ -46,8 +46,9 @@ class LabelParams:
         return self.kind == "physics"
 
 
-def label_score(kind: str, fc: np.ndarray, collision_free: np.ndarray, p_cf: np.ndarray, pad_q: np.ndarray,
-                success: np.ndarray) -> np.ndarray:
+def label_score(
+    kind: str, fc: np.ndarray, collision_free: np.ndarray, p_cf: np.ndarray, pad_q: np.ndarray, success: np.ndarray
+) -> np.ndarray:
     """The ``quality`` column (float, per row) of label ``kind`` from the per-row fields."""
     cf = np.asarray(collision_free, bool)
     if kind == "paper":

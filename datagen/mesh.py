@@ -146,8 +146,7 @@ def mesh_sources(source: str | Path | None = None) -> list[MeshSource]:
     names = [_name(f, base, stem_only=True) for f, _, _ in entries]
     dup = {n for n in names if names.count(n) > 1}
     out = [
-        MeshSource(name=_name(f, base, stem_only=n not in dup), path=p, scale=s)
-        for (f, p, s), n in zip(entries, names)
+        MeshSource(name=_name(f, base, stem_only=n not in dup), path=p, scale=s) for (f, p, s), n in zip(entries, names)
     ]
     out.sort(key=lambda s: s.name)
     return out

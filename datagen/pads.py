@@ -100,8 +100,14 @@ def pad_contacts(mesh: trimesh.Trimesh, T_object_grasp: np.ndarray, gripper: Gri
     return ok, contacts, normals
 
 
-def pad_quality(mesh: trimesh.Trimesh, T_object_grasp: np.ndarray, gripper: GripperGeometry, params,
-                torque_scaling: float, mu: float | None = None):
+def pad_quality(
+    mesh: trimesh.Trimesh,
+    T_object_grasp: np.ndarray,
+    gripper: GripperGeometry,
+    params,
+    torque_scaling: float,
+    mu: float | None = None,
+):
     """Ferrari-Canny quality (n,) at the pad contacts (pushes along the jaw axis), 0 where
     :func:`pad_contacts` finds none; also returns the contacts ``(q, ok, contacts)``."""
     from .quality import ferrari_canny_batch
@@ -115,8 +121,15 @@ def pad_quality(mesh: trimesh.Trimesh, T_object_grasp: np.ndarray, gripper: Grip
     return q, ok, contacts
 
 
-def robust_pad_quality(mesh: trimesh.Trimesh, T_object_grasp: np.ndarray, gripper: GripperGeometry, params,
-                       torque_scaling: float, noise, rng: np.random.Generator):
+def robust_pad_quality(
+    mesh: trimesh.Trimesh,
+    T_object_grasp: np.ndarray,
+    gripper: GripperGeometry,
+    params,
+    torque_scaling: float,
+    noise,
+    rng: np.random.Generator,
+):
     """Pad quality under execution noise: the mean over ``noise.num_samples`` perturbed poses
     (translation N(0, noise.sigma_translation) per axis, rotation vector N(0, noise.sigma_rotation)
     about the TCP; :func:`datagen.collision.perturb_frames`) and friction N(friction_coef,

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from typing import Callable, Sequence
 
 
 class RayNotInstalled(RuntimeError):
@@ -29,8 +29,13 @@ def _bar(total: int, progress: bool, desc: str):
 
 
 def run_tasks(
-    fn: Callable, tasks: Sequence[tuple], workers: int = 1, use_ray: bool = False,
-    on_result: Callable[[object], str | None] = lambda r: None, progress: bool = True, desc: str = "objects",
+    fn: Callable,
+    tasks: Sequence[tuple],
+    workers: int = 1,
+    use_ray: bool = False,
+    on_result: Callable[[object], str | None] = lambda r: None,
+    progress: bool = True,
+    desc: str = "objects",
 ) -> None:
     """Call ``fn(*task)`` for every task; ``on_result(result)`` runs in this process as each
     finishes (its return value, if any, is shown beside the progress bar).

@@ -85,14 +85,37 @@ class PhysicsParams:
     stable_rotation: float = float(np.radians(5.0))
 
     def __post_init__(self) -> None:
-        for name in ("object_mass", "grip_force", "close_speed", "squeeze_speed", "approach_speed", "lift_speed", "time_step",
-                     "shake_frequency", "firm_translation", "firm_rotation", "min_friction"):
+        for name in (
+            "object_mass",
+            "grip_force",
+            "close_speed",
+            "squeeze_speed",
+            "approach_speed",
+            "lift_speed",
+            "time_step",
+            "shake_frequency",
+            "firm_translation",
+            "firm_rotation",
+            "min_friction",
+        ):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"PhysicsParams.{name} must be > 0, got {v!r}")
-        for name in ("approach_distance", "lift_height", "shake_duration", "shake_amplitude", "table_friction",
-                     "friction_coef", "sigma_friction", "sigma_translation", "sigma_rotation", "convex_tolerance",
-                     "settle_time", "stable_translation", "stable_rotation"):
+        for name in (
+            "approach_distance",
+            "lift_height",
+            "shake_duration",
+            "shake_amplitude",
+            "table_friction",
+            "friction_coef",
+            "sigma_friction",
+            "sigma_translation",
+            "sigma_rotation",
+            "convex_tolerance",
+            "settle_time",
+            "stable_translation",
+            "stable_rotation",
+        ):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"PhysicsParams.{name} must be >= 0, got {v!r}")
@@ -188,8 +211,9 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("VGQ_CACHE", Path.home() / ".cache" / "vgq")) / "vhacd"
 
 
-def vhacd_file(mesh: trimesh.Trimesh, client: int, resolution: int, cache_dir: str | Path | None = None,
-               concavity: float = 0.0002) -> Path:
+def vhacd_file(
+    mesh: trimesh.Trimesh, client: int, resolution: int, cache_dir: str | Path | None = None, concavity: float = 0.0002
+) -> Path:
     """Path of the V-HACD decomposition (an .obj of convex parts) of ``mesh``, computed
     with pybullet's ``vhacd`` once per mesh and cached in ``cache_dir``."""
     import pybullet as p
@@ -204,8 +228,14 @@ def vhacd_file(mesh: trimesh.Trimesh, client: int, resolution: int, cache_dir: s
         mesh.export(str(src))
         dst = Path(tmp) / "out.obj"
         with _quiet_stdout():
-            p.vhacd(str(src), str(dst), str(Path(tmp) / "log.txt"), resolution=int(resolution),
-                    concavity=float(concavity), physicsClientId=client)
+            p.vhacd(
+                str(src),
+                str(dst),
+                str(Path(tmp) / "log.txt"),
+                resolution=int(resolution),
+                concavity=float(concavity),
+                physicsClientId=client,
+            )
         if not dst.is_file():
             raise RuntimeError("V-HACD produced no decomposition")
         from vgq import atomic
@@ -221,8 +251,12 @@ class GraspSimulator:
     """One pybullet DIRECT client with a table and the pad gripper; objects are swapped in
     with :meth:`set_object` and trials reuse the client (bodies are reset, not rebuilt)."""
 
-    def __init__(self, gripper: GripperGeometry = GripperGeometry(), params: PhysicsParams = PhysicsParams(),
-                 cache_dir: str | Path | None = None):
+    def __init__(
+        self,
+        gripper: GripperGeometry = GripperGeometry(),
+        params: PhysicsParams = PhysicsParams(),
+        cache_dir: str | Path | None = None,
+    ):
         import pybullet as p
 
         self.p = p
@@ -232,8 +266,12 @@ class GraspSimulator:
         self.cid = p.connect(p.DIRECT)
         c = self.cid
         p.setGravity(0, 0, -9.81, physicsClientId=c)
-        p.setPhysicsEngineParameter(fixedTimeStep=params.time_step, numSolverIterations=params.solver_iterations,
-                                    numSubSteps=0, physicsClientId=c)
+        p.setPhysicsEngineParameter(
+            fixedTimeStep=params.time_step,
+            numSolverIterations=params.solver_iterations,
+            numSubSteps=0,
+            physicsClientId=c,
+        )
         plane = p.createCollisionShape(p.GEOM_PLANE, physicsClientId=c)
         self.table = p.createMultiBody(0, plane, physicsClientId=c)
         p.changeDynamics(self.table, -1, lateralFriction=params.table_friction, physicsClientId=c)
@@ -279,12 +317,21 @@ class GraspSimulator:
         )
         self._palm_offset = centres[2].copy()  # base (palm centre) in the grasp frame
         for j in (0, 1):
-            p.changeDynamics(self.gripper, j, lateralFriction=1.0, jointLowerLimit=0.0, jointUpperLimit=travel,
-                             collisionMargin=self.params.collision_margin, physicsClientId=c)
-        p.changeDynamics(self.gripper, -1, lateralFriction=1.0, collisionMargin=self.params.collision_margin,
-                         physicsClientId=c)
-        self._drive = p.createConstraint(self.gripper, -1, -1, -1, p.JOINT_FIXED, [0, 0, 0], [0, 0, 0], [0, 0, 5.0],
-                                         physicsClientId=c)
+            p.changeDynamics(
+                self.gripper,
+                j,
+                lateralFriction=1.0,
+                jointLowerLimit=0.0,
+                jointUpperLimit=travel,
+                collisionMargin=self.params.collision_margin,
+                physicsClientId=c,
+            )
+        p.changeDynamics(
+            self.gripper, -1, lateralFriction=1.0, collisionMargin=self.params.collision_margin, physicsClientId=c
+        )
+        self._drive = p.createConstraint(
+            self.gripper, -1, -1, -1, p.JOINT_FIXED, [0, 0, 0], [0, 0, 0], [0, 0, 5.0], physicsClientId=c
+        )
         self._travel = travel
         self._mirror_force = 10.0 * self.params.grip_force
 
@@ -294,13 +341,20 @@ class GraspSimulator:
         p, c = self.p, self.cid
         for _ in range(n):
             q0 = p.getJointState(self.gripper, 0, physicsClientId=c)[0]
-            p.setJointMotorControl2(self.gripper, 1, p.POSITION_CONTROL, targetPosition=q0,
-                                    force=self._mirror_force, physicsClientId=c)
+            p.setJointMotorControl2(
+                self.gripper, 1, p.POSITION_CONTROL, targetPosition=q0, force=self._mirror_force, physicsClientId=c
+            )
             p.stepSimulation(physicsClientId=c)
 
     def _drive_jaw(self, speed: float) -> None:
-        self.p.setJointMotorControl2(self.gripper, 0, self.p.VELOCITY_CONTROL, targetVelocity=speed,
-                                     force=self.params.grip_force, physicsClientId=self.cid)
+        self.p.setJointMotorControl2(
+            self.gripper,
+            0,
+            self.p.VELOCITY_CONTROL,
+            targetVelocity=speed,
+            force=self.params.grip_force,
+            physicsClientId=self.cid,
+        )
 
     def _base_pose(self, T_wg: np.ndarray):
         pos = T_wg[:3, :3] @ self._palm_offset + T_wg[:3, 3]
@@ -314,8 +368,9 @@ class GraspSimulator:
         for j in (0, 1):
             p.resetJointState(self.gripper, j, 0.0, 0.0, physicsClientId=c)
         self._drive_jaw(0.0)
-        p.setJointMotorControl2(self.gripper, 1, p.POSITION_CONTROL, targetPosition=0.0, force=self._mirror_force,
-                                physicsClientId=c)
+        p.setJointMotorControl2(
+            self.gripper, 1, p.POSITION_CONTROL, targetPosition=0.0, force=self._mirror_force, physicsClientId=c
+        )
         self._drive_to(T_wg)
 
     def _drive_to(self, T_wg: np.ndarray) -> None:
@@ -336,8 +391,9 @@ class GraspSimulator:
         convex = is_convex(mesh, prm.convex_tolerance)
         if key not in self._shapes:
             if convex:
-                shape = p.createCollisionShape(p.GEOM_MESH, vertices=np.asarray(mesh.convex_hull.vertices).tolist(),
-                                               physicsClientId=c)
+                shape = p.createCollisionShape(
+                    p.GEOM_MESH, vertices=np.asarray(mesh.convex_hull.vertices).tolist(), physicsClientId=c
+                )
             else:
                 f = vhacd_file(mesh, c, prm.vhacd_resolution, self.cache_dir, prm.vhacd_concavity)
                 shape = p.createCollisionShape(p.GEOM_MESH, fileName=str(f), physicsClientId=c)
@@ -345,8 +401,8 @@ class GraspSimulator:
                 raise RuntimeError("pybullet could not build the object's collision shape")
             self._shapes[key] = shape
         shape = self._shapes[key]
-        I = np.asarray(mesh.moment_inertia, dtype=np.float64) * (prm.object_mass / float(mesh.mass))
-        evals, evecs = np.linalg.eigh(I)
+        inertia = np.asarray(mesh.moment_inertia, dtype=np.float64) * (prm.object_mass / float(mesh.mass))
+        evals, evecs = np.linalg.eigh(inertia)
         if np.linalg.det(evecs) < 0:
             evecs[:, 0] *= -1
         T0 = np.asarray(T_world_object, dtype=np.float64)
@@ -356,12 +412,22 @@ class GraspSimulator:
         self._T_io = np.linalg.inv(self._T_oi)
         Ti = T0 @ self._T_oi
         self.obj = p.createMultiBody(
-            baseMass=prm.object_mass, baseCollisionShapeIndex=shape, basePosition=Ti[:3, 3].tolist(),
-            baseOrientation=_quat_xyzw(Ti[:3, :3]), baseInertialFramePosition=[0, 0, 0],
-            baseInertialFrameOrientation=_quat_xyzw(evecs), physicsClientId=c,
+            baseMass=prm.object_mass,
+            baseCollisionShapeIndex=shape,
+            basePosition=Ti[:3, 3].tolist(),
+            baseOrientation=_quat_xyzw(Ti[:3, :3]),
+            baseInertialFramePosition=[0, 0, 0],
+            baseInertialFrameOrientation=_quat_xyzw(evecs),
+            physicsClientId=c,
         )
-        p.changeDynamics(self.obj, -1, localInertiaDiagonal=np.maximum(evals, 1e-9).tolist(),
-                         lateralFriction=prm.friction_coef, collisionMargin=prm.collision_margin, physicsClientId=c)
+        p.changeDynamics(
+            self.obj,
+            -1,
+            localInertiaDiagonal=np.maximum(evals, 1e-9).tolist(),
+            lateralFriction=prm.friction_coef,
+            collisionMargin=prm.collision_margin,
+            physicsClientId=c,
+        )
         n_parts = len(p.getCollisionShapeData(self.obj, -1, physicsClientId=c))
         self._obj_T0 = None
         self._park_gripper()
@@ -373,8 +439,13 @@ class GraspSimulator:
         dr = _angle(T0[:3, :3], T1[:3, :3])
         self._obj_T0 = T1
         self._park_gripper()  # the first trial starts from the same state as every later one
-        return {"stable": dt <= prm.stable_translation and dr <= prm.stable_rotation, "drift_m": dt, "drift_rad": dr,
-                "convex": convex, "parts": n_parts}
+        return {
+            "stable": dt <= prm.stable_translation and dr <= prm.stable_rotation,
+            "drift_m": dt,
+            "drift_rad": dr,
+            "convex": convex,
+            "parts": n_parts,
+        }
 
     def _park_gripper(self) -> None:
         """Move the gripper far away, put the object back in its settled pose (when set) and
@@ -428,8 +499,9 @@ class GraspSimulator:
         T_start[:3, 3] -= prm.approach_distance * T_g[:3, 2]
         self._place_gripper(T_start)
         p.performCollisionDetection(physicsClientId=c)
-        if p.getClosestPoints(self.gripper, self.obj, 0.0, physicsClientId=c) or \
-                p.getClosestPoints(self.gripper, self.table, 0.0, physicsClientId=c):
+        if p.getClosestPoints(self.gripper, self.obj, 0.0, physicsClientId=c) or p.getClosestPoints(
+            self.gripper, self.table, 0.0, physicsClientId=c
+        ):
             self._park_gripper()
             return "start_collision", False, touch
         dt = prm.time_step
@@ -507,8 +579,10 @@ class GraspSimulator:
         firm = False
         if held:
             T_go = np.linalg.inv(self.gripper_pose()) @ T_obj
-            firm = (np.linalg.norm(T_go[:3, 3] - T_go_closed[:3, 3]) <= prm.firm_translation
-                    and _angle(T_go[:3, :3], T_go_closed[:3, :3]) <= prm.firm_rotation)
+            firm = (
+                np.linalg.norm(T_go[:3, 3] - T_go_closed[:3, 3]) <= prm.firm_translation
+                and _angle(T_go[:3, :3], T_go_closed[:3, :3]) <= prm.firm_rotation
+            )
         self._park_gripper()
         return ("held" if held else "dropped"), bool(firm), touch
 
@@ -546,7 +620,10 @@ def perturbed_frames(T_world_grasp: np.ndarray, dt: np.ndarray, R: np.ndarray) -
 
 
 def run_trials(
-    sim: GraspSimulator, T_world_grasp: np.ndarray, num_trials: int, rng: np.random.Generator | None,
+    sim: GraspSimulator,
+    T_world_grasp: np.ndarray,
+    num_trials: int,
+    rng: np.random.Generator | None,
 ) -> TrialResults:
     """``num_trials`` trials of each grasp (n, 4, 4) on the simulator's current object. With
     ``rng`` None the trials are noise-free (mu = friction_coef), else execution noise is drawn
@@ -589,8 +666,18 @@ def _worker_sim(gripper: GripperGeometry, params: PhysicsParams, cache_dir) -> G
     return sim
 
 
-def object_trials_task(vertices, faces, T_world_object, T_world_grasp, gripper: GripperGeometry,
-                       params: PhysicsParams, num_trials: int, seed: int | None, cache_dir=None, tag=None) -> dict:
+def object_trials_task(
+    vertices,
+    faces,
+    T_world_object,
+    T_world_grasp,
+    gripper: GripperGeometry,
+    params: PhysicsParams,
+    num_trials: int,
+    seed: int | None,
+    cache_dir=None,
+    tag=None,
+) -> dict:
     """Process-pool / Ray task: the trials of one object's grasps in one stable pose (arrays
     in, arrays out). ``seed`` None -> noise-free. Returns a dict with the TrialResults fields,
     the pose check (``pose``) and ``tag``."""
@@ -599,5 +686,13 @@ def object_trials_task(vertices, faces, T_world_object, T_world_grasp, gripper: 
     pose = sim.set_object(mesh, T_world_object)
     rng = None if seed is None else np.random.default_rng(seed)
     res = run_trials(sim, T_world_grasp, num_trials, rng)
-    return {"tag": tag, "pose": pose, "held": res.held, "firm": res.firm, "reason": res.reason,
-            "first_touch": res.first_touch, "mu": res.mu, "seconds": res.seconds}
+    return {
+        "tag": tag,
+        "pose": pose,
+        "held": res.held,
+        "firm": res.firm,
+        "reason": res.reason,
+        "first_touch": res.first_touch,
+        "mu": res.mu,
+        "seconds": res.seconds,
+    }

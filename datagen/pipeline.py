@@ -20,8 +20,8 @@ import dataclasses
 import hashlib
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -54,10 +54,10 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
     from .camera import sample_cameras
     from .collision import CollisionChecker, collision_free_probability
     from .grasps import sample_antipodal_grasps
-    from .labels import label_score
-    from .pads import pad_quality
     from .gripper import align_to_table, grasp_frames
+    from .labels import label_score
     from .mesh import load_object, stable_poses
+    from .pads import pad_quality
     from .project import project_grasps
     from .quality import resolve_torque_scaling, robust_ferrari_canny
     from .render import render_depth
@@ -117,8 +117,9 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
             free = np.flatnonzero(~collides) if kind != "paper" else np.zeros(0, np.int64)
             if len(free):
                 p_cf[free] = collision_free_probability(checker_c, T_wg[free], config.collision, rng_robust)
-                pad_q[free] = pad_quality(obj.mesh, np.linalg.inv(T_wo) @ T_wg[free], config.gripper, qparams,
-                                          qparams.torque_scaling)[0]
+                pad_q[free] = pad_quality(
+                    obj.mesh, np.linalg.inv(T_wo) @ T_wg[free], config.gripper, qparams, qparams.torque_scaling
+                )[0]
             score = label_score(kind, quality, ~collides, p_cf, pad_q, success)
             depth = render_depth(mesh_world, T_wc, intr)
             pr = project_grasps(T_wg, T_wc, intr)
@@ -161,7 +162,9 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
     return _concat(image_parts, IMAGE_FIELDS), _concat(grasp_parts, {**GRASP_FIELDS, **GRASP_LABEL_FIELDS}), info
 
 
-def _physics_success(mesh, T_wo, T_wg, free, config: DatagenConfig, ss: np.random.SeedSequence, info: dict) -> np.ndarray:
+def _physics_success(
+    mesh, T_wo, T_wg, free, config: DatagenConfig, ss: np.random.SeedSequence, info: dict
+) -> np.ndarray:
     """Success rate (n,) of ``config.label.trials`` noisy physics trials of each grasp whose
     approach is free at the nominal pose (0 for the others, which get no trials); records the
     trial count, seconds and the stable-pose check in ``info``."""
@@ -175,10 +178,14 @@ def _physics_success(mesh, T_wo, T_wg, free, config: DatagenConfig, ss: np.rando
     if len(idx):
         res = run_trials(sim, T_wg[idx], config.label.trials, np.random.default_rng(ss))
         out[idx] = res.success_rate
-    info.setdefault("physics", []).append({
-        "trials": int(len(idx) * config.label.trials), "seconds": time.perf_counter() - t0,
-        "pose_stable": bool(pose["stable"]), "pose_drift_m": float(pose["drift_m"]),
-    })
+    info.setdefault("physics", []).append(
+        {
+            "trials": int(len(idx) * config.label.trials),
+            "seconds": time.perf_counter() - t0,
+            "pose_stable": bool(pose["stable"]),
+            "pose_drift_m": float(pose["drift_m"]),
+        }
+    )
     return out
 
 
@@ -206,7 +213,13 @@ def object_task(src, config: DatagenConfig, object_id: int, seed: int) -> dict:
     except (MeshError, SkipObject) as e:
         return {"object_id": object_id, "status": "skipped", "reason": str(e), "info": {}}
     except Exception as e:  # keep the run going; the object is retried on resume
-        return {"object_id": object_id, "status": "skipped", "reason": f"error: {type(e).__name__}: {e}", "retry": True, "info": {}}
+        return {
+            "object_id": object_id,
+            "status": "skipped",
+            "reason": f"error: {type(e).__name__}: {e}",
+            "retry": True,
+            "info": {},
+        }
     data = storage.encode_shard(images, grasps, where=storage.shard_relpath(object_id))
     return {
         "object_id": object_id,
@@ -276,8 +289,14 @@ def prepare_run(out: str | Path, config: DatagenConfig) -> tuple[dict, list]:
     out = Path(out)
     sources = run_sources(config)
     objects = [
-        {"object_id": i, "name": s.name, "source": str(s.path), "source_scale": float(s.scale),
-         "family": s.family or source_family(config.source), "params": s.params or {}}
+        {
+            "object_id": i,
+            "name": s.name,
+            "source": str(s.path),
+            "source_scale": float(s.scale),
+            "family": s.family or source_family(config.source),
+            "params": s.params or {},
+        }
         for i, s in enumerate(sources)
     ]
     cfg = _normalised(config.to_dict())
@@ -292,11 +311,17 @@ def prepare_run(out: str | Path, config: DatagenConfig) -> tuple[dict, list]:
         if [o["name"] for o in m["objects"]] != [s.name for s in sources]:
             raise ConfigError(f"{out} holds a dataset of a different object list; use a new --out")
         return m, sources
-    return storage.new_grasp_manifest(cfg, config.seed, objects, config.label_threshold, intrinsics=config.intrinsics.to_dict()), sources
+    return storage.new_grasp_manifest(
+        cfg, config.seed, objects, config.label_threshold, intrinsics=config.intrinsics.to_dict()
+    ), sources
 
 
 def run_generate(
-    out: str | Path, config: DatagenConfig, workers: int = 1, use_ray: bool = False, progress: bool = True,
+    out: str | Path,
+    config: DatagenConfig,
+    workers: int = 1,
+    use_ray: bool = False,
+    progress: bool = True,
     log: Callable[[str], None] = print,
 ) -> dict:
     """Generate (or resume) the dataset of ``config`` into ``out``; returns the manifest."""
@@ -305,8 +330,10 @@ def run_generate(
     out = Path(out)
     m, sources = prepare_run(out, config)
     todo = [
-        i for i, o in enumerate(m["objects"])
-        if o.get("status") == "pending" or (o.get("status") == "skipped" and o.get("retry"))
+        i
+        for i, o in enumerate(m["objects"])
+        if o.get("status") == "pending"
+        or (o.get("status") == "skipped" and o.get("retry"))
         or (o.get("status") == "done" and not any(s["object_id"] == i for s in m["shards"]))
     ]
     for i in todo:

@@ -35,10 +35,15 @@ def positivity_by_beta(path: str | Path, edges_deg, tables: dict[str, dict], tar
     return _save(fig, Path(path))
 
 
-def counts_histograms(path: str | Path, phi_deg: dict[str, np.ndarray], beta_deg: dict[str, np.ndarray], bin_deg=(5.0, 5.0)) -> Path:
+def counts_histograms(
+    path: str | Path, phi_deg: dict[str, np.ndarray], beta_deg: dict[str, np.ndarray], bin_deg=(5.0, 5.0)
+) -> Path:
     """Grasp counts over phi and over beta (5 deg bins) for each named subset."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for ax, data, label, w in ((axes[0], phi_deg, "camera phi (deg)", bin_deg[0]), (axes[1], beta_deg, "beta (deg)", bin_deg[1])):
+    for ax, data, label, w in (
+        (axes[0], phi_deg, "camera phi (deg)", bin_deg[0]),
+        (axes[1], beta_deg, "beta (deg)", bin_deg[1]),
+    ):
         hi = max([float(np.max(v)) for v in data.values() if len(v)] + [w])
         bins = np.arange(0, hi + w, w)
         for name, v in data.items():
@@ -54,8 +59,14 @@ def sampling_plots(out_dir: str | Path, stats: dict, table, steps: dict[str, np.
     """The sampling stage's plots: positivity over beta per step and count histograms."""
     out_dir = Path(out_dir)
     tabs = {k: stats["steps"][k]["by_beta"] for k in ("psi", "positivity", "uniform")}
-    files = [positivity_by_beta(out_dir / "positivity_by_beta.png", stats["beta_bins_deg"], tabs, params.target_positivity)]
+    files = [
+        positivity_by_beta(out_dir / "positivity_by_beta.png", stats["beta_bins_deg"], tabs, params.target_positivity)
+    ]
     phi = {k: np.degrees(table.phi[m]) for k, m in steps.items() if k in ("psi", "uniform")}
     beta = {k: np.degrees(table.beta[m]) for k, m in steps.items() if k in ("psi", "uniform")}
-    files.append(counts_histograms(out_dir / "counts_phi_beta.png", phi, beta, (math.degrees(params.phi_bin), math.degrees(params.beta_bin))))
+    files.append(
+        counts_histograms(
+            out_dir / "counts_phi_beta.png", phi, beta, (math.degrees(params.phi_bin), math.degrees(params.beta_bin))
+        )
+    )
     return files

@@ -19,8 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
-from scipy.spatial import ConvexHull
-from scipy.spatial import QhullError
+from scipy.spatial import ConvexHull, QhullError
 
 from .grasps import AntipodalGrasps, _unit, find_contacts, tangent_basis
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import hashlib
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -91,7 +91,9 @@ def sample_rates(pos_rate: np.ndarray, target: float) -> tuple[np.ndarray, np.nd
     return neg, pos
 
 
-def equalise_positivity(labels: np.ndarray, beta: np.ndarray, params: SamplingParams, rng: np.random.Generator) -> np.ndarray:
+def equalise_positivity(
+    labels: np.ndarray, beta: np.ndarray, params: SamplingParams, rng: np.random.Generator
+) -> np.ndarray:
     """Keep mask (SPEC 3.2): each grasp survives with its beta bin's rate for its label."""
     labels = np.asarray(labels, dtype=bool)
     bins = angle_bins(beta, params.beta_bin)
@@ -102,7 +104,9 @@ def equalise_positivity(labels: np.ndarray, beta: np.ndarray, params: SamplingPa
     return rng.random(len(labels)) < keep_p
 
 
-def uniform_over_bins(phi: np.ndarray, beta: np.ndarray, params: SamplingParams, rng: np.random.Generator) -> np.ndarray:
+def uniform_over_bins(
+    phi: np.ndarray, beta: np.ndarray, params: SamplingParams, rng: np.random.Generator
+) -> np.ndarray:
     """Keep mask (SPEC 3.3): at most ``cap`` random grasps per joint (phi, beta) bin, with
     ``cap`` the ``uniform_quantile`` of the non-empty bin counts (0 -> the smallest bin)."""
     n = len(phi)
@@ -161,7 +165,9 @@ def split_by_family(
         groups.setdefault(families.get(i) or "", []).append(i)
     missing = sorted(set(holdout) - set(groups))
     if missing:
-        raise ValueError(f"holdout family {missing[0]!r} has no object in the dataset (has: {', '.join(sorted(groups))})")
+        raise ValueError(
+            f"holdout family {missing[0]!r} has no object in the dataset (has: {', '.join(sorted(groups))})"
+        )
     if len(groups) <= 1 and not holdout:
         return split_objects(object_ids, fractions, seed)
     out: dict[int, str] = {}
@@ -218,11 +224,18 @@ def grasp_table(ds: storage.GraspDataset) -> GraspTable:
 
 def _beta_table(label: np.ndarray, beta: np.ndarray, width: float, n_bins: int) -> dict:
     n, pos, rate = positivity_by_bin(label, angle_bins(beta, width), n_bins)
-    return {"count": n.tolist(), "positive": pos.tolist(), "positivity": [None if np.isnan(r) else float(r) for r in rate]}
+    return {
+        "count": n.tolist(),
+        "positive": pos.tolist(),
+        "positivity": [None if np.isnan(r) else float(r) for r in rate],
+    }
 
 
 def sample_dataset(
-    src: str | Path, out: str | Path, params: SamplingParams = SamplingParams(), log: Callable[[str], None] = print,
+    src: str | Path,
+    out: str | Path,
+    params: SamplingParams = SamplingParams(),
+    log: Callable[[str], None] = print,
     plot: bool = True,
 ) -> dict:
     """Sample the grasp dataset ``src`` into ``out`` (a ``vgq-grasps`` dataset holding only the
@@ -239,7 +252,10 @@ def sample_dataset(
             "equalisation would drop every grasp"
         )
     rng = np.random.default_rng(params.seed)
-    n_beta = max(int(math.ceil(math.pi / 2 / params.beta_bin)), int(angle_bins(t.beta, params.beta_bin).max()) + 1 if len(t.beta) else 1)
+    n_beta = max(
+        int(math.ceil(math.pi / 2 / params.beta_bin)),
+        int(angle_bins(t.beta, params.beta_bin).max()) + 1 if len(t.beta) else 1,
+    )
 
     steps = {"native": np.ones(len(t.label), dtype=bool)}
     keep = psi_mask(t.psi, params.max_psi)
@@ -267,11 +283,16 @@ def sample_dataset(
     stats["families"] = split_table(split, families)
     _print_stats(stats, log)
     if len(stats["families"]) > 1:
-        log("objects per family (train / val / test): " + ", ".join(
-            f"{f} {r['train']}/{r['val']}/{r['test']}" for f, r in stats["families"].items()))
+        log(
+            "objects per family (train / val / test): "
+            + ", ".join(f"{f} {r['train']}/{r['val']}/{r['test']}" for f, r in stats["families"].items())
+        )
         wanted = [sp for sp, fr in zip(SPLITS, params.split_fractions) if fr > 0]
-        short = [f for f, r in stats["families"].items()
-                 if f not in params.holdout_families and any(r[sp] == 0 for sp in wanted)]
+        short = [
+            f
+            for f, r in stats["families"].items()
+            if f not in params.holdout_families and any(r[sp] == 0 for sp in wanted)
+        ]
         if short:
             log(f"warning: families with an empty split (fewer than 3 objects?): {', '.join(short)}")
     psi_tab = stats["steps"]["psi"]["by_beta"]
@@ -286,7 +307,11 @@ def sample_dataset(
     src_m = ds.manifest
     objects = [{k: v for k, v in o.items() if k not in ("status", "shard", "reason")} for o in src_m["objects"]]
     m = storage.new_grasp_manifest(
-        src_m["config"], src_m["seed"], objects, ds.label_threshold, source_dataset=str(Path(src).resolve()),
+        src_m["config"],
+        src_m["seed"],
+        objects,
+        ds.label_threshold,
+        source_dataset=str(Path(src).resolve()),
         **({"intrinsics": src_m["intrinsics"]} if src_m.get("intrinsics") else {}),
         sampling={"params": asdict(params), "stats": stats},
     )

@@ -72,7 +72,15 @@ class SensorModel:
             vals = v if isinstance(v, tuple) else (v,)
             if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in vals):
                 bad(f.name, "a finite number" + (" pair" if isinstance(v, tuple) else ""))
-        for name in ("gamma_shape", "gp_sigma_m", "noise_base_m", "noise_quad_m", "edge_jump_m", "blob_rate", "quantum_m"):
+        for name in (
+            "gamma_shape",
+            "gp_sigma_m",
+            "noise_base_m",
+            "noise_quad_m",
+            "edge_jump_m",
+            "blob_rate",
+            "quantum_m",
+        ):
             if getattr(self, name) < 0:
                 bad(name, ">= 0")
         if 0 < self.gamma_shape < 10:
@@ -166,10 +174,20 @@ CLEAN = SensorModel()
 PRESETS: dict[str, SensorModel] = {
     "clean": CLEAN,
     "realistic": SensorModel(
-        gamma_shape=1000.0, gp_sigma_m=0.005, gp_cell_px=4.0, gp_rate=0.5,
-        noise_base_m=0.0005, noise_quad_m=0.002, baseline_m=0.075,
-        edge_jump_m=0.005, edge_angle_deg=5.0, edge_width_px=1, edge_dropout=0.5,
-        blob_rate=2.0, blob_radius_px=(2.0, 6.0), quantum_m=0.001,
+        gamma_shape=1000.0,
+        gp_sigma_m=0.005,
+        gp_cell_px=4.0,
+        gp_rate=0.5,
+        noise_base_m=0.0005,
+        noise_quad_m=0.002,
+        baseline_m=0.075,
+        edge_jump_m=0.005,
+        edge_angle_deg=5.0,
+        edge_width_px=1,
+        edge_dropout=0.5,
+        blob_rate=2.0,
+        blob_radius_px=(2.0, 6.0),
+        quantum_m=0.001,
     ),
 }
 DEFAULT_PRESET = "realistic"
@@ -249,8 +267,9 @@ def shadow_mask(z: np.ndarray, baseline_m: float, fx: float) -> np.ndarray:
     return shadow[:, ::-1] if flip else shadow
 
 
-def discontinuity_mask(z: np.ndarray, jump_m: float, angle_deg: float = 5.0, intr: Intrinsics = DEFAULT_INTRINSICS,
-                       width_px: int = 1) -> np.ndarray:
+def discontinuity_mask(
+    z: np.ndarray, jump_m: float, angle_deg: float = 5.0, intr: Intrinsics = DEFAULT_INTRINSICS, width_px: int = 1
+) -> np.ndarray:
     """Jump-edge pixels (H, W) bool of depth ``z`` (H, W) metres (0 = no surface): both pixels
     of every 4-neighbour pair with |dz| > max(``jump_m``, z_near / (f tan ``angle_deg``)),
     i.e. whose 3-D segment lies within ``angle_deg`` of the viewing ray, plus surface pixels
@@ -275,7 +294,9 @@ def discontinuity_mask(z: np.ndarray, jump_m: float, angle_deg: float = 5.0, int
     return m & valid
 
 
-def blob_mask(shape: tuple[int, int], rate: float, radius_px: tuple[float, float], rng: np.random.Generator) -> np.ndarray:
+def blob_mask(
+    shape: tuple[int, int], rate: float, radius_px: tuple[float, float], rng: np.random.Generator
+) -> np.ndarray:
     """Dropout blobs (H, W) bool: Poisson(``rate``) filled ellipses, centres uniform over the
     image, semi-axes uniform in ``radius_px``, orientation uniform."""
     h, w = shape
@@ -287,7 +308,9 @@ def blob_mask(shape: tuple[int, int], rate: float, radius_px: tuple[float, float
     axes = rng.uniform(radius_px[0], radius_px[1], (n, 2))
     angle = rng.uniform(0, 180, n)
     for i in range(n):  # a handful of blobs; each drawn by OpenCV
-        cv2.ellipse(m, ((float(cu[i]), float(cv[i])), (float(2 * axes[i, 0]), float(2 * axes[i, 1])), float(angle[i])), 1, -1)
+        cv2.ellipse(
+            m, ((float(cu[i]), float(cv[i])), (float(2 * axes[i, 0]), float(2 * axes[i, 1])), float(angle[i])), 1, -1
+        )
     return m.astype(bool)
 
 

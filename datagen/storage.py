@@ -17,17 +17,26 @@ import io
 import os
 import platform
 import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
 from vgq import __version__ as vgq_version
-from vgq import atomic
-from vgq import schema
-from vgq.schema import (CROP_FIELDS, CROP_FORMAT, FORMAT_VERSION, GRASP_FIELDS, GRASP_FORMAT, GRASP_LABEL_FIELDS,
-                        IMAGE_FIELDS, MANIFEST, SPLITS, check_fields)
+from vgq import atomic, schema
+from vgq.schema import (
+    CROP_FIELDS,
+    CROP_FORMAT,
+    FORMAT_VERSION,
+    GRASP_FIELDS,
+    GRASP_FORMAT,
+    GRASP_LABEL_FIELDS,
+    IMAGE_FIELDS,
+    MANIFEST,
+    SPLITS,
+    check_fields,
+)
 
 SHARD_DIR = "shards"
 
@@ -306,7 +315,10 @@ class NpyWriter:
 
 def crop_writers(root: str | Path, split: str, n: int) -> dict[str, NpyWriter]:
     """One :class:`NpyWriter` per CROP_FIELDS field for ``n`` rows of ``root/split``."""
-    return {k: NpyWriter(Path(root) / split / f"{k}.npy", dtype, (n, *shape)) for k, (dtype, shape, _) in CROP_FIELDS.items()}
+    return {
+        k: NpyWriter(Path(root) / split / f"{k}.npy", dtype, (n, *shape))
+        for k, (dtype, shape, _) in CROP_FIELDS.items()
+    }
 
 
 def open_crops(root: str | Path, split: str, mmap: bool = True) -> dict[str, np.ndarray]:

@@ -39,8 +39,20 @@ SHRINK = 3
 
 # Offsets (source px) from the window centre, none symmetric to another: a flipped sign or
 # swapped u and v scores a different place. z (m) and one camera-frame quaternion (w, x, y, z).
-OFFSETS = [(-30.0, 0.0), (30.0, 0.0), (0.0, -30.0), (0.0, 30.0), (-21.0, 12.0), (15.0, -27.0),
-           (6.0, 24.0), (-33.0, -33.0), (33.0, 9.0), (-9.0, -3.0), (12.0, 12.0), (-3.0, 34.5)]
+OFFSETS = [
+    (-30.0, 0.0),
+    (30.0, 0.0),
+    (0.0, -30.0),
+    (0.0, 30.0),
+    (-21.0, 12.0),
+    (15.0, -27.0),
+    (6.0, 24.0),
+    (-33.0, -33.0),
+    (33.0, 9.0),
+    (-9.0, -3.0),
+    (12.0, 12.0),
+    (-3.0, 34.5),
+]
 Z = 0.73
 QUAT = (0.644616, -0.295576, 0.232533, -0.665608)
 
@@ -66,7 +78,7 @@ class HandScorer:
         u0, v0 = centre[0] - 47.5, centre[1] - 47.5
         assert u0 == int(u0) and v0 == int(v0) and 0 <= u0 and 0 <= v0, centre
         assert v0 + 96 <= depth.shape[0] and u0 + 96 <= depth.shape[1], centre
-        window = np.ascontiguousarray(depth[int(v0):int(v0) + 96, int(u0):int(u0) + 96], np.float32)
+        window = np.ascontiguousarray(depth[int(v0) : int(v0) + 96, int(u0) : int(u0) + 96], np.float32)
         return np.asarray(Image.fromarray(window).resize((96 // SHRINK,) * 2, Image.Resampling.BILINEAR), np.float32)
 
     @staticmethod
@@ -81,7 +93,7 @@ class HandScorer:
     def poses_each(grasps: np.ndarray, centres: np.ndarray) -> np.ndarray:
         """Pose rows of grasps (m, 7), each in its own window (centres (m, 2))."""
         g = np.asarray(grasps, np.float64)
-        return np.concatenate([HandScorer.poses(g[j:j + 1], centres[j]) for j in range(len(g))])
+        return np.concatenate([HandScorer.poses(g[j : j + 1], centres[j]) for j in range(len(g))])
 
     def terms(self, small: np.ndarray) -> np.ndarray:
         """(n, 32, 32) shrunk windows -> (n, 1024) image terms."""
@@ -99,8 +111,9 @@ def hand_scores(depth: np.ndarray, grasps: np.ndarray, model_dir: Path = MODEL, 
     return s.scores(s.terms(s.small_window(depth)[None]), s.poses(grasps))
 
 
-def heldout_scores(depth: np.ndarray, grasps: np.ndarray, image_index: np.ndarray, center: np.ndarray,
-                   model_dir: Path = MODEL) -> np.ndarray:
+def heldout_scores(
+    depth: np.ndarray, grasps: np.ndarray, image_index: np.ndarray, center: np.ndarray, model_dir: Path = MODEL
+) -> np.ndarray:
     """fp32 success probabilities (m,) of held-out grasps, each in the window at its ``center``."""
     s = HandScorer(model_dir)
     terms = s.terms(np.stack([s.small_window(depth[i], c) for i, c in zip(image_index, center)]))
@@ -122,20 +135,33 @@ def main() -> None:
     card = json.loads((model_dir / "model_card.json").read_text())
     g = golden_grasps()
     p32 = hand_scores(np.load(DEPTH), g, model_dir)
-    doc = {"model_version": card["model_version"], "image": DEPTH.name, "window_center": [CENTRE, CENTRE],
-           "head": "fp32", "grasps": [[round(float(x), 6) for x in r] for r in g],
-           "p_success": [float(x) for x in p32]}
+    doc = {
+        "model_version": card["model_version"],
+        "image": DEPTH.name,
+        "window_center": [CENTRE, CENTRE],
+        "head": "fp32",
+        "grasps": [[round(float(x), 6) for x in r] for r in g],
+        "p_success": [float(x) for x in p32],
+    }
     sys.path.insert(0, str(ROOT))
     from heldout import load_heldout_images
+
     from vgq import atomic
 
     atomic.write_json(Path(a.out), doc)
     print(f"{a.out}: {len(g)} golden scores of {card['model_version']}")
     h = load_heldout_images()
     p = heldout_scores(h.depth, h.grasps, h.image_index, h.center, model_dir)
-    atomic.write_json(Path(a.heldout_out), {
-        "model_version": card["model_version"], "images": "heldout_images.npz", "head": "fp32",
-        "balanced_accuracy": balanced_accuracy(h.labels, p), "p_success": [float(x) for x in p]})
+    atomic.write_json(
+        Path(a.heldout_out),
+        {
+            "model_version": card["model_version"],
+            "images": "heldout_images.npz",
+            "head": "fp32",
+            "balanced_accuracy": balanced_accuracy(h.labels, p),
+            "p_success": [float(x) for x in p],
+        },
+    )
     print(f"{a.heldout_out}: {len(p)} held-out scores, balanced accuracy {balanced_accuracy(h.labels, p):.4f}")
 
 

@@ -12,7 +12,6 @@ Picks the rendered image with the most positive grasps inside the default crop w
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
@@ -55,14 +54,24 @@ def main() -> None:
     rows = np.concatenate([np.stack([g["u"][pick], g["v"][pick], g["z"][pick]], 1), g["q"][pick]], 1)
     out = Path(a.out)
     atomic.save_npy(out / "depth_example.npy", shard.images["depth"][i].astype(np.float32))
-    atomic.write_json(out / "grasps_example.json", {
-        "grasps": [[round(float(x), 6) for x in r] for r in rows],
-        "labels": [int(x) for x in (g["quality"][pick] > ds.label_threshold)],
-        "quality": [round(float(x), 6) for x in g["quality"][pick]],
-        "source": {"dataset": str(a.data), "object": shard.name, "image_index": int(i),
-                   "camera_d": float(shard.images["camera_d"][i]), "camera_phi_deg": float(np.degrees(shard.images["camera_phi"][i]))},
-    })
-    print(f"wrote {out}/depth_example.npy and grasps_example.json: object {shard.name}, {len(pick)} grasps, {n} positive in window")
+    atomic.write_json(
+        out / "grasps_example.json",
+        {
+            "grasps": [[round(float(x), 6) for x in r] for r in rows],
+            "labels": [int(x) for x in (g["quality"][pick] > ds.label_threshold)],
+            "quality": [round(float(x), 6) for x in g["quality"][pick]],
+            "source": {
+                "dataset": str(a.data),
+                "object": shard.name,
+                "image_index": int(i),
+                "camera_d": float(shard.images["camera_d"][i]),
+                "camera_phi_deg": float(np.degrees(shard.images["camera_phi"][i])),
+            },
+        },
+    )
+    print(
+        f"wrote {out}/depth_example.npy and grasps_example.json: object {shard.name}, {len(pick)} grasps, {n} positive in window"
+    )
 
 
 if __name__ == "__main__":

@@ -33,9 +33,16 @@ def main() -> None:
     rng = np.random.default_rng(a.seed)
     idx = np.sort(np.concatenate([rng.choice(np.flatnonzero(labels == c), a.per_class, replace=False) for c in (1, 0)]))
     crops, poses, y = split.batch(idx, "fast_vgqcnn")
-    atomic.save_npz(a.out, images=crops.numpy().astype(np.float32), poses=poses.numpy().astype(np.float32),
-                    labels=y.numpy().astype(np.uint8), object_id=np.asarray(split.arrays["object_id"])[idx].astype(np.int32))
-    print(f"wrote {a.out}: {len(idx)} crops from {len(np.unique(np.asarray(split.arrays['object_id'])[idx]))} test objects")
+    atomic.save_npz(
+        a.out,
+        images=crops.numpy().astype(np.float32),
+        poses=poses.numpy().astype(np.float32),
+        labels=y.numpy().astype(np.uint8),
+        object_id=np.asarray(split.arrays["object_id"])[idx].astype(np.int32),
+    )
+    print(
+        f"wrote {a.out}: {len(idx)} crops from {len(np.unique(np.asarray(split.arrays['object_id'])[idx]))} test objects"
+    )
 
 
 if __name__ == "__main__":

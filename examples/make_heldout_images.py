@@ -45,7 +45,12 @@ def main() -> None:
     crops = np.load(HERE / "heldout_test_crops.npz")
     test_ids = sorted(set(int(i) for i in crops["object_id"]))[: a.objects]
     cfg = DatagenConfig().with_overrides(
-        {"cameras_per_pose": RECIPE["cameras"], "seed": RECIPE["seed"], "num_objects": RECIPE["objects"], **RECIPE["set"]}
+        {
+            "cameras_per_pose": RECIPE["cameras"],
+            "seed": RECIPE["seed"],
+            "num_objects": RECIPE["objects"],
+            **RECIPE["set"],
+        }
     )
     geom = vcrop.CropGeometry(kappa_px=RECIPE["kappa"])
     sources = mesh_sources(cfg.source)[: RECIPE["objects"]]
@@ -77,13 +82,19 @@ def main() -> None:
             obj.append(oid)
         print(f"object {oid} ({src.name}): {len(depth)} images so far", flush=True)
     atomic.save_npz(
-        a.out, compressed=True,
-        depth=np.stack(depth), object_id=np.array(obj, np.int32), center=np.concatenate(centers).astype(np.float32),
-        grasps=np.concatenate(rows).astype(np.float32), labels=np.concatenate(labels),
+        a.out,
+        compressed=True,
+        depth=np.stack(depth),
+        object_id=np.array(obj, np.int32),
+        center=np.concatenate(centers).astype(np.float32),
+        grasps=np.concatenate(rows).astype(np.float32),
+        labels=np.concatenate(labels),
         image_index=np.concatenate(image_index),
     )
     y = np.concatenate(labels)
-    print(f"wrote {a.out}: {len(depth)} images of {len(set(obj))} test objects, {len(y)} grasps ({int(y.sum())} positive)")
+    print(
+        f"wrote {a.out}: {len(depth)} images of {len(set(obj))} test objects, {len(y)} grasps ({int(y.sum())} positive)"
+    )
 
 
 if __name__ == "__main__":

@@ -59,20 +59,38 @@ def _add_int8_encoder(out: str, ds, arch: str, n_check: int, seed: int) -> None:
 
     calib = _sample(ds, ("train",), 2048, seed, arch)
     chk, *labelled = _sample(ds, ("val", "test"), n_check, seed, arch)
-    logging.info("int8 encoder: calibrating on %d %s crops, checking on %d %s crops", len(calib[1]), calib[0].name,
-                 len(labelled[0]), chk.name)
+    logging.info(
+        "int8 encoder: calibrating on %d %s crops, checking on %d %s crops",
+        len(calib[1]),
+        calib[0].name,
+        len(labelled[0]),
+        chk.name,
+    )
     try:
-        r = add_int8_encoder(out, calib[1], tuple(labelled), check_data=f"{ds.path} ({chk.name}, {len(labelled[0])} crops)",
-                             calibration=f"{ds.path} ({calib[0].name}, {len(calib[1])} crops)")
+        r = add_int8_encoder(
+            out,
+            calib[1],
+            tuple(labelled),
+            check_data=f"{ds.path} ({chk.name}, {len(labelled[0])} crops)",
+            calibration=f"{ds.path} ({calib[0].name}, {len(calib[1])} crops)",
+        )
     except QuantizationError as e:
         logging.warning("int8 encoder refused, not written: %s", e)
         return
-    logging.info("int8 encoder: balanced accuracy %.4f (fp32 %.4f), mean |dp| %.4f, %d of %d decisions changed",
-                 r.balanced_accuracy_variant, r.balanced_accuracy_fp32, r.mean_abs_diff_probability, r.decisions_changed, r.n)
+    logging.info(
+        "int8 encoder: balanced accuracy %.4f (fp32 %.4f), mean |dp| %.4f, %d of %d decisions changed",
+        r.balanced_accuracy_variant,
+        r.balanced_accuracy_fp32,
+        r.mean_abs_diff_probability,
+        r.decisions_changed,
+        r.n,
+    )
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(prog="vgq-export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="vgq-export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--run", required=True, help="training run folder (or a checkpoint file)")
     p.add_argument("--data", required=True, help="crop dataset the run was trained on (verification inputs)")
     p.add_argument("--out", required=True, help="model folder to write (replaced atomically)")
@@ -80,25 +98,43 @@ def main(argv=None) -> None:
     p.add_argument("--tolerance", type=float, default=1e-4, help="max abs probability difference (default 1e-4)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--recipe", help="how the dataset was built (a command line), recorded in the model card")
-    p.add_argument("--baseline", action="append", default=[], metavar="JSON",
-                   help="a `python -m training baseline` result on the same data; its test metrics go into "
-                        "the card's metrics as baseline_<model> (repeatable)")
-    p.add_argument("--int8-head", action="store_true",
-                   help="also write head_int8.onnx (fc5 in int8, ~2x faster) if it scores like the fp32 head on "
-                        "labelled validation crops")
+    p.add_argument(
+        "--baseline",
+        action="append",
+        default=[],
+        metavar="JSON",
+        help="a `python -m training baseline` result on the same data; its test metrics go into "
+        "the card's metrics as baseline_<model> (repeatable)",
+    )
+    p.add_argument(
+        "--int8-head",
+        action="store_true",
+        help="also write head_int8.onnx (fc5 in int8, ~2x faster) if it scores like the fp32 head on "
+        "labelled validation crops",
+    )
     p.add_argument("--int8-check-n", type=int, default=4096, help="labelled crops for the int8 check (default 4096)")
-    p.add_argument("--int8-encoder", action="store_true",
-                   help="also write encoder_int8.onnx (static int8, calibrated on up to 2048 train crops) if it scores "
-                        "like the fp32 encoder on the val (else test) crops; a refused one is reported and left out "
-                        "(the fp32 export stands). Existing folders: python -m export.int8_encoder")
+    p.add_argument(
+        "--int8-encoder",
+        action="store_true",
+        help="also write encoder_int8.onnx (static int8, calibrated on up to 2048 train crops) if it scores "
+        "like the fp32 encoder on the val (else test) crops; a refused one is reported and left out "
+        "(the fp32 export stands). Existing folders: python -m export.int8_encoder",
+    )
     c = p.add_argument_group("calibration (fitted on the val split, ECE measured on the test split)")
     c.add_argument("--no-calibration", action="store_true", help="export without a calibration")
     c.add_argument("--calibration-method", choices=("platt", "temperature"), default="platt")
-    c.add_argument("--native-positivity", type=float, metavar="FRACTION",
-                   help="positivity to calibrate for (default: the dataset's before sampling, from its manifests)")
+    c.add_argument(
+        "--native-positivity",
+        type=float,
+        metavar="FRACTION",
+        help="positivity to calibrate for (default: the dataset's before sampling, from its manifests)",
+    )
     c.add_argument("--calibration-n", type=int, default=10000, help="max rows of each split (default 10000; 0: all)")
-    c.add_argument("--reliability-png", metavar="PATH", help="also copy the reliability diagram here "
-                   "(e.g. docs/img/reliability_diagram.png)")
+    c.add_argument(
+        "--reliability-png",
+        metavar="PATH",
+        help="also copy the reliability diagram here (e.g. docs/img/reliability_diagram.png)",
+    )
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[export] %(message)s")
     if a.verify_n < 1:
@@ -132,16 +168,24 @@ def main(argv=None) -> None:
         meta["metrics"].update(_baselines(a.baseline, ds.path))
         calibration = None
         if not a.no_calibration:
-            calibration = calibrate_on_dataset(net, ds, meta, a.calibration_method, a.native_positivity,
-                                               a.calibration_n, a.seed)
+            calibration = calibrate_on_dataset(
+                net, ds, meta, a.calibration_method, a.native_positivity, a.calibration_n, a.seed
+            )
         logging.info("exporting %s, verifying on %d %s crops", meta["arch"], len(crops), split.name)
         card = export_model(
-            net, a.out, crops, poses,
+            net,
+            a.out,
+            crops,
+            poses,
             geometry=CropGeometry.from_dict(meta["geometry"]),
             intrinsics=Intrinsics.from_dict(meta["intrinsics"]),
-            dataset=meta["dataset"], training=meta["training"], metrics=meta["metrics"],
-            label_threshold=float(meta.get("label_threshold", 0.002)), tolerance=a.tolerance,
-            int8_check=int8, calibration=calibration,
+            dataset=meta["dataset"],
+            training=meta["training"],
+            metrics=meta["metrics"],
+            label_threshold=float(meta.get("label_threshold", 0.002)),
+            tolerance=a.tolerance,
+            int8_check=int8,
+            calibration=calibration,
         )
         if a.int8_encoder:
             _add_int8_encoder(a.out, ds, meta["arch"], a.int8_check_n, a.seed)
@@ -154,18 +198,34 @@ def main(argv=None) -> None:
         print(f"vgq-export: {e}", file=sys.stderr)
         sys.exit(2)
     v = card.export["verification"]
-    logging.info("wrote %s (%s) in %.1f s; max |p_onnx - p_torch| = %.2e", a.out, card.model_version,
-                 time.perf_counter() - t0, v["max_abs_diff_probability"])
+    logging.info(
+        "wrote %s (%s) in %.1f s; max |p_onnx - p_torch| = %.2e",
+        a.out,
+        card.model_version,
+        time.perf_counter() - t0,
+        v["max_abs_diff_probability"],
+    )
     if "int8_head" in card.export:
         q = card.export["int8_head"]
-        logging.info("int8 head: balanced accuracy %.4f (fp32 %.4f), max |p_int8 - p_fp32| = %.4f, %d of %d decisions changed",
-                     q["balanced_accuracy_int8"], q["balanced_accuracy_fp32"], q["max_abs_diff_probability"],
-                     q["decisions_changed"], q["n"])
+        logging.info(
+            "int8 head: balanced accuracy %.4f (fp32 %.4f), max |p_int8 - p_fp32| = %.4f, %d of %d decisions changed",
+            q["balanced_accuracy_int8"],
+            q["balanced_accuracy_fp32"],
+            q["max_abs_diff_probability"],
+            q["decisions_changed"],
+            q["n"],
+        )
     if card.calibration:
         k = card.calibration
-        logging.info("calibration (%s, for positivity %.4f: %s): ECE on %s %.4f raw -> %.4f calibrated",
-                     k["method"], k["target_positivity"], k["target_positivity_source"], k["test"]["split"],
-                     k["test"]["ece_raw"], k["test"]["ece_calibrated"])
+        logging.info(
+            "calibration (%s, for positivity %.4f: %s): ECE on %s %.4f raw -> %.4f calibrated",
+            k["method"],
+            k["target_positivity"],
+            k["target_positivity_source"],
+            k["test"]["split"],
+            k["test"]["ece_raw"],
+            k["test"]["ece_calibrated"],
+        )
 
 
 if __name__ == "__main__":

@@ -168,19 +168,32 @@ def export_vgq_like(model_dir: Path, out_dir: Path, depth: np.ndarray, grasps: n
     geom = CropGeometry(card.geometry.window, card.geometry.out, 0.0)
     center = np.array([(depth.shape[1] - 1) / 2, (depth.shape[0] - 1) / 2])
     crops, poses = vgq_preprocess(depth, grasps[:8].astype(np.float64), geom, card.geometry, center)
-    vcard = export_model(vgq_net_like(fast), out_dir, crops[:, 0], poses, geom, card.intrinsics,
-                         dataset={"recipe": f"benchmark: weights of {card.model_version}"})
+    vcard = export_model(
+        vgq_net_like(fast),
+        out_dir,
+        crops[:, 0],
+        poses,
+        geom,
+        card.intrinsics,
+        dataset={"recipe": f"benchmark: weights of {card.model_version}"},
+    )
     return out_dir / vcard.files["model"], geom
 
 
 # ---- the benchmark ------------------------------------------------------------------------------
-def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs: int = 1000, threads: int | None = None,
-                  vgq_budget_s: float = 4.0, log=print) -> dict:
+def run_benchmark(
+    model_dir: str | Path = DEFAULT_MODEL_DIR,
+    ks=DEFAULT_KS,
+    runs: int = 1000,
+    threads: int | None = None,
+    vgq_budget_s: float = 4.0,
+    log=print,
+) -> dict:
     """Measure everything (see the module doc); returns the JSON-able report."""
     import onnxruntime as ort
 
-    from tools.loadtest.workload import load_workload
     from service.runtime import FastModel, session_options
+    from tools.loadtest.workload import load_workload
     from vgq.model_card import ENCODER_INPUT, HEAD_INPUTS, VGQ_INPUTS, VGQ_OUTPUT
 
     model_dir = Path(model_dir)
@@ -215,18 +228,24 @@ def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs
             n_vgq = int(min(runs, max(5, vgq_budget_s / max(t_vgq, 1e-6))))
             n_vpre = int(min(runs, max(5, vgq_budget_s / max(t_vpre, 1e-6))))
             log(f"k = {k}: {runs} Fast runs, {n_vgq} VGQ runs ...")
-            t = interleaved({
-                "fast": (lambda: fast.score(fast.encode(crop1[0, 0]), poses), runs),
-                "head": (lambda: fast.score(term, poses), runs),
-                "encoder": (lambda: fast.encode(crop1[0, 0]), runs),
-                "vgq": (lambda: vgq.run([VGQ_OUTPUT], vfeed), n_vgq),
-                "fast_pre": (lambda: fast_preprocess(depth, grasps, geom, center), runs),
-                "vgq_pre": (lambda: vgq_preprocess(depth, grasps, geom_vgq, geom, center), n_vpre),
-                "peak": (peak_call, max(5, min(50, runs // 20))),
-                **({"head_fp32": (lambda: fast32.score(term, poses), runs)} if fast32 else {}),
-                **{f"encoder_{p}": ((lambda m=m: m.encode(crop1[0, 0])), runs) for p, m in variants.items()},
-                **{f"fast_{p}": ((lambda m=m: m.score(m.encode(crop1[0, 0]), poses)), runs) for p, m in variants.items()},
-            }, warmup=min(20, max(2, runs // 10)))
+            t = interleaved(
+                {
+                    "fast": (lambda: fast.score(fast.encode(crop1[0, 0]), poses), runs),
+                    "head": (lambda: fast.score(term, poses), runs),
+                    "encoder": (lambda: fast.encode(crop1[0, 0]), runs),
+                    "vgq": (lambda: vgq.run([VGQ_OUTPUT], vfeed), n_vgq),
+                    "fast_pre": (lambda: fast_preprocess(depth, grasps, geom, center), runs),
+                    "vgq_pre": (lambda: vgq_preprocess(depth, grasps, geom_vgq, geom, center), n_vpre),
+                    "peak": (peak_call, max(5, min(50, runs // 20))),
+                    **({"head_fp32": (lambda: fast32.score(term, poses), runs)} if fast32 else {}),
+                    **{f"encoder_{p}": ((lambda m=m: m.encode(crop1[0, 0])), runs) for p, m in variants.items()},
+                    **{
+                        f"fast_{p}": ((lambda m=m: m.score(m.encode(crop1[0, 0]), poses)), runs)
+                        for p, m in variants.items()
+                    },
+                },
+                warmup=min(20, max(2, runs // 10)),
+            )
             # the peak of this k's time window: load from other processes lowers both alike
             peak = 2 * PEAK_N**3 / t.pop("peak").min() / 1e9
             peaks.append(peak)
@@ -246,21 +265,36 @@ def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs
                 "fast_over_floor": fm / floor_ms,
                 "head_over_floor": st["head"]["median_ms"] / (head_flops / (peak * 1e9) * 1e3),
                 "encoder_flop_floor_ms": enc_flops / (peak * 1e9) * 1e3,
-                "variants": {p: {"fast_over_floor": st[f"fast_{p}"]["median_ms"] / floor_ms,
-                                 "encoder_over_floor": st[f"encoder_{p}"]["median_ms"] / (enc_flops / (peak * 1e9) * 1e3),
-                                 "speedup_prediction": vm / st[f"fast_{p}"]["median_ms"]} for p in variants},
+                "variants": {
+                    p: {
+                        "fast_over_floor": st[f"fast_{p}"]["median_ms"] / floor_ms,
+                        "encoder_over_floor": st[f"encoder_{p}"]["median_ms"] / (enc_flops / (peak * 1e9) * 1e3),
+                        "speedup_prediction": vm / st[f"fast_{p}"]["median_ms"],
+                    }
+                    for p in variants
+                },
             }
             fewer = [f"{what} {n} runs" for what, n in (("prediction", n_vgq), ("preprocessing", n_vpre)) if n < runs]
             if fewer:
-                notes.append(f"k = {k}: VGQ-CNN {', '.join(fewer)}, fewer than {runs} (too slow; "
-                             "the p99 of few runs is close to their max)")
+                notes.append(
+                    f"k = {k}: VGQ-CNN {', '.join(fewer)}, fewer than {runs} (too slow; "
+                    "the p99 of few runs is close to their max)"
+                )
     return {
         "machine": machine_info(threads),
-        "config": {"model_dir": str(model_dir), "model_version": fast.version, "head_precision": fast.head_precision,
-                   "encoder_precision": fast.encoder_precision, "encoder_selection": fast.encoder_info,
-                   "runs": runs, "ks": list(ks),
-                   "threads": threads, "vgq_budget_s": vgq_budget_s, "image": work.source,
-                   "date": time.strftime("%Y-%m-%d %H:%M:%S %Z")},
+        "config": {
+            "model_dir": str(model_dir),
+            "model_version": fast.version,
+            "head_precision": fast.head_precision,
+            "encoder_precision": fast.encoder_precision,
+            "encoder_selection": fast.encoder_info,
+            "runs": runs,
+            "ks": list(ks),
+            "threads": threads,
+            "vgq_budget_s": vgq_budget_s,
+            "image": work.source,
+            "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        },
         "encoder_mflop": enc_flops / 1e6,
         "matmul_peak_gflops": max(peaks),
         "rows": {str(k): v for k, v in rows.items()},
@@ -270,7 +304,18 @@ def run_benchmark(model_dir: str | Path = DEFAULT_MODEL_DIR, ks=DEFAULT_KS, runs
 
 #: CPU flags that decide which precision is fast: AVX2 / FMA (fp32), AVX-512, int8 dot products
 #: (VNNI), bf16, AMX tiles.
-ISA_FLAGS = ("avx2", "fma", "avx512f", "avx512bw", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_tile", "amx_int8", "amx_bf16")
+ISA_FLAGS = (
+    "avx2",
+    "fma",
+    "avx512f",
+    "avx512bw",
+    "avx512_vnni",
+    "avx_vnni",
+    "avx512_bf16",
+    "amx_tile",
+    "amx_int8",
+    "amx_bf16",
+)
 
 
 def isa_flags(cpuinfo: str = "/proc/cpuinfo") -> list[str]:
@@ -292,8 +337,15 @@ def machine_info(threads: int) -> dict:
             cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
     except OSError:
         pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "threads": threads, "isa": isa_flags(), "onnxruntime": ort.__version__,
-            "python": platform.python_version(), "load_average": list(os.getloadavg())}
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "threads": threads,
+        "isa": isa_flags(),
+        "onnxruntime": ort.__version__,
+        "python": platform.python_version(),
+        "load_average": list(os.getloadavg()),
+    }
 
 
 def markdown(report: dict) -> str:
@@ -308,44 +360,69 @@ def markdown(report: dict) -> str:
 
     m, c = report["machine"], report["config"]
     variants = list(rows[ks[0]].get("variants", {}))
-    out = [f"{m['cpu']}, {m['cores']} cores, ISA {' '.join(m.get('isa', [])) or 'unknown'}; onnxruntime {m['onnxruntime']}, {m['threads']} thread(s); "
-           f"model {c['model_version']}; {c['runs']} runs; load average {m['load_average'][0]:.2f}; {c['date']}",
-           f"best MatMul peak {report['matmul_peak_gflops']:.1f} GFLOP/s ({PEAK_N}^3, measured between the runs of each k); "
-           f"encoder {report['encoder_mflop']:.1f} MFLOP; encoder precision served by auto: {c.get('encoder_precision', 'fp32')} "
-           f"(start-up timing, ms: {c.get('encoder_selection', {}).get('median_ms') or 'one encoder, not timed'})",
-           "", "| k grasps | " + " | ".join(ks) + " |", "|---|" + "---:|" * len(ks),
-           line("VGQ-CNN prediction, ms (median / p99)", ms("vgq")),
-           line("Fast-VGQ-CNN prediction (encoder + head), ms", ms("fast")),
-           line(f"Fast-VGQ-CNN head only (cached image, {c.get('head_precision', 'fp32')}), ms", ms("head")),
-           *([line("Fast-VGQ-CNN head only, fp32 graph, ms", ms("head_fp32"))] if "head_fp32" in rows[ks[0]] else []),
-           line("Fast-VGQ-CNN encoder only, ms", ms("encoder")),
-           line("VGQ-CNN preprocessing (k crops), ms", ms("vgq_pre")),
-           line("Fast-VGQ-CNN preprocessing (1 crop), ms", ms("fast_pre")),
-           line("speed-up VGQ / Fast, prediction", lambda r: f"{r['speedup_prediction']:.1f}x"),
-           line("speed-up VGQ / Fast, preprocessing + prediction", lambda r: f"{r['speedup_total']:.1f}x"),
-           line("Fast FLOPs (encoder + head), MFLOP", lambda r: f"{r['fast_mflop']:.0f}"),
-           line("MatMul peak in the same window, GFLOP/s", lambda r: f"{r['matmul_peak_gflops']:.0f}"),
-           line("Fast FLOP floor, ms (head alone)", lambda r: f"{r['flop_floor_ms']:.2f} ({r['head_flop_floor_ms']:.2f})"),
-           line("Fast time / FLOP floor (head alone)", lambda r: f"{r['fast_over_floor']:.2f} ({r['head_over_floor']:.2f})"),
-           *[x for p in variants for x in (
-               line(f"encoder {p}: encoder only, ms", ms(f"encoder_{p}")),
-               line(f"encoder {p}: encoder + head, ms", ms(f"fast_{p}")),
-               line(f"encoder {p}: (encoder + head) / fp32 FLOP floor (encoder alone)",
-                    lambda r, p=p: f"{r['variants'][p]['fast_over_floor']:.2f} ({r['variants'][p]['encoder_over_floor']:.2f})"),
-               line(f"encoder {p}: speed-up VGQ / Fast, prediction", lambda r, p=p: f"{r['variants'][p]['speedup_prediction']:.1f}x"))],
-           line("VGQ-CNN runs", lambda r: str(r["vgq"]["runs"]))]
+    out = [
+        f"{m['cpu']}, {m['cores']} cores, ISA {' '.join(m.get('isa', [])) or 'unknown'}; onnxruntime {m['onnxruntime']}, {m['threads']} thread(s); "
+        f"model {c['model_version']}; {c['runs']} runs; load average {m['load_average'][0]:.2f}; {c['date']}",
+        f"best MatMul peak {report['matmul_peak_gflops']:.1f} GFLOP/s ({PEAK_N}^3, measured between the runs of each k); "
+        f"encoder {report['encoder_mflop']:.1f} MFLOP; encoder precision served by auto: {c.get('encoder_precision', 'fp32')} "
+        f"(start-up timing, ms: {c.get('encoder_selection', {}).get('median_ms') or 'one encoder, not timed'})",
+        "",
+        "| k grasps | " + " | ".join(ks) + " |",
+        "|---|" + "---:|" * len(ks),
+        line("VGQ-CNN prediction, ms (median / p99)", ms("vgq")),
+        line("Fast-VGQ-CNN prediction (encoder + head), ms", ms("fast")),
+        line(f"Fast-VGQ-CNN head only (cached image, {c.get('head_precision', 'fp32')}), ms", ms("head")),
+        *([line("Fast-VGQ-CNN head only, fp32 graph, ms", ms("head_fp32"))] if "head_fp32" in rows[ks[0]] else []),
+        line("Fast-VGQ-CNN encoder only, ms", ms("encoder")),
+        line("VGQ-CNN preprocessing (k crops), ms", ms("vgq_pre")),
+        line("Fast-VGQ-CNN preprocessing (1 crop), ms", ms("fast_pre")),
+        line("speed-up VGQ / Fast, prediction", lambda r: f"{r['speedup_prediction']:.1f}x"),
+        line("speed-up VGQ / Fast, preprocessing + prediction", lambda r: f"{r['speedup_total']:.1f}x"),
+        line("Fast FLOPs (encoder + head), MFLOP", lambda r: f"{r['fast_mflop']:.0f}"),
+        line("MatMul peak in the same window, GFLOP/s", lambda r: f"{r['matmul_peak_gflops']:.0f}"),
+        line("Fast FLOP floor, ms (head alone)", lambda r: f"{r['flop_floor_ms']:.2f} ({r['head_flop_floor_ms']:.2f})"),
+        line(
+            "Fast time / FLOP floor (head alone)", lambda r: f"{r['fast_over_floor']:.2f} ({r['head_over_floor']:.2f})"
+        ),
+        *[
+            x
+            for p in variants
+            for x in (
+                line(f"encoder {p}: encoder only, ms", ms(f"encoder_{p}")),
+                line(f"encoder {p}: encoder + head, ms", ms(f"fast_{p}")),
+                line(
+                    f"encoder {p}: (encoder + head) / fp32 FLOP floor (encoder alone)",
+                    lambda r, p=p: (
+                        f"{r['variants'][p]['fast_over_floor']:.2f} ({r['variants'][p]['encoder_over_floor']:.2f})"
+                    ),
+                ),
+                line(
+                    f"encoder {p}: speed-up VGQ / Fast, prediction",
+                    lambda r, p=p: f"{r['variants'][p]['speedup_prediction']:.1f}x",
+                ),
+            )
+        ],
+        line("VGQ-CNN runs", lambda r: str(r["vgq"]["runs"])),
+    ]
     out += [f"- {n}" for n in report["notes"]]
     return "\n".join(out)
 
 
 def main(argv=None) -> dict:
-    p = argparse.ArgumentParser(prog="python -m export.benchmark", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--model-dir", default=str(DEFAULT_MODEL_DIR), help="Fast-VGQ-CNN model folder (default: the bundled one)")
+    p = argparse.ArgumentParser(
+        prog="python -m export.benchmark", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--model-dir", default=str(DEFAULT_MODEL_DIR), help="Fast-VGQ-CNN model folder (default: the bundled one)"
+    )
     p.add_argument("--runs", type=int, default=1000, help="timed runs per measurement after warm-up (default 1000)")
     p.add_argument("--ks", default=",".join(map(str, DEFAULT_KS)), help="grasp counts (default 32,64,96,128,512)")
-    p.add_argument("--threads", type=int, default=0, help="onnxruntime intra-op threads (default: all cores, as the service)")
-    p.add_argument("--vgq-budget-s", type=float, default=4.0, help="seconds per k for the slow VGQ-CNN runs (default 4)")
+    p.add_argument(
+        "--threads", type=int, default=0, help="onnxruntime intra-op threads (default: all cores, as the service)"
+    )
+    p.add_argument(
+        "--vgq-budget-s", type=float, default=4.0, help="seconds per k for the slow VGQ-CNN runs (default 4)"
+    )
     p.add_argument("--json", help="also write the report as JSON to this file")
     a = p.parse_args(argv)
     try:
@@ -357,8 +434,9 @@ def main(argv=None) -> dict:
     if not (Path(a.model_dir) / "model_card.json").is_file():
         p.error(f"--model-dir {a.model_dir!r} holds no model_card.json")
     try:
-        report = run_benchmark(a.model_dir, ks, a.runs, a.threads or None, a.vgq_budget_s,
-                               log=lambda s: print(s, file=sys.stderr))
+        report = run_benchmark(
+            a.model_dir, ks, a.runs, a.threads or None, a.vgq_budget_s, log=lambda s: print(s, file=sys.stderr)
+        )
     except (ValueError, RuntimeError) as e:
         print(f"benchmark: {e}", file=sys.stderr)
         sys.exit(2)

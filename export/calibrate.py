@@ -79,13 +79,16 @@ def fit_platt(p_raw: np.ndarray, labels: np.ndarray, target_positivity: float | 
     x = np.stack([logit(p), np.ones_like(p)], axis=1)
     a, b = _newton(x, y, np.zeros_like(p), np.array([1.0, 0.0]))
     if not a > 0:
-        raise CalibrationError(f"Platt fit: slope {a:.3g} <= 0 (the network's scores do not rank successes above failures)")
+        raise CalibrationError(
+            f"Platt fit: slope {a:.3g} <= 0 (the network's scores do not rank successes above failures)"
+        )
     pos = float(y.mean())
     return Calibration("platt", float(a), float(b), pos, pos if target_positivity is None else float(target_positivity))
 
 
-def fit_temperature(p_raw: np.ndarray, labels: np.ndarray, model_positivity: float,
-                    target_positivity: float | None = None) -> Calibration:
+def fit_temperature(
+    p_raw: np.ndarray, labels: np.ndarray, model_positivity: float, target_positivity: float | None = None
+) -> Calibration:
     """Temperature scaling ``sigmoid(logit(p) / T + b0)`` fitted on (p_raw, labels), with
     ``b0 = logit(labels' positivity) - logit(model_positivity)`` fixed by the prior the
     network was trained at (0.5 with class-balanced loss weights, else the training split's)."""
@@ -95,7 +98,9 @@ def fit_temperature(p_raw: np.ndarray, labels: np.ndarray, model_positivity: flo
     z = logit(p)
     (a,) = _newton(z[:, None], y, np.full_like(z, b0), np.array([1.0]))
     if not a > 0:
-        raise CalibrationError(f"temperature fit: 1/T = {a:.3g} <= 0 (the network's scores do not rank successes above failures)")
+        raise CalibrationError(
+            f"temperature fit: 1/T = {a:.3g} <= 0 (the network's scores do not rank successes above failures)"
+        )
     return Calibration("temperature", float(a), b0, pos, pos if target_positivity is None else float(target_positivity))
 
 
@@ -107,13 +112,16 @@ def native_positivity(manifest: dict, override: float | None = None) -> tuple[fl
         return float(override), "given (--native-positivity)"
     nc = manifest.get("native_counts")
     if isinstance(nc, dict) and nc.get("n"):
-        return nc["positive"] / nc["n"], f"crop manifest native_counts ({nc['positive']} of {nc['n']} grasps before sampling)"
+        return nc["positive"] / nc[
+            "n"
+        ], f"crop manifest native_counts ({nc['positive']} of {nc['n']} grasps before sampling)"
     src = (manifest.get("source") or {}).get("dataset")
     if src and Path(src, "manifest.json").is_file():
         try:
             native = read_manifest(src, GRASP_FORMAT)["sampling"]["stats"]["steps"]["native"]
             return native["positive"] / native["grasps"], (
-                f"grasp dataset {src}: {native['positive']} of {native['grasps']} grasps before sampling")
+                f"grasp dataset {src}: {native['positive']} of {native['grasps']} grasps before sampling"
+            )
         except (ValueError, KeyError, TypeError, ZeroDivisionError, json.JSONDecodeError):
             pass
     counts = [c for c in (manifest.get("counts") or {}).values() if isinstance(c, dict)]
@@ -135,9 +143,14 @@ class CalibrationReport:
     diagram: dict  # reliability bins (raw and calibrated) on the test split, re-weighted
 
     def to_dict(self) -> dict:
-        return {**self.calibration.to_dict(), "temperature": self.calibration.temperature,
-                "target_positivity_source": self.target_source, "fit": self.fit, "test": self.test,
-                "reliability_diagram": DIAGRAM}
+        return {
+            **self.calibration.to_dict(),
+            "temperature": self.calibration.temperature,
+            "target_positivity_source": self.target_source,
+            "fit": self.fit,
+            "test": self.test,
+            "reliability_diagram": DIAGRAM,
+        }
 
 
 def _nll(p: np.ndarray, y: np.ndarray) -> float:
@@ -146,9 +159,16 @@ def _nll(p: np.ndarray, y: np.ndarray) -> float:
 
 
 def calibration_report(
-    p_val: np.ndarray, y_val: np.ndarray, p_test: np.ndarray, y_test: np.ndarray,
-    target_positivity: float, target_source: str, method: str = "platt", model_positivity: float = 0.5,
-    splits: tuple[str, str] = ("val", "test"), n_bins: int = N_BINS,
+    p_val: np.ndarray,
+    y_val: np.ndarray,
+    p_test: np.ndarray,
+    y_test: np.ndarray,
+    target_positivity: float,
+    target_source: str,
+    method: str = "platt",
+    model_positivity: float = 0.5,
+    splits: tuple[str, str] = ("val", "test"),
+    n_bins: int = N_BINS,
 ) -> CalibrationReport:
     """Fit on (p_val, y_val) and measure on (p_test, y_test): the expected calibration error
     of the raw and the calibrated probabilities with the test rows re-weighted to
@@ -167,17 +187,31 @@ def calibration_report(
     p_cal = cal.apply(pt)
     test_pos = float(yt.mean())
     test = {
-        "split": splits[1], "n": int(len(yt)), "positive": int(yt.sum()), "bins": n_bins,
+        "split": splits[1],
+        "n": int(len(yt)),
+        "positive": int(yt.sum()),
+        "bins": n_bins,
         "weighting": f"rows re-weighted from the split's positivity {test_pos:.4f} to the target {target_positivity:.4f}",
         "ece_raw": expected_calibration_error(pt, yt, n_bins, w),
         "ece_calibrated": expected_calibration_error(p_cal, yt, n_bins, w),
         "ece_raw_at_split_positivity": expected_calibration_error(pt, yt, n_bins),
-        "ece_calibrated_at_split_positivity": expected_calibration_error(cal.at_positivity(test_pos).apply(pt), yt, n_bins),
+        "ece_calibrated_at_split_positivity": expected_calibration_error(
+            cal.at_positivity(test_pos).apply(pt), yt, n_bins
+        ),
     }
-    fit = {"split": splits[0], "n": int(len(yv)), "positive": int(yv.sum()),
-           "nll_raw": _nll(pv, yv), "nll_calibrated": _nll(at_fit.apply(pv), yv)}
-    diagram = {"raw": reliability_bins(pt, yt, n_bins, w), "calibrated": reliability_bins(p_cal, yt, n_bins, w),
-               "target_positivity": target_positivity, "split": splits[1]}
+    fit = {
+        "split": splits[0],
+        "n": int(len(yv)),
+        "positive": int(yv.sum()),
+        "nll_raw": _nll(pv, yv),
+        "nll_calibrated": _nll(at_fit.apply(pv), yv),
+    }
+    diagram = {
+        "raw": reliability_bins(pt, yt, n_bins, w),
+        "calibrated": reliability_bins(p_cal, yt, n_bins, w),
+        "target_positivity": target_positivity,
+        "split": splits[1],
+    }
     return CalibrationReport(cal, target_source, fit, test, diagram)
 
 
@@ -191,8 +225,9 @@ def plot_reliability(report: CalibrationReport, path: str | Path) -> Path:
     import matplotlib.pyplot as plt
 
     d, t = report.diagram, report.test
-    fig, (ax, hx) = plt.subplots(2, 1, figsize=(5.5, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1]},
-                                 constrained_layout=True)
+    fig, (ax, hx) = plt.subplots(
+        2, 1, figsize=(5.5, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1]}, constrained_layout=True
+    )
     ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="perfectly calibrated")
     centres = 0.5 * (d["raw"]["edges"][:-1] + d["raw"]["edges"][1:])
     for key, colour, ece in (("raw", "tab:red", t["ece_raw"]), ("calibrated", "tab:blue", t["ece_calibrated"])):
@@ -200,8 +235,12 @@ def plot_reliability(report: CalibrationReport, path: str | Path) -> Path:
         full = r["weight"] > 0
         ax.plot(r["confidence"][full], r["accuracy"][full], "o-", color=colour, label=f"{key} (ECE {ece:.3f})")
         hx.bar(centres + (0.02 if key == "calibrated" else -0.02), r["weight"], width=0.04, color=colour, alpha=0.8)
-    ax.set(xlim=(0, 1), ylim=(0, 1), ylabel="observed success rate",
-           title=f"{d['split']} split ({t['n']} grasps), weighted to positivity {100 * d['target_positivity']:.1f}%")
+    ax.set(
+        xlim=(0, 1),
+        ylim=(0, 1),
+        ylabel="observed success rate",
+        title=f"{d['split']} split ({t['n']} grasps), weighted to positivity {100 * d['target_positivity']:.1f}%",
+    )
     ax.legend(loc="upper left", fontsize=8)
     hx.set(xlabel="predicted P(success)", ylabel="share", yscale="log")
     buf = io.BytesIO()
@@ -211,8 +250,9 @@ def plot_reliability(report: CalibrationReport, path: str | Path) -> Path:
     return Path(path)
 
 
-def calibrate_on_dataset(net, ds, meta: dict, method: str = "platt", native: float | None = None,
-                         max_n: int = 10_000, seed: int = 0) -> CalibrationReport:
+def calibrate_on_dataset(
+    net, ds, meta: dict, method: str = "platt", native: float | None = None, max_n: int = 10_000, seed: int = 0
+) -> CalibrationReport:
     """Fit on the validation split and measure on the test split of the crop dataset ``ds``
     (``training.data.CropDataset``; at most ``max_n`` random rows of each) the calibration of
     ``net`` (torch, whose outputs the exported graphs reproduce) for the dataset's native

@@ -91,4 +91,3 @@ def vgq_net_like(fast: GraspQualityNet) -> GraspQualityNet:
             dst[k] = v.clone()
     net.load_state_dict(dst)
     return net
-

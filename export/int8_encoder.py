@@ -57,8 +57,13 @@ def crop_split(path: str | Path, splits: tuple[str, ...], n: int | None = None, 
     return crops.astype(np.float32), poses.astype(np.float32), labels
 
 
-def add_int8_encoder(model_dir: str | Path, calibration_crops: np.ndarray, check: tuple[np.ndarray, np.ndarray, np.ndarray],
-                     check_data: str = "", calibration: str = "") -> EncoderCheck:
+def add_int8_encoder(
+    model_dir: str | Path,
+    calibration_crops: np.ndarray,
+    check: tuple[np.ndarray, np.ndarray, np.ndarray],
+    check_data: str = "",
+    calibration: str = "",
+) -> EncoderCheck:
     """Quantise the folder's encoder, check it, and only then move ``encoder_int8.onnx`` into the
     folder and record it in the card (both writes atomic). Raises QuantizationError when refused."""
     model_dir = Path(model_dir)
@@ -69,9 +74,16 @@ def add_int8_encoder(model_dir: str | Path, calibration_crops: np.ndarray, check
     os.close(fd)
     try:
         nodes = quantize_encoder(model_dir / card.files["encoder"], tmp, calibration_crops)
-        result = check_encoder_variant(model_dir / card.files["encoder"], tmp, model_dir / card.files["head"], *check,
-                                       precision="int8", quantized_nodes=nodes, check_data=check_data,
-                                       calibration=calibration)
+        result = check_encoder_variant(
+            model_dir / card.files["encoder"],
+            tmp,
+            model_dir / card.files["head"],
+            *check,
+            precision="int8",
+            quantized_nodes=nodes,
+            check_data=check_data,
+            calibration=calibration,
+        )
         digest = hashlib.sha256(Path(tmp).read_bytes()).hexdigest()
         os.chmod(tmp, 0o644)
         os.replace(tmp, model_dir / INT8_ENCODER_FILE)
@@ -80,18 +92,27 @@ def add_int8_encoder(model_dir: str | Path, calibration_crops: np.ndarray, check
     import onnxruntime as ort
 
     card.files["encoder_int8"] = INT8_ENCODER_FILE
-    card.export["int8_encoder"] = {**result.to_dict(), "sha256": digest, "onnxruntime": ort.__version__,
-                                   "n_calibration": int(len(calibration_crops))}
+    card.export["int8_encoder"] = {
+        **result.to_dict(),
+        "sha256": digest,
+        "onnxruntime": ort.__version__,
+        "n_calibration": int(len(calibration_crops)),
+    }
     card.save(model_dir)
     return result
 
 
 def main(argv=None) -> EncoderCheck:
-    p = argparse.ArgumentParser(prog="python -m export.int8_encoder", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m export.int8_encoder", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--model-dir", required=True, help="exported Fast-VGQ-CNN model folder (updated in place)")
-    p.add_argument("--calibration", required=True, help="crop dataset whose train split calibrates the activation ranges")
-    p.add_argument("--check", required=True, help="crop dataset (val + test splits) or .npz of labelled crops for the check")
+    p.add_argument(
+        "--calibration", required=True, help="crop dataset whose train split calibrates the activation ranges"
+    )
+    p.add_argument(
+        "--check", required=True, help="crop dataset (val + test splits) or .npz of labelled crops for the check"
+    )
     p.add_argument("--calibration-n", type=int, default=2048, help="calibration crops (default 2048)")
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args(argv)
@@ -105,15 +126,32 @@ def main(argv=None) -> EncoderCheck:
         check = crop_split(a.check, ("val", "test"))
         if Path(a.check).resolve() == Path(a.calibration).resolve() and Path(a.check).suffix == ".npz":
             raise ValueError("--check must not be the calibration crops")
-        logging.info("calibrating on %d crops of %s, checking on %d crops of %s", len(calib), a.calibration, len(check[0]), a.check)
-        result = add_int8_encoder(a.model_dir, calib, check, check_data=f"{a.check} (val + test)",
-                                  calibration=f"{a.calibration} (train, {len(calib)} crops)")
+        logging.info(
+            "calibrating on %d crops of %s, checking on %d crops of %s",
+            len(calib),
+            a.calibration,
+            len(check[0]),
+            a.check,
+        )
+        result = add_int8_encoder(
+            a.model_dir,
+            calib,
+            check,
+            check_data=f"{a.check} (val + test)",
+            calibration=f"{a.calibration} (train, {len(calib)} crops)",
+        )
     except (QuantizationError, ValueError, FileNotFoundError) as e:
         print(f"int8-encoder: {e}", file=sys.stderr)
         sys.exit(2)
-    logging.info("int8 encoder kept: balanced accuracy %.4f (fp32 %.4f), mean |dp| %.4f, max %.4f, %d of %d decisions changed",
-                 result.balanced_accuracy_variant, result.balanced_accuracy_fp32, result.mean_abs_diff_probability,
-                 result.max_abs_diff_probability, result.decisions_changed, result.n)
+    logging.info(
+        "int8 encoder kept: balanced accuracy %.4f (fp32 %.4f), mean |dp| %.4f, max %.4f, %d of %d decisions changed",
+        result.balanced_accuracy_variant,
+        result.balanced_accuracy_fp32,
+        result.mean_abs_diff_probability,
+        result.max_abs_diff_probability,
+        result.decisions_changed,
+        result.n,
+    )
     return result
 
 

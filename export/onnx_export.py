@@ -77,10 +77,15 @@ def _export(module: torch.nn.Module, args: tuple, path: Path, inputs, outputs, d
     # and the int8 check rely on), (3) it raises FutureWarnings of its own. The outputs are
     # verified against torch below whichever exporter writes them.
     with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="You are using the legacy TorchScript-based ONNX export",
-                                category=DeprecationWarning)
-        warnings.filterwarnings("ignore", message="The feature will be removed. Please remove usage of this function",
-                                category=DeprecationWarning, module=r"torch\.onnx\._internal\.torchscript_exporter")
+        warnings.filterwarnings(
+            "ignore", message="You are using the legacy TorchScript-based ONNX export", category=DeprecationWarning
+        )
+        warnings.filterwarnings(
+            "ignore",
+            message="The feature will be removed. Please remove usage of this function",
+            category=DeprecationWarning,
+            module=r"torch\.onnx\._internal\.torchscript_exporter",
+        )
         torch.onnx.export(
             module,
             args,
@@ -125,7 +130,10 @@ def _verify_fast(net, enc_path, head_path, crops, poses) -> Verification:
     rel = float(np.abs(terms - ref_terms).max() / max(1.0, float(np.abs(ref_terms).max())))
     # head on one image term at a time, all poses against it (the serving pattern)
     p = np.concatenate(
-        [head.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: terms[i : i + 1], HEAD_INPUTS[1]: poses[i : i + 1]})[0] for i in range(len(crops))]
+        [
+            head.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: terms[i : i + 1], HEAD_INPUTS[1]: poses[i : i + 1]})[0]
+            for i in range(len(crops))
+        ]
     )
     k_all = head.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: terms[:1], HEAD_INPUTS[1]: poses})[0]
     with torch.no_grad():
@@ -178,20 +186,38 @@ def export_model(
         if net.arch == "fast_vgqcnn":
             files = {"encoder": "encoder.onnx", "head": "head.onnx"}
             log.info("exporting encoder graph")
-            _export(EncoderGraph(net), (d1,), tmp / files["encoder"], [ENCODER_INPUT], [ENCODER_OUTPUT],
-                    {ENCODER_INPUT: {0: "n"}, ENCODER_OUTPUT: {0: "n"}})
+            _export(
+                EncoderGraph(net),
+                (d1,),
+                tmp / files["encoder"],
+                [ENCODER_INPUT],
+                [ENCODER_OUTPUT],
+                {ENCODER_INPUT: {0: "n"}, ENCODER_OUTPUT: {0: "n"}},
+            )
             log.info("exporting head graph")
             with torch.no_grad():
                 term = net.encode(d1)
-            _export(HeadGraph(net), (term, k_poses), tmp / files["head"], HEAD_INPUTS, [HEAD_OUTPUT],
-                    {HEAD_INPUTS[0]: {0: "n"}, HEAD_INPUTS[1]: {0: "k"}, HEAD_OUTPUT: {0: "k"}})
+            _export(
+                HeadGraph(net),
+                (term, k_poses),
+                tmp / files["head"],
+                HEAD_INPUTS,
+                [HEAD_OUTPUT],
+                {HEAD_INPUTS[0]: {0: "n"}, HEAD_INPUTS[1]: {0: "k"}, HEAD_OUTPUT: {0: "k"}},
+            )
             log.info("verifying against torch on %d inputs", len(crops))
             ver = _verify_fast(net, tmp / files["encoder"], tmp / files["head"], crops, poses)
         else:
             files = {"model": f"{net.arch}.onnx"}
             log.info("exporting one-piece graph")
-            _export(OnePieceGraph(net), (d1, k_poses), tmp / files["model"], VGQ_INPUTS, [VGQ_OUTPUT],
-                    {VGQ_INPUTS[0]: {0: "k"}, VGQ_INPUTS[1]: {0: "k"}, VGQ_OUTPUT: {0: "k"}})
+            _export(
+                OnePieceGraph(net),
+                (d1, k_poses),
+                tmp / files["model"],
+                VGQ_INPUTS,
+                [VGQ_OUTPUT],
+                {VGQ_INPUTS[0]: {0: "k"}, VGQ_INPUTS[1]: {0: "k"}, VGQ_OUTPUT: {0: "k"}},
+            )
             log.info("verifying against torch on %d inputs", len(crops))
             ver = _verify_one_piece(net, tmp / files["model"], crops, poses)
         bad = ver.max_abs_diff_probability > tolerance or (
@@ -207,8 +233,13 @@ def export_model(
             files["head_int8"] = "head_int8.onnx"
             try:
                 nodes = quantize_head(tmp / files["head"], tmp / files["head_int8"])
-                extra["int8_head"] = check_int8_head(tmp / files["encoder"], tmp / files["head"], tmp / files["head_int8"],
-                                                     *int8_check, quantized_nodes=nodes).to_dict()
+                extra["int8_head"] = check_int8_head(
+                    tmp / files["encoder"],
+                    tmp / files["head"],
+                    tmp / files["head_int8"],
+                    *int8_check,
+                    quantized_nodes=nodes,
+                ).to_dict()
             except QuantizationError as e:
                 raise ExportError(str(e)) from e
         digest = _sha(tmp / f for f in files.values())
@@ -222,8 +253,15 @@ def export_model(
             dataset=dict(dataset or {}),
             training=dict(training or {}),
             metrics=dict(metrics or {}),
-            export={"opset": OPSET, "torch": torch.__version__, "onnxruntime": ort.__version__,
-                    "verification": ver.to_dict(), "tolerance": tolerance, "sha256": digest, **extra},
+            export={
+                "opset": OPSET,
+                "torch": torch.__version__,
+                "onnxruntime": ort.__version__,
+                "verification": ver.to_dict(),
+                "tolerance": tolerance,
+                "sha256": digest,
+                **extra,
+            },
             label_threshold=label_threshold,
             calibration=calibration.to_dict() if calibration is not None else {},
         )

@@ -70,16 +70,31 @@ def quantize_head(head_path: str | Path, out_path: str | Path) -> tuple[str, ...
 
     node = largest_gemm(head_path)
     # dynamic quantisation rewrites a Gemm as MatMul + Add first; the MatMul keeps the name + "_MatMul"
-    quantize_dynamic(str(head_path), str(out_path), per_channel=True, weight_type=QuantType.QInt8,
-                     nodes_to_quantize=[node, node + "_MatMul"])
+    quantize_dynamic(
+        str(head_path),
+        str(out_path),
+        per_channel=True,
+        weight_type=QuantType.QInt8,
+        nodes_to_quantize=[node, node + "_MatMul"],
+    )
     if not any(n.op_type == "MatMulInteger" for n in onnx.load(str(out_path)).graph.node):
         raise QuantizationError(f"onnxruntime left {node} of {head_path} unquantised")
     return (node,)
 
 
-def check_int8_head(encoder_path, head_path, int8_path, crops: np.ndarray, poses: np.ndarray, labels: np.ndarray,
-                    quantized_nodes: tuple[str, ...] = (), max_bacc_drop: float = MAX_BACC_DROP,
-                    max_abs_diff: float = MAX_ABS_DIFF, batch: int = 128, n_alone: int = 256) -> Int8Check:
+def check_int8_head(
+    encoder_path,
+    head_path,
+    int8_path,
+    crops: np.ndarray,
+    poses: np.ndarray,
+    labels: np.ndarray,
+    quantized_nodes: tuple[str, ...] = (),
+    max_bacc_drop: float = MAX_BACC_DROP,
+    max_abs_diff: float = MAX_ABS_DIFF,
+    batch: int = 128,
+    n_alone: int = 256,
+) -> Int8Check:
     """Score (n, S, S) or (n, 1, S, S) crops (metres) with their (n, 7) raw poses through encoder +
     each head, ``batch`` grasps per head call (the head broadcasts one image term per grasp);
     raise QuantizationError when the int8 head is off. ``n_alone`` grasps are also scored one
@@ -88,27 +103,48 @@ def check_int8_head(encoder_path, head_path, int8_path, crops: np.ndarray, poses
     if y.all() or not y.any():
         raise QuantizationError("the int8 check needs positive and negative examples")
     so = session_options(1)  # the service's options: checked as served
-    enc, h32, h8 = (ort.InferenceSession(str(p), so, providers=["CPUExecutionProvider"])
-                    for p in (encoder_path, head_path, int8_path))
+    enc, h32, h8 = (
+        ort.InferenceSession(str(p), so, providers=["CPUExecutionProvider"])
+        for p in (encoder_path, head_path, int8_path)
+    )
     crops = np.ascontiguousarray(crops, np.float32).reshape(len(crops), 1, *np.shape(crops)[-2:])
     poses = np.ascontiguousarray(poses, np.float32)
-    terms = np.concatenate([enc.run([ENCODER_OUTPUT], {ENCODER_INPUT: crops[i:i + 256]})[0]
-                            for i in range(0, len(crops), 256)])
+    terms = np.concatenate(
+        [enc.run([ENCODER_OUTPUT], {ENCODER_INPUT: crops[i : i + 256]})[0] for i in range(0, len(crops), 256)]
+    )
 
     def score(sess, b: int, n: int) -> np.ndarray:
-        return np.concatenate([sess.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: terms[i:i + b], HEAD_INPUTS[1]: poses[i:i + b]})[0]
-                               for i in range(0, n, b)])
+        return np.concatenate(
+            [
+                sess.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: terms[i : i + b], HEAD_INPUTS[1]: poses[i : i + b]})[0]
+                for i in range(0, n, b)
+            ]
+        )
 
     n = len(y)
     p32, p8 = score(h32, batch, n), score(h8, batch, n)
     alone = min(n_alone, n)
     d = np.abs(p32 - p8)
-    check = Int8Check(n, int(y.sum()), binary_metrics(y, p32)["balanced_accuracy"], binary_metrics(y, p8)["balanced_accuracy"],
-                      float(d.max()), float(d.mean()), int(((p32 > 0.5) != (p8 > 0.5)).sum()),
-                      float(np.abs(score(h8, 1, alone) - p8[:alone]).max()), batch, tuple(quantized_nodes))
-    if check.balanced_accuracy_fp32 - check.balanced_accuracy_int8 > max_bacc_drop or check.max_abs_diff_probability > max_abs_diff:
-        raise QuantizationError(f"int8 head scores unlike the fp32 head: {check.to_dict()} "
-                                f"(allowed: balanced accuracy drop {max_bacc_drop}, |dp| {max_abs_diff})")
+    check = Int8Check(
+        n,
+        int(y.sum()),
+        binary_metrics(y, p32)["balanced_accuracy"],
+        binary_metrics(y, p8)["balanced_accuracy"],
+        float(d.max()),
+        float(d.mean()),
+        int(((p32 > 0.5) != (p8 > 0.5)).sum()),
+        float(np.abs(score(h8, 1, alone) - p8[:alone]).max()),
+        batch,
+        tuple(quantized_nodes),
+    )
+    if (
+        check.balanced_accuracy_fp32 - check.balanced_accuracy_int8 > max_bacc_drop
+        or check.max_abs_diff_probability > max_abs_diff
+    ):
+        raise QuantizationError(
+            f"int8 head scores unlike the fp32 head: {check.to_dict()} "
+            f"(allowed: balanced accuracy drop {max_bacc_drop}, |dp| {max_abs_diff})"
+        )
     return check
 
 
@@ -151,20 +187,30 @@ def encoder_nodes_to_quantize(model_path: str | Path) -> tuple[str, ...]:
     whose weight is stored in the graph (see the section comment)."""
     m = onnx.load(str(model_path))
     inits = {i.name: tuple(i.dims) for i in m.graph.initializer}
-    convs = [(int(np.prod(inits[n.input[1]][1:])), n.name) for n in m.graph.node
-             if n.op_type == "Conv" and len(n.input) > 1 and n.input[1] in inits]
+    convs = [
+        (int(np.prod(inits[n.input[1]][1:])), n.name)
+        for n in m.graph.node
+        if n.op_type == "Conv" and len(n.input) > 1 and n.input[1] in inits
+    ]
     fcs = [n.name for n in m.graph.node if n.op_type in ("Gemm", "MatMul") and any(x in inits for x in n.input[1:2])]
     if not convs:
         raise QuantizationError(f"{model_path}: no Conv with stored weights to quantise")
     return (max(convs)[1], *fcs)
 
 
-def quantize_encoder(encoder_path: str | Path, out_path: str | Path, calibration_crops: np.ndarray,
-                     nodes: tuple[str, ...] | None = None) -> tuple[str, ...]:
+def quantize_encoder(
+    encoder_path: str | Path, out_path: str | Path, calibration_crops: np.ndarray, nodes: tuple[str, ...] | None = None
+) -> tuple[str, ...]:
     """Write ``out_path``: ``encoder_path`` with ``nodes`` (default ``encoder_nodes_to_quantize``)
     in int8 (QDQ, per-channel weights), activation ranges from the (n, S, S) or (n, 1, S, S)
     calibration crops (metres; min / max per tensor). Returns the quantised node names."""
-    from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization import (
+        CalibrationDataReader,
+        CalibrationMethod,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
 
     crops = np.ascontiguousarray(calibration_crops, np.float32)
     crops = crops.reshape(len(crops), 1, *crops.shape[-2:])
@@ -178,21 +224,39 @@ def quantize_encoder(encoder_path: str | Path, out_path: str | Path, calibration
 
         def get_next(self):
             i = next(self.it, None)
-            return None if i is None else {ENCODER_INPUT: crops[i:i + 1]}
+            return None if i is None else {ENCODER_INPUT: crops[i : i + 1]}
 
-    quantize_static(str(encoder_path), str(out_path), Crops(), quant_format=QuantFormat.QDQ, per_channel=True,
-                    activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, nodes_to_quantize=list(nodes),
-                    calibrate_method=CalibrationMethod.MinMax)
+    quantize_static(
+        str(encoder_path),
+        str(out_path),
+        Crops(),
+        quant_format=QuantFormat.QDQ,
+        per_channel=True,
+        activation_type=QuantType.QUInt8,
+        weight_type=QuantType.QInt8,
+        nodes_to_quantize=list(nodes),
+        calibrate_method=CalibrationMethod.MinMax,
+    )
     if not any(n.op_type == "QuantizeLinear" for n in onnx.load(str(out_path)).graph.node):
         raise QuantizationError(f"onnxruntime left the nodes {nodes} of {encoder_path} unquantised")
     return nodes
 
 
-def check_encoder_variant(encoder_path, variant_path, head_path, crops: np.ndarray, poses: np.ndarray, labels: np.ndarray,
-                          precision: str = "int8", quantized_nodes: tuple[str, ...] = (), check_data: str = "",
-                          calibration: str = "", max_bacc_drop: float = ENCODER_MAX_BACC_DROP,
-                          max_mean_abs_diff: float = ENCODER_MAX_MEAN_ABS_DIFF,
-                          max_flip_fraction: float = ENCODER_MAX_FLIP_FRACTION) -> EncoderCheck:
+def check_encoder_variant(
+    encoder_path,
+    variant_path,
+    head_path,
+    crops: np.ndarray,
+    poses: np.ndarray,
+    labels: np.ndarray,
+    precision: str = "int8",
+    quantized_nodes: tuple[str, ...] = (),
+    check_data: str = "",
+    calibration: str = "",
+    max_bacc_drop: float = ENCODER_MAX_BACC_DROP,
+    max_mean_abs_diff: float = ENCODER_MAX_MEAN_ABS_DIFF,
+    max_flip_fraction: float = ENCODER_MAX_FLIP_FRACTION,
+) -> EncoderCheck:
     """Score labelled (n, S, S) crops (metres) with their (n, 7) raw poses through each encoder and
     the fp32 head; raise QuantizationError when the variant's balanced accuracy falls by more than
     ``max_bacc_drop``, its probabilities move by more than ``max_mean_abs_diff`` on average, or more
@@ -204,25 +268,42 @@ def check_encoder_variant(encoder_path, variant_path, head_path, crops: np.ndarr
         raise QuantizationError("the encoder check needs positive and negative examples")
     so = ort.SessionOptions()
     so.intra_op_num_threads = 1
-    e32, ev, head = (ort.InferenceSession(str(p), so, providers=["CPUExecutionProvider"])
-                     for p in (encoder_path, variant_path, head_path))
+    e32, ev, head = (
+        ort.InferenceSession(str(p), so, providers=["CPUExecutionProvider"])
+        for p in (encoder_path, variant_path, head_path)
+    )
     crops = np.ascontiguousarray(crops, np.float32).reshape(len(crops), 1, *np.shape(crops)[-2:])
     poses = np.ascontiguousarray(poses, np.float32)
 
     def probabilities(enc) -> np.ndarray:
         out = []
         for i in range(0, len(crops), 256):
-            terms = enc.run([ENCODER_OUTPUT], {ENCODER_INPUT: crops[i:i + 256]})[0]
-            out.append(head.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: terms, HEAD_INPUTS[1]: poses[i:i + 256]})[0])
+            terms = enc.run([ENCODER_OUTPUT], {ENCODER_INPUT: crops[i : i + 256]})[0]
+            out.append(head.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: terms, HEAD_INPUTS[1]: poses[i : i + 256]})[0])
         return np.concatenate(out)
 
     p32, pv = probabilities(e32), probabilities(ev)
     d = np.abs(p32 - pv)
-    check = EncoderCheck(precision, len(y), int(y.sum()), binary_metrics(y, p32)["balanced_accuracy"],
-                         binary_metrics(y, pv)["balanced_accuracy"], float(d.max()), float(d.mean()),
-                         int(((p32 > 0.5) != (pv > 0.5)).sum()), tuple(quantized_nodes), check_data, calibration)
-    if (check.balanced_accuracy_fp32 - check.balanced_accuracy_variant > max_bacc_drop or check.mean_abs_diff_probability > max_mean_abs_diff
-            or check.decisions_changed > max_flip_fraction * check.n):
-        raise QuantizationError(f"{precision} encoder scores unlike the fp32 encoder: {check.to_dict()} (allowed: balanced "
-                                f"accuracy drop {max_bacc_drop}, mean |dp| {max_mean_abs_diff}, flips {max_flip_fraction:.0%})")
+    check = EncoderCheck(
+        precision,
+        len(y),
+        int(y.sum()),
+        binary_metrics(y, p32)["balanced_accuracy"],
+        binary_metrics(y, pv)["balanced_accuracy"],
+        float(d.max()),
+        float(d.mean()),
+        int(((p32 > 0.5) != (pv > 0.5)).sum()),
+        tuple(quantized_nodes),
+        check_data,
+        calibration,
+    )
+    if (
+        check.balanced_accuracy_fp32 - check.balanced_accuracy_variant > max_bacc_drop
+        or check.mean_abs_diff_probability > max_mean_abs_diff
+        or check.decisions_changed > max_flip_fraction * check.n
+    ):
+        raise QuantizationError(
+            f"{precision} encoder scores unlike the fp32 encoder: {check.to_dict()} (allowed: balanced "
+            f"accuracy drop {max_bacc_drop}, mean |dp| {max_mean_abs_diff}, flips {max_flip_fraction:.0%})"
+        )
     return check

@@ -81,7 +81,9 @@ def make_scene(object_id: int, config, rng: np.random.Generator) -> BenchScene:
     mesh_world.apply_transform(T_wo)
     T_wc = sample_cameras(1, config.camera, rng).T_world_camera[0]
     depth = render_depth(mesh_world, T_wc, config.intrinsics)
-    return BenchScene(object_id, obj.mesh, mesh_world, T_wo, T_wc, depth, resolve_torque_scaling(obj.mesh, config.quality))
+    return BenchScene(
+        object_id, obj.mesh, mesh_world, T_wo, T_wc, depth, resolve_torque_scaling(obj.mesh, config.quality)
+    )
 
 
 def judge(scene: BenchScene, frames_cam: np.ndarray, config, rng: np.random.Generator) -> dict:
@@ -119,8 +121,13 @@ def run_precision(args) -> dict:
 
     model = _model(args.model, args.threads)
     config = _recipe_config(model)
-    params = dataclasses.replace(PlanParams(), cem_iterations=args.cem, windows=args.windows,
-                                 max_centre_offset=args.centre_offset, min_width=args.min_width)
+    params = dataclasses.replace(
+        PlanParams(),
+        cem_iterations=args.cem,
+        windows=args.windows,
+        max_centre_offset=args.centre_offset,
+        min_width=args.min_width,
+    )
     ids = heldout_object_ids(args.heldout)
     rng = np.random.default_rng(args.seed)
     picked = rng.choice(ids, size=args.scenes, replace=args.scenes > len(ids))
@@ -133,9 +140,15 @@ def run_precision(args) -> dict:
         cand = res.candidates or {"frames": np.zeros((0, 4, 4)), "scores": np.zeros(0)}
         verdict = judge(scene, cand["frames"], config, np.random.default_rng(1000 + i))
         pos = verdict["positive"]
-        top = nms(cand["frames"], cand["scores"], 5, params.nms_distance, params.nms_angle) if len(pos) else np.zeros(0, int)
+        top = (
+            nms(cand["frames"], cand["scores"], 5, params.nms_distance, params.nms_angle)
+            if len(pos)
+            else np.zeros(0, int)
+        )
         row = {
-            "object_id": int(oid), "candidates": int(len(pos)), "reason": res.reason,
+            "object_id": int(oid),
+            "candidates": int(len(pos)),
+            "reason": res.reason,
             "top1": bool(pos[top[0]]) if len(top) else False,
             "top5": float(pos[top].mean()) if len(top) else 0.0,
             "n_top": int(len(top)),
@@ -148,26 +161,39 @@ def run_precision(args) -> dict:
             "seconds": time.perf_counter() - t,
         }
         rows.append(row)
-        print(f"scene {i:2d} object {oid:3d}: {row['candidates']:3d} candidates, {100 * row['random']:5.1f}% positive; "
-              f"top-1 {'ok ' if row['top1'] else 'BAD'} (p={row['top1_score'] if row['top1_score'] is None else round(row['top1_score'], 3)}, "
-              f"q={row['top1_quality'] if row['top1_quality'] is None else round(row['top1_quality'], 4)}, coll={row['top1_collides']}), "
-              f"top-5 {100 * row['top5']:5.1f}%  [{row['seconds']:.1f} s]", flush=True)
+        print(
+            f"scene {i:2d} object {oid:3d}: {row['candidates']:3d} candidates, {100 * row['random']:5.1f}% positive; "
+            f"top-1 {'ok ' if row['top1'] else 'BAD'} (p={row['top1_score'] if row['top1_score'] is None else round(row['top1_score'], 3)}, "
+            f"q={row['top1_quality'] if row['top1_quality'] is None else round(row['top1_quality'], 4)}, coll={row['top1_collides']}), "
+            f"top-5 {100 * row['top5']:5.1f}%  [{row['seconds']:.1f} s]",
+            flush=True,
+        )
     planned = [r for r in rows if r["candidates"]]
     summary = {
-        "scenes": len(rows), "scenes_with_candidates": len(planned),
+        "scenes": len(rows),
+        "scenes_with_candidates": len(planned),
         "precision_at_1": float(np.mean([r["top1"] for r in rows])) if rows else 0.0,
         "precision_at_5": float(np.mean([r["top5"] for r in rows])) if rows else 0.0,
         "random_candidate_precision": float(np.mean([r["random"] for r in rows])) if rows else 0.0,
         "scenes_with_a_positive_candidate": int(sum(r["oracle_best_exists"] for r in rows)),
         "pose_only_baseline": str(baseline_file) if baseline_file else "not available: no model file is bundled",
-        "params": {"cem_iterations": args.cem, "windows": args.windows, "num_candidates": params.num_candidates,
-                   "max_centre_offset": args.centre_offset, "min_width": args.min_width},
-        "seed": args.seed, "model": model.version, "rows": rows,
+        "params": {
+            "cem_iterations": args.cem,
+            "windows": args.windows,
+            "num_candidates": params.num_candidates,
+            "max_centre_offset": args.centre_offset,
+            "min_width": args.min_width,
+        },
+        "seed": args.seed,
+        "model": model.version,
+        "rows": rows,
     }
     print()
     print("| ranking | precision@1 | precision@5 |")
     print("|---|---|---|")
-    print(f"| Fast-VGQ-CNN planner (top-k after NMS) | {100 * summary['precision_at_1']:.1f}% | {100 * summary['precision_at_5']:.1f}% |")
+    print(
+        f"| Fast-VGQ-CNN planner (top-k after NMS) | {100 * summary['precision_at_1']:.1f}% | {100 * summary['precision_at_5']:.1f}% |"
+    )
     r = 100 * summary["random_candidate_precision"]
     print(f"| random collision-free candidate (expectation) | {r:.1f}% | {r:.1f}% |")
     print(f"| pose-only baseline | {summary['pose_only_baseline']} | |")
@@ -182,15 +208,20 @@ def run_trials_bench(args) -> dict:
     try:
         from datagen.physics import GraspSimulator, PhysicsParams, run_trials
     except ImportError as e:
-        raise SystemExit(f"physical trials need datagen.physics (pybullet grasp trials): {e}")
+        raise SystemExit(f"physical trials need datagen.physics (pybullet grasp trials): {e}") from None
     from datagen.gripper import GripperGeometry as DatagenGripper
 
     from .policy import plan
 
     model = _model(args.model, args.threads)
     config = _recipe_config(model)
-    params = dataclasses.replace(PlanParams(), cem_iterations=args.cem, windows=args.windows,
-                                 max_centre_offset=args.centre_offset, min_width=args.min_width)
+    params = dataclasses.replace(
+        PlanParams(),
+        cem_iterations=args.cem,
+        windows=args.windows,
+        max_centre_offset=args.centre_offset,
+        min_width=args.min_width,
+    )
     ids = heldout_object_ids(args.heldout)
     rng = np.random.default_rng(args.seed)
     picked = rng.choice(ids, size=args.scenes, replace=args.scenes > len(ids))
@@ -210,21 +241,40 @@ def run_trials_bench(args) -> dict:
             cand = res.candidates["frames"]
             rand = scene.T_world_camera @ cand[np.random.default_rng(2000 + i).integers(len(cand))]
             tr = run_trials(sim, np.stack([top, rand]), args.trials, np.random.default_rng(3000 + i))
-            row = {"object_id": int(oid), "planned": True, "trials": args.trials,
-                   "top1_held": int(tr.held[0].sum()), "random_held": int(tr.held[1].sum()),
-                   "top1_firm": int(tr.firm[0].sum()), "seconds": time.perf_counter() - t}
+            row = {
+                "object_id": int(oid),
+                "planned": True,
+                "trials": args.trials,
+                "top1_held": int(tr.held[0].sum()),
+                "random_held": int(tr.held[1].sum()),
+                "top1_firm": int(tr.firm[0].sum()),
+                "seconds": time.perf_counter() - t,
+            }
             rows.append(row)
-            print(f"scene {i:2d} object {oid:3d}: top-1 held {row['top1_held']}/{args.trials}, random candidate held "
-                  f"{row['random_held']}/{args.trials}  [{row['seconds']:.1f} s]", flush=True)
+            print(
+                f"scene {i:2d} object {oid:3d}: top-1 held {row['top1_held']}/{args.trials}, random candidate held "
+                f"{row['random_held']}/{args.trials}  [{row['seconds']:.1f} s]",
+                flush=True,
+            )
     n = sum(r["trials"] for r in rows)
     top_held = sum(r["top1_held"] for r in rows)
     rand_held = sum(r["random_held"] for r in rows)
-    summary = {"scenes": len(rows), "trials_per_grasp": args.trials, "trials": n,
-               "top1_held": top_held, "random_held": rand_held,
-               "top1_success": top_held / n if n else 0.0, "random_success": rand_held / n if n else 0.0,
-               "scenes_without_grasp": int(sum(not r["planned"] for r in rows)), "seed": args.seed, "rows": rows}
-    print(f"\ntop-1 lift success {top_held}/{n} ({100 * summary['top1_success']:.1f}%), random collision-free candidate "
-          f"{rand_held}/{n} ({100 * summary['random_success']:.1f}%); scenes without a grasp count as no trials")
+    summary = {
+        "scenes": len(rows),
+        "trials_per_grasp": args.trials,
+        "trials": n,
+        "top1_held": top_held,
+        "random_held": rand_held,
+        "top1_success": top_held / n if n else 0.0,
+        "random_success": rand_held / n if n else 0.0,
+        "scenes_without_grasp": int(sum(not r["planned"] for r in rows)),
+        "seed": args.seed,
+        "rows": rows,
+    }
+    print(
+        f"\ntop-1 lift success {top_held}/{n} ({100 * summary['top1_success']:.1f}%), random collision-free candidate "
+        f"{rand_held}/{n} ({100 * summary['random_success']:.1f}%); scenes without a grasp count as no trials"
+    )
     return summary
 
 
@@ -257,8 +307,13 @@ def run_ranker(args) -> dict:
         T_wg, _, _ = align_to_table(G, omega=np.tile(2 * np.pi * np.arange(n_om) / n_om, len(g)))
         F = np.linalg.inv(scene.T_world_camera) @ T_wg
         r = grasp_rows(F, config.intrinsics)
-        keep = (F[:, 2, 2] > 0) & (r[:, 0] >= 0) & (r[:, 0] <= config.intrinsics.width - 1) & \
-               (r[:, 1] >= 0) & (r[:, 1] <= config.intrinsics.height - 1)
+        keep = (
+            (F[:, 2, 2] > 0)
+            & (r[:, 0] >= 0)
+            & (r[:, 0] <= config.intrinsics.width - 1)
+            & (r[:, 1] >= 0)
+            & (r[:, 1] <= config.intrinsics.height - 1)
+        )
         F, r = F[keep], r[keep]
         v = judge(scene, F, config, np.random.default_rng(1000 + i))
         free = ~v["collides"]
@@ -268,15 +323,32 @@ def run_ranker(args) -> dict:
             continue
         s, _ = WindowScorer(model, scene.depth.astype(np.float32)).score(r)
         top = nms(F, s, 5, params.nms_distance, params.nms_angle)
-        rows.append({"object_id": int(oid), "grasps": int(len(F)), "top1": bool(pos[top[0]]),
-                     "top5": float(pos[top].mean()), "random": float(pos.mean())})
-        print(f"scene {i:2d} object {oid:3d}: {len(F):4d} collision-free true-mesh grasps, {100 * pos.mean():5.1f}% "
-              f"positive; network top-1 {'ok ' if pos[top[0]] else 'BAD'}, top-5 {100 * pos[top].mean():5.1f}%", flush=True)
-    out = {"scenes": len(rows), "precision_at_1": float(np.mean([x["top1"] for x in rows])),
-           "precision_at_5": float(np.mean([x["top5"] for x in rows])),
-           "random": float(np.mean([x["random"] for x in rows])), "rows": rows, "seed": args.seed}
-    print(f"\nnetwork ranking of true-mesh grasps: precision@1 {100 * out['precision_at_1']:.1f}%, "
-          f"precision@5 {100 * out['precision_at_5']:.1f}%, random {100 * out['random']:.1f}%")
+        rows.append(
+            {
+                "object_id": int(oid),
+                "grasps": int(len(F)),
+                "top1": bool(pos[top[0]]),
+                "top5": float(pos[top].mean()),
+                "random": float(pos.mean()),
+            }
+        )
+        print(
+            f"scene {i:2d} object {oid:3d}: {len(F):4d} collision-free true-mesh grasps, {100 * pos.mean():5.1f}% "
+            f"positive; network top-1 {'ok ' if pos[top[0]] else 'BAD'}, top-5 {100 * pos[top].mean():5.1f}%",
+            flush=True,
+        )
+    out = {
+        "scenes": len(rows),
+        "precision_at_1": float(np.mean([x["top1"] for x in rows])),
+        "precision_at_5": float(np.mean([x["top5"] for x in rows])),
+        "random": float(np.mean([x["random"] for x in rows])),
+        "rows": rows,
+        "seed": args.seed,
+    }
+    print(
+        f"\nnetwork ranking of true-mesh grasps: precision@1 {100 * out['precision_at_1']:.1f}%, "
+        f"precision@5 {100 * out['precision_at_5']:.1f}%, random {100 * out['random']:.1f}%"
+    )
     return out
 
 
@@ -310,17 +382,27 @@ def run_timing(args) -> dict:
     c = 1e3 * np.asarray(cpu)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     out = {
-        "runs": len(t), "p50_ms": float(np.nanpercentile(t, 50)), "p99_ms": float(np.nanpercentile(t, 99)),
-        "cpu_p50_ms": float(np.percentile(c, 50)), "cpu_p99_ms": float(np.percentile(c, 99)),
-        "load_average_1min": load, "cpu_cores": os.cpu_count(),
+        "runs": len(t),
+        "p50_ms": float(np.nanpercentile(t, 50)),
+        "p99_ms": float(np.nanpercentile(t, 99)),
+        "cpu_p50_ms": float(np.percentile(c, 50)),
+        "cpu_p99_ms": float(np.percentile(c, 99)),
+        "load_average_1min": load,
+        "cpu_cores": os.cpu_count(),
         "mean_candidates": float(np.mean(counts)),
         "collision_checks": [int(np.min(checked)), int(np.median(checked)), int(np.max(checked))],
         "stage_median_ms": {k: float(1e3 * np.median(v)) for k, v in stages.items()},
-        "threads": args.threads, "model": model.version, "head": model.head_precision,
+        "threads": args.threads,
+        "model": model.version,
+        "head": model.head_precision,
     }
-    print(f"plan {out['runs']} runs on {args.scenes} scenes (300 x 300, up to 256 candidates, mean "
-          f"{out['mean_candidates']:.0f}), onnxruntime threads={args.threads}, head {model.head_precision}:")
-    print(f"  wall: p50 {out['p50_ms']:.1f} ms   p99 {out['p99_ms']:.1f} ms   (load average {load:.1f} on {os.cpu_count()} cores)")
+    print(
+        f"plan {out['runs']} runs on {args.scenes} scenes (300 x 300, up to 256 candidates, mean "
+        f"{out['mean_candidates']:.0f}), onnxruntime threads={args.threads}, head {model.head_precision}:"
+    )
+    print(
+        f"  wall: p50 {out['p50_ms']:.1f} ms   p99 {out['p99_ms']:.1f} ms   (load average {load:.1f} on {os.cpu_count()} cores)"
+    )
     print(f"  CPU time of the process (all threads): p50 {out['cpu_p50_ms']:.1f} ms   p99 {out['cpu_p99_ms']:.1f} ms")
     print("  collision checks per plan: min {} / median {} / max {}".format(*out["collision_checks"]))
     print("  stage medians (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in out["stage_median_ms"].items()))
@@ -339,8 +421,12 @@ def main(argv=None) -> int:
     ap.add_argument("--trials", type=int, default=5, help="trials: pybullet trials per grasp (with execution noise)")
     ap.add_argument("--cem", type=int, default=0, help="CEM iterations over omega (0: off)")
     ap.add_argument("--windows", choices=["cover", "grid"], default="cover")
-    ap.add_argument("--centre-offset", type=float, default=PlanParams().max_centre_offset,
-                    help="max distance (m) of the jaw line from the estimated centre of mass; <= 0: off")
+    ap.add_argument(
+        "--centre-offset",
+        type=float,
+        default=PlanParams().max_centre_offset,
+        help="max distance (m) of the jaw line from the estimated centre of mass; <= 0: off",
+    )
     ap.add_argument("--min-width", type=float, default=PlanParams().min_width, help="min contact distance (m)")
     ap.add_argument("--json", help="write the results here")
     args = ap.parse_args(argv)
@@ -348,7 +434,9 @@ def main(argv=None) -> int:
         args.centre_offset = None
     if args.scenes is None:
         args.scenes = {"timing": 4, "precision": 20, "trials": 10, "ranker": 20}[args.what]
-    run = {"timing": run_timing, "precision": run_precision, "trials": run_trials_bench, "ranker": run_ranker}[args.what]
+    run = {"timing": run_timing, "precision": run_precision, "trials": run_trials_bench, "ranker": run_ranker}[
+        args.what
+    ]
     out = run(args)
     if args.json:
         from vgq import atomic

@@ -29,8 +29,9 @@ class TablePlane:
         return np.asarray(x) @ self.normal + self.offset
 
 
-def fit_table(points: np.ndarray, rng: np.random.Generator, iterations: int = 60,
-              inlier_distance: float = 0.003) -> TablePlane | None:
+def fit_table(
+    points: np.ndarray, rng: np.random.Generator, iterations: int = 60, inlier_distance: float = 0.003
+) -> TablePlane | None:
     """The dominant plane of ``points`` (n, 3) by RANSAC: ``iterations`` three-point
     hypotheses scored at once, the best refined by a least-squares fit to its inliers.
     Pass a random subset of a large cloud (a few thousand points are plenty). None when
@@ -78,8 +79,14 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
 class GripperCollision:
     """Collision checks of the swept gripper against a table plane and observed points."""
 
-    def __init__(self, gripper: GripperGeometry, table: TablePlane | None, points: np.ndarray,
-                 table_clearance: float = 0.001, point_clearance: float = 0.001):
+    def __init__(
+        self,
+        gripper: GripperGeometry,
+        table: TablePlane | None,
+        points: np.ndarray,
+        table_clearance: float = 0.001,
+        point_clearance: float = 0.001,
+    ):
         """``points`` (m, 3): the observed points the gripper must not enter (the objects,
         not the table); a box grown by ``point_clearance`` may not hold any. The box
         corners may not reach more than ``table_clearance`` below the table."""
@@ -90,8 +97,11 @@ class GripperCollision:
         self._half_grown = self._half + float(point_clearance)
         self._corners = box_corners(self._centres, self._half)  # (24, 3) grasp frame
         c = self._centres
-        if not (np.allclose(c[0], -c[1] * [1, -1, -1]) and np.allclose(c[2, :2], 0)
-                and np.allclose(self._half[0], self._half[1])):
+        if not (
+            np.allclose(c[0], -c[1] * [1, -1, -1])
+            and np.allclose(c[2, :2], 0)
+            and np.allclose(self._half[0], self._half[1])
+        ):
             raise ValueError("GripperCollision expects two fingers mirrored in x and a centred palm")
 
     def collides_table(self, frames: np.ndarray) -> np.ndarray:
@@ -117,7 +127,6 @@ class GripperCollision:
         pz, (px, py, phz) = self._centres[2][2], self._half_grown[2]
         for s in range(0, n, chunk):
             T = frames[s : s + chunk]
-            c = len(T)
             # grasp-frame coordinates (m, c) of every point in every frame, p . r_fi - t_f . r_fi,
             # written out: a BLAS call with a 3-long inner dimension only adds thread overhead
             R = T[:, :3, :3].astype(np.float32)

@@ -29,8 +29,15 @@ def _colour(rank: int, n: int) -> tuple[int, int, int]:
     return (int(255 * t), int(200 * (1 - t)) + 40, 255 - int(200 * t))
 
 
-def overlay(depth: np.ndarray, intr: Intrinsics, grasps: tuple[PlannedGrasp, ...] | list, scale: int | None = None,
-            margin: float = 0.005, zoom_margin: int = 40, size: int = 600) -> Image.Image:
+def overlay(
+    depth: np.ndarray,
+    intr: Intrinsics,
+    grasps: tuple[PlannedGrasp, ...] | list,
+    scale: int | None = None,
+    margin: float = 0.005,
+    zoom_margin: int = 40,
+    size: int = 600,
+) -> Image.Image:
     """An RGB image with each grasp's jaw line, contacts, TCP and rank (1 = best) drawn
     over the depth image: the part of it around the grasps (``zoom_margin`` px beyond
     them; the whole image when there are none), enlarged by ``scale`` (default: to about

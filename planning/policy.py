@@ -21,8 +21,7 @@ from vgq.pose import quaternion_from_matrix
 
 from .cloud import valid_mask
 from .sampler import Candidates, analyse_scene, collision_checker, feasible_approach, frames_about_axis, sample_grasps
-from .types import MAX_K, PlanParams, PlannedGrasp, PlanningError, PlanResult
-
+from .types import MAX_K, PlannedGrasp, PlanningError, PlanParams, PlanResult
 
 # ----------------------------------------------------------------------------- inputs
 
@@ -36,8 +35,9 @@ def check_depth(depth, intr: Intrinsics) -> np.ndarray:
         raise PlanningError("depth", f"depth must be numeric, got dtype {d.dtype}")
     d = d.astype(np.float32)
     if d.shape != (intr.height, intr.width):
-        raise PlanningError("intrinsics", f"the image is {d.shape[1]}x{d.shape[0]} px but the intrinsics say "
-                                          f"{intr.width}x{intr.height}")
+        raise PlanningError(
+            "intrinsics", f"the image is {d.shape[1]}x{d.shape[0]} px but the intrinsics say {intr.width}x{intr.height}"
+        )
     if (np.isfinite(d) & (d < 0)).any():
         raise PlanningError("depth", "depth has negative pixels; depth is in metres, >= 0 (0 = no reading)")
     if not valid_mask(d).any():
@@ -45,17 +45,28 @@ def check_depth(depth, intr: Intrinsics) -> np.ndarray:
     return d
 
 
-def camera_for(shape: tuple[int, int], model: Intrinsics, fx: float | None = None, fy: float | None = None,
-               cx: float | None = None, cy: float | None = None) -> Intrinsics:
+def camera_for(
+    shape: tuple[int, int],
+    model: Intrinsics,
+    fx: float | None = None,
+    fy: float | None = None,
+    cx: float | None = None,
+    cy: float | None = None,
+) -> Intrinsics:
     """The intrinsics (pixels) of an (H, W) image: each value given, else the model's focal
     lengths and, when the image has the model's size, its principal point, otherwise the
     image centre. PlanningError ``intrinsics`` for values no camera has."""
     h, w = shape
     same = (h, w) == (model.height, model.width)
     try:
-        return Intrinsics(fx=model.fx if fx is None else fx, fy=model.fy if fy is None else fy,
-                          cx=cx if cx is not None else (model.cx if same else (w - 1) / 2),
-                          cy=cy if cy is not None else (model.cy if same else (h - 1) / 2), width=w, height=h)
+        return Intrinsics(
+            fx=model.fx if fx is None else fx,
+            fy=model.fy if fy is None else fy,
+            cx=cx if cx is not None else (model.cx if same else (w - 1) / 2),
+            cy=cy if cy is not None else (model.cy if same else (h - 1) / 2),
+            width=w,
+            height=h,
+        )
     except ValueError as e:
         raise PlanningError("intrinsics", str(e)) from None
 
@@ -235,8 +246,17 @@ def nms(frames: np.ndarray, scores: np.ndarray, k: int, distance: float, angle: 
     return np.asarray(kept, dtype=np.int64)
 
 
-def cem_refine(cands: Candidates, scores: np.ndarray, missing: np.ndarray, scorer: WindowScorer, scene, checker,
-               params: PlanParams, rng: np.random.Generator, intr: Intrinsics):
+def cem_refine(
+    cands: Candidates,
+    scores: np.ndarray,
+    missing: np.ndarray,
+    scorer: WindowScorer,
+    scene,
+    checker,
+    params: PlanParams,
+    rng: np.random.Generator,
+    intr: Intrinsics,
+):
     """Cross-entropy refinement of the approach (rotation omega about the jaw axis, which
     keeps the contacts): each iteration draws ``cem_samples`` rotations of the
     ``cem_elites`` best grasps from N(0, sigma) (sigma the spread of the elites' last
@@ -278,8 +298,15 @@ def z_training_range(model) -> tuple[float, float]:
 # ----------------------------------------------------------------------------- plan
 
 
-def plan(depth, intrinsics: Intrinsics | None, model, k: int = 5, roi=None, seed: int | None = 0,
-         params: PlanParams | None = None) -> PlanResult:
+def plan(
+    depth,
+    intrinsics: Intrinsics | None,
+    model,
+    k: int = 5,
+    roi=None,
+    seed: int | None = 0,
+    params: PlanParams | None = None,
+) -> PlanResult:
     """The best ``k`` distinct grasps on ``depth`` (H, W, metres, 0 = no reading) taken with
     ``intrinsics`` (None: the model's camera), scored by ``model`` (a
     :class:`service.runtime.FastModel`); ``roi`` a box (u0, v0, u1, v1) or (H, W) mask of
@@ -324,9 +351,13 @@ def plan(depth, intrinsics: Intrinsics | None, model, k: int = 5, roi=None, seed
     counts.update(c)
     seconds["sample"] = time.perf_counter() - t
     if len(cands) == 0:
-        reason = ("no antipodal contact pair within the jaw opening and friction cone" if c["pairs"] == 0 else
-                  "no feasible approach (every one from under the table or behind the object)" if c["approaches"] == 0
-                  else "every candidate grasp collides with the table or the observed points")
+        reason = (
+            "no antipodal contact pair within the jaw opening and friction cone"
+            if c["pairs"] == 0
+            else "no feasible approach (every one from under the table or behind the object)"
+            if c["approaches"] == 0
+            else "every candidate grasp collides with the table or the observed points"
+        )
         return PlanResult((), reason, counts, seconds, version)
 
     scorer = WindowScorer(model, d_model, params.windows)
@@ -348,9 +379,16 @@ def plan(depth, intrinsics: Intrinsics | None, model, k: int = 5, roi=None, seed
     uv = map_pixels(rows[:, :2], intr, cam) if intr is not cam else rows[:, :2]
     grasps = tuple(
         PlannedGrasp(
-            u=float(uv[i, 0]), v=float(uv[i, 1]), z=float(rows[i, 2]), q=tuple(float(x) for x in rows[i, 3:7]),
-            pose=top.frames[i].copy(), width=float(top.widths[i]), contacts=top.contacts[i].copy(),
-            score=float(scores[keep[i]]), ood_flags=int(flags[i]), ood=tuple(flag_names(int(flags[i]))),
+            u=float(uv[i, 0]),
+            v=float(uv[i, 1]),
+            z=float(rows[i, 2]),
+            q=tuple(float(x) for x in rows[i, 3:7]),
+            pose=top.frames[i].copy(),
+            width=float(top.widths[i]),
+            contacts=top.contacts[i].copy(),
+            score=float(scores[keep[i]]),
+            ood_flags=int(flags[i]),
+            ood=tuple(flag_names(int(flags[i]))),
         )
         for i in range(len(keep))
     )

@@ -69,23 +69,24 @@ class Candidates:
     def __len__(self) -> int:
         return len(self.frames)
 
-    def __getitem__(self, idx) -> "Candidates":
+    def __getitem__(self, idx) -> Candidates:
         return Candidates(self.frames[idx], self.contacts[idx], self.widths[idx], self.seen[idx])
 
     @classmethod
-    def empty(cls) -> "Candidates":
+    def empty(cls) -> Candidates:
         return cls(np.zeros((0, 4, 4)), np.zeros((0, 2, 3)), np.zeros(0), np.zeros(0, bool))
 
     @classmethod
-    def concat(cls, parts: list["Candidates"]) -> "Candidates":
+    def concat(cls, parts: list[Candidates]) -> Candidates:
         parts = [p for p in parts if len(p)]
         if not parts:
             return cls.empty()
         return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("frames", "contacts", "widths", "seen")))
 
 
-def analyse_scene(depth: np.ndarray, intr: Intrinsics, params: PlanParams, rng: np.random.Generator,
-                  roi: np.ndarray | None = None) -> Scene:
+def analyse_scene(
+    depth: np.ndarray, intr: Intrinsics, params: PlanParams, rng: np.random.Generator, roi: np.ndarray | None = None
+) -> Scene:
     """Points, normals, table and object mask of ``depth`` (H, W, metres) seen with ``intr``;
     ``roi`` (H, W) bool restricts the objects (None: the whole image). Normals are computed
     only around the objects."""
@@ -185,7 +186,9 @@ def sample_contact_pairs(scene: Scene, n_seeds: int, params: PlanParams, rng: np
     d = scene.depth[rows, cols]
     tol = params.surface_tolerance
     occupied = inside & (d > 0) & (x[..., 2] >= d - tol)
-    below = (scene.table.height(x) < -params.table_inlier_distance) if scene.table is not None else np.zeros_like(occupied)
+    below = (
+        (scene.table.height(x) < -params.table_inlier_distance) if scene.table is not None else np.zeros_like(occupied)
+    )
     free = ~occupied
     has_exit = free.any(axis=1)
     e = np.argmax(free, axis=1)  # first free step
@@ -273,8 +276,9 @@ def collision_checker(scene: Scene, params: PlanParams, rng: np.random.Generator
     return GripperCollision(params.gripper, scene.table, pts, params.table_clearance, params.point_clearance)
 
 
-def sample_grasps(scene: Scene, params: PlanParams, rng: np.random.Generator,
-                  checker: GripperCollision) -> tuple[Candidates, dict]:
+def sample_grasps(
+    scene: Scene, params: PlanParams, rng: np.random.Generator, checker: GripperCollision
+) -> tuple[Candidates, dict]:
     """Up to ``params.num_candidates`` collision-free candidates and the counts of each
     stage (``pairs``, ``approaches``, ``checked``, ``collision_free``)."""
     counts = {"pairs": 0, "approaches": 0, "checked": 0, "collision_free": 0}

@@ -85,8 +85,17 @@ class PlanParams:
     gripper: GripperGeometry = field(default_factory=GripperGeometry)
 
     def __post_init__(self) -> None:
-        for name in ("num_candidates", "max_seeds", "max_rounds", "num_approaches", "ransac_iterations",
-                     "ransac_points", "max_collision_points", "cem_samples", "cem_elites"):
+        for name in (
+            "num_candidates",
+            "max_seeds",
+            "max_rounds",
+            "num_approaches",
+            "ransac_iterations",
+            "ransac_points",
+            "max_collision_points",
+            "cem_samples",
+            "cem_elites",
+        ):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"PlanParams.{name} must be >= 1, got {getattr(self, name)}")
         if self.cem_iterations < 0:
@@ -132,12 +141,17 @@ class PlannedGrasp:
 
     def to_dict(self) -> dict:
         return {
-            "u": self.u, "v": self.v, "z": self.z, "q": list(self.q),
+            "u": self.u,
+            "v": self.v,
+            "z": self.z,
+            "q": list(self.q),
             "row": [float(x) for x in self.row],
             "pose": np.asarray(self.pose, dtype=float).round(9).tolist(),
             "width": self.width,
             "contacts": np.asarray(self.contacts, dtype=float).round(9).tolist(),
-            "score": self.score, "ood_flags": self.ood_flags, "ood": list(self.ood),
+            "score": self.score,
+            "ood_flags": self.ood_flags,
+            "ood": list(self.ood),
         }
 
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Run the whole test suite. Installs everything (service, datagen, training, test extras) into
-# .venv on first use. Extra arguments go to pytest, e.g. -k service.
+# Run the whole test suite, after ruff's lint and format check. Installs everything (service,
+# datagen, training, test extras) into .venv on first use. Extra arguments go to pytest, e.g. -k service.
 #
 # torch: on a machine without an NVIDIA GPU the CPU-only build is installed from torch's CPU
 # wheel index (no NVIDIA CUDA wheels). If that index cannot be reached within a few seconds,
@@ -55,5 +55,10 @@ if [ ! -x .venv/bin/pytest ] || [ pyproject.toml -nt .venv/.installed ]; then
   install_torch
   .venv/bin/pip install -q --disable-pip-version-check -e ".[all]"
   touch .venv/.installed
+fi
+# lint and format check first (ruff, configured in pyproject.toml); VGQ_LINT=0 skips it
+if [ "${VGQ_LINT:-1}" != 0 ]; then
+  .venv/bin/ruff check --quiet . && .venv/bin/ruff format --check --quiet . \
+    || { echo "ruff: fix the above (ruff check --fix . && ruff format .), or VGQ_LINT=0 to skip" >&2; exit 1; }
 fi
 exec .venv/bin/python -m pytest "$@"

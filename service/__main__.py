@@ -24,10 +24,20 @@ def main(argv=None) -> None:
     s: Settings = parse_args(argv)
     HeaderTimeoutProtocol.configure(s)
     if not os.path.isdir(s.model_dir):
-        print(f"vgq-serve: model folder {s.model_dir!r} does not exist (set --model-dir or VGQ_MODEL_DIR)", file=sys.stderr)
+        print(
+            f"vgq-serve: model folder {s.model_dir!r} does not exist (set --model-dir or VGQ_MODEL_DIR)",
+            file=sys.stderr,
+        )
         sys.exit(2)
-    common = dict(host=s.host, port=s.port, log_level=s.log_level, access_log=False, loop="uvloop", http=HTTP,
-                  timeout_keep_alive=30)
+    common = dict(
+        host=s.host,
+        port=s.port,
+        log_level=s.log_level,
+        access_log=False,
+        loop="uvloop",
+        http=HTTP,
+        timeout_keep_alive=30,
+    )
     if s.workers > 1:
         # each worker builds its own app from the environment: pass the settings through it
         for k, v in vars(s).items():

@@ -87,7 +87,10 @@ def _openapi_with_security(app: FastAPI, api_key: bool):
             spec = base()
             if api_key:
                 spec.setdefault("components", {}).setdefault("securitySchemes", {})["ApiKey"] = {
-                    "type": "apiKey", "in": "header", "name": "X-API-Key"}
+                    "type": "apiKey",
+                    "in": "header",
+                    "name": "X-API-Key",
+                }
                 for path in GUARDED:
                     spec["paths"][path]["post"]["security"] = [{"ApiKey": []}]
             app.openapi_schema = spec
@@ -96,7 +99,9 @@ def _openapi_with_security(app: FastAPI, api_key: bool):
     return openapi
 
 
-def create_app(settings: Settings | None = None, model: FastModel | None = None, cache=None, load_in_background: bool = True) -> FastAPI:
+def create_app(
+    settings: Settings | None = None, model: FastModel | None = None, cache=None, load_in_background: bool = True
+) -> FastAPI:
     settings = settings or Settings()
     svc = Service(settings, model, cache)
 
@@ -109,10 +114,18 @@ def create_app(settings: Settings | None = None, model: FastModel | None = None,
         yield
 
     # Swagger UI and ReDoc from the fastapi-offline package's files: /docs works without a CDN
-    app = FastAPIOffline(title="VGQ-CNN grasp quality service", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
+    app = FastAPIOffline(
+        title="VGQ-CNN grasp quality service", version="0.1.0", description=DESCRIPTION, lifespan=lifespan
+    )
     app.state.service = svc
-    app.add_middleware(LimitsMiddleware, metrics=svc.metrics, log=svc.log, access_log=settings.access_log,
-                       max_inflight=settings.max_inflight, max_buffered_bytes=settings.max_buffered_bytes)
+    app.add_middleware(
+        LimitsMiddleware,
+        metrics=svc.metrics,
+        log=svc.log,
+        access_log=settings.access_log,
+        max_inflight=settings.max_inflight,
+        max_buffered_bytes=settings.max_buffered_bytes,
+    )
     add_error_handlers(app, svc.log)
     app.include_router(router)
     app.include_router(plan_router)

@@ -21,8 +21,11 @@ class ClientGone(ApiError):
 
 
 def _over_budget(n: int) -> ApiError:
-    return ApiError(503, f"the service holds its limit of request bodies in memory; {n} more bytes do not fit, "
-                         "retry shortly", headers={"retry-after": str(RETRY_AFTER_S), **CLOSE})
+    return ApiError(
+        503,
+        f"the service holds its limit of request bodies in memory; {n} more bytes do not fit, retry shortly",
+        headers={"retry-after": str(RETRY_AFTER_S), **CLOSE},
+    )
 
 
 async def _read(request: Request, limit: int, length: int | None, reservation):
@@ -31,7 +34,7 @@ async def _read(request: Request, limit: int, length: int | None, reservation):
         async for c in request.stream():
             if pos + len(c) > length:
                 raise ApiError(400, "request body longer than its Content-Length", headers=CLOSE)
-            buf[pos:pos + len(c)] = c
+            buf[pos : pos + len(c)] = c
             pos += len(c)
         if pos != length:
             raise ClientGone()
@@ -56,7 +59,9 @@ async def read_body(request: Request, max_body_bytes: int, timeout_s: float) -> 
             raise ApiError(400, "invalid Content-Length header", headers=CLOSE)
         length = int(cl)
         if length > max_body_bytes:
-            raise ApiError(413, f"request body of {length} bytes exceeds the limit of {max_body_bytes} bytes", headers=CLOSE)
+            raise ApiError(
+                413, f"request body of {length} bytes exceeds the limit of {max_body_bytes} bytes", headers=CLOSE
+            )
     reservation = request.scope.get("vgq.reservation")
     if length and reservation is not None and not reservation.take(length):
         raise _over_budget(length)

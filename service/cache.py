@@ -145,6 +145,16 @@ class MemoryCache:
     def stats(self) -> dict:
         with self._lock:
             windows = sum(len(e.windows) for e in self._d.values())
-        return {"backend": self.backend, "entries": len(self._d), "bytes": self.bytes, "max_entries": self.max_entries,
-                "max_bytes": self.max_bytes, "hits": self.hits, "misses": self.misses, "evictions": self.evictions,
-                "windows": windows, "windows_encoded": self.windows_encoded, "windows_fetched": self.windows_fetched}
+        return {
+            "backend": self.backend,
+            "entries": len(self._d),
+            "bytes": self.bytes,
+            "max_entries": self.max_entries,
+            "max_bytes": self.max_bytes,
+            "hits": self.hits,
+            "misses": self.misses,
+            "evictions": self.evictions,
+            "windows": windows,
+            "windows_encoded": self.windows_encoded,
+            "windows_fetched": self.windows_fetched,
+        }

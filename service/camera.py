@@ -43,8 +43,9 @@ def focal_range(model: Intrinsics) -> dict:
     return {"fx": [model.fx / hi, model.fx / lo], "fy": [model.fy / hi, model.fy / lo]}
 
 
-def to_model_camera(depth: np.ndarray, camera: Intrinsics, model: Intrinsics, max_side: int,
-                    assumed: tuple[str, ...] = ()) -> tuple[np.ndarray, Intrinsics]:
+def to_model_camera(
+    depth: np.ndarray, camera: Intrinsics, model: Intrinsics, max_side: int, assumed: tuple[str, ...] = ()
+) -> tuple[np.ndarray, Intrinsics]:
     """(depth at the model's focal lengths, its intrinsics); 422 naming the field the model
     cannot serve (focal length outside the range, principal point outside the image) or when
     the resampled image would exceed ``max_side``."""
@@ -52,8 +53,12 @@ def to_model_camera(depth: np.ndarray, camera: Intrinsics, model: Intrinsics, ma
         sx, sy = check_client_intrinsics(camera, model)
         dst = resampled_intrinsics(camera, sx, sy)
         if max(dst.width, dst.height) > max_side:
-            raise ApiError(422, f"the image resampled to the model's focal length would be {dst.width}x{dst.height} px, "
-                                f"over max_image_side {max_side}; send a smaller image", {"field": "fx"})
+            raise ApiError(
+                422,
+                f"the image resampled to the model's focal length would be {dst.width}x{dst.height} px, "
+                f"over max_image_side {max_side}; send a smaller image",
+                {"field": "fx"},
+            )
         return resample_depth(depth, camera, model)
     except CameraMismatch as e:
         field, note = e.field, ""

@@ -104,8 +104,9 @@ class ServiceClient:
         anywhere, windows placed by the service)."""
         params = {} if center is None else {"center_u": center[0], "center_v": center[1]}
         params.update(intrinsics_params(intrinsics))
-        r = self.http.post("/v1/images", content=self._npy(depth), params=params,
-                           headers={"content-type": "application/x-npy"})
+        r = self.http.post(
+            "/v1/images", content=self._npy(depth), params=params, headers={"content-type": "application/x-npy"}
+        )
         self._raise(r)
         self.last_upload = r.json()
         return self.last_upload["image_id"]
@@ -119,8 +120,12 @@ class ServiceClient:
         p_success. ``last_ood_count``: how many were flagged (``score_details`` says why);
         ``strict``: a flagged grasp raises ServiceError 422."""
         body = np.ascontiguousarray(grasps, dtype="<f4").tobytes()
-        r = self.http.post(f"/v1/images/{image_id}/scores", content=body, params=self._strict(strict),
-                           headers={"content-type": "application/octet-stream", "accept": "application/octet-stream"})
+        r = self.http.post(
+            f"/v1/images/{image_id}/scores",
+            content=body,
+            params=self._strict(strict),
+            headers={"content-type": "application/octet-stream", "accept": "application/octet-stream"},
+        )
         self._raise(r)
         self.last_ood_count = int(r.headers.get("x-ood-count", 0))
         return np.frombuffer(r.content, dtype="<f4").copy()
@@ -130,8 +135,12 @@ class ServiceClient:
         ``calibrated``), ``raw_score`` (the network's output), ``ood`` (flag names per grasp),
         ``ood_mask`` (bits), ``windows``, ``windows_encoded``; arrays as numpy."""
         body = np.ascontiguousarray(grasps, dtype="<f4").tobytes()
-        r = self.http.post(f"/v1/images/{image_id}/scores", content=body, params=self._strict(strict),
-                           headers={"content-type": "application/octet-stream"})
+        r = self.http.post(
+            f"/v1/images/{image_id}/scores",
+            content=body,
+            params=self._strict(strict),
+            headers={"content-type": "application/octet-stream"},
+        )
         self._raise(r)
         return self._details(r.json())
 
@@ -142,8 +151,15 @@ class ServiceClient:
         d["ood_mask"] = np.asarray(d["ood_mask"], np.uint8)
         return d
 
-    def score_once(self, depth: np.ndarray, grasps: np.ndarray, center: tuple[float, float] | None = None,
-                   intrinsics=None, strict: bool = False, details: bool = False):
+    def score_once(
+        self,
+        depth: np.ndarray,
+        grasps: np.ndarray,
+        center: tuple[float, float] | None = None,
+        intrinsics=None,
+        strict: bool = False,
+        details: bool = False,
+    ):
         """Upload + score in one request (fills the service's cache too): (k,) float32 p_success,
         or the whole answer (see ``score_details``) with ``details=True``."""
         arrays = {"depth": np.asarray(depth, np.float32), "grasps": np.asarray(grasps, np.float32)}
@@ -157,8 +173,12 @@ class ServiceClient:
         buf = io.BytesIO()
         np.savez(buf, **arrays)
         accept = {} if details else {"accept": "application/octet-stream"}
-        r = self.http.post("/v1/score", content=buf.getvalue(), params=self._strict(strict),
-                           headers={"content-type": "application/x-npz", **accept})
+        r = self.http.post(
+            "/v1/score",
+            content=buf.getvalue(),
+            params=self._strict(strict),
+            headers={"content-type": "application/x-npz", **accept},
+        )
         self._raise(r)
         if details:
             return self._details(r.json())
@@ -178,7 +198,9 @@ class ServiceClient:
                 params[name] = repr(float(v))
         if roi is not None:
             params["roi"] = ",".join(repr(float(x)) for x in roi)
-        r = self.http.post("/v1/plan", content=self._npy(depth), params=params, headers={"content-type": "application/x-npy"})
+        r = self.http.post(
+            "/v1/plan", content=self._npy(depth), params=params, headers={"content-type": "application/x-npy"}
+        )
         self._raise(r)
         d = r.json()
         return Plan(d["grasps"], d["reason"], d["intrinsics"], d["model_version"], d.get("seconds", {}), d)

@@ -43,19 +43,35 @@ class Settings:
     access_log: bool = False  # one structured line per request
 
     def __post_init__(self) -> None:
-        for name, lo in (("port", 0), ("workers", 1), ("threads", 0), ("max_grasps", 1), ("max_body_bytes", 1024),
-                         ("max_buffered_bytes", 1024), ("max_inflight", 1), ("max_header_bytes", 1024), ("max_headers", 8),
-                         ("max_url_bytes", 256), ("max_image_side", 32), ("cache_entries", 1), ("cache_bytes", 4096)):
+        for name, lo in (
+            ("port", 0),
+            ("workers", 1),
+            ("threads", 0),
+            ("max_grasps", 1),
+            ("max_body_bytes", 1024),
+            ("max_buffered_bytes", 1024),
+            ("max_inflight", 1),
+            ("max_header_bytes", 1024),
+            ("max_headers", 8),
+            ("max_url_bytes", 256),
+            ("max_image_side", 32),
+            ("cache_entries", 1),
+            ("cache_bytes", 4096),
+        ):
             v = getattr(self, name)
             if not isinstance(v, int) or v < lo:
                 raise ValueError(f"setting {name} must be an integer >= {lo}, got {v!r}")
         if self.max_buffered_bytes < self.max_body_bytes:
-            raise ValueError(f"setting max_buffered_bytes ({self.max_buffered_bytes}) must be >= max_body_bytes "
-                             f"({self.max_body_bytes}): one largest body must fit")
+            raise ValueError(
+                f"setting max_buffered_bytes ({self.max_buffered_bytes}) must be >= max_body_bytes "
+                f"({self.max_body_bytes}): one largest body must fit"
+            )
         if self.head_precision not in HEAD_PRECISIONS:
             raise ValueError(f"setting head_precision must be one of {HEAD_PRECISIONS}, got {self.head_precision!r}")
         if self.encoder_precision not in ENCODER_PRECISIONS:
-            raise ValueError(f"setting encoder_precision must be one of {ENCODER_PRECISIONS}, got {self.encoder_precision!r}")
+            raise ValueError(
+                f"setting encoder_precision must be one of {ENCODER_PRECISIONS}, got {self.encoder_precision!r}"
+            )
         if self.cache_backend not in ("memory", "redis"):
             raise ValueError(f"setting cache_backend must be 'memory' or 'redis', got {self.cache_backend!r}")
         if self.cache_backend == "redis" and not self.redis_url.startswith(("redis://", "rediss://", "unix://")):
@@ -100,14 +116,18 @@ def from_env(environ=os.environ, **overrides) -> Settings:
 
 def parse_args(argv=None) -> Settings:
     """CLI flags (``--model-dir``, ``--port``, ...) over environment over defaults."""
-    p = argparse.ArgumentParser(prog="vgq-serve", description="Serve grasp-quality scores over HTTP (Fast-VGQ-CNN on onnxruntime).")
+    p = argparse.ArgumentParser(
+        prog="vgq-serve", description="Serve grasp-quality scores over HTTP (Fast-VGQ-CNN on onnxruntime)."
+    )
     for f in fields(Settings):
         flag = "--" + f.name.replace("_", "-")
         if f.type in (bool, "bool"):
             p.add_argument(flag, dest=f.name, default=None, action=argparse.BooleanOptionalAction)
         else:
             typ = {"int": int, "float": float}.get(f.type if isinstance(f.type, str) else f.type.__name__, str)
-            p.add_argument(flag, dest=f.name, type=typ, default=None, help=f"env VGQ_{f.name.upper()} (default {f.default!r})")
+            p.add_argument(
+                flag, dest=f.name, type=typ, default=None, help=f"env VGQ_{f.name.upper()} (default {f.default!r})"
+            )
     args = p.parse_args(argv)
     try:
         return from_env(**vars(args))

@@ -56,7 +56,9 @@ def npy_header(body: bytes, what: str) -> tuple[tuple[int, ...], bool, np.dtype,
             raise ValueError(f"unsupported .npy version {version}")
     except Exception as e:
         raise ApiError(422, f"{what} is not a valid .npy file: {e}") from None
-    if not isinstance(shape, tuple) or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape):
+    if not isinstance(shape, tuple) or not all(
+        isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape
+    ):
         raise ApiError(422, f"{what} .npy declares shape {shape}; dimensions must be non-negative integers")
     if dtype.hasobject or dtype.kind != "f" or dtype.itemsize not in (4, 8):
         raise ApiError(422, f"{what} .npy has dtype {dtype}; expected float32 or float64")
@@ -66,8 +68,11 @@ def npy_header(body: bytes, what: str) -> tuple[tuple[int, ...], bool, np.dtype,
 def _from_buffer(body: bytes, what: str, shape, fortran: bool, dtype, start: int) -> np.ndarray:
     n = math.prod(shape)
     if len(body) - start != n * dtype.itemsize:
-        raise ApiError(422, f"{what} .npy holds {len(body) - start} data bytes, header promises {n * dtype.itemsize} "
-                            "(truncated or padded)")
+        raise ApiError(
+            422,
+            f"{what} .npy holds {len(body) - start} data bytes, header promises {n * dtype.itemsize} "
+            "(truncated or padded)",
+        )
     a = np.frombuffer(body, dtype=dtype, count=n, offset=start)
     return a.reshape(shape[::-1]).T if fortran else a.reshape(shape)
 
@@ -103,8 +108,11 @@ def _decode_png(body: bytes, min_side: int, max_side: int) -> np.ndarray:
     h, w, bits, colour = png_header(body)
     _check_size(h, w, min_side, max_side)
     if bits != 16 or colour != 0:
-        raise ApiError(422, f"depth PNG is {bits}-bit {_PNG_COLOUR.get(colour, f'colour type {colour}')}; "
-                            "expected 16-bit grayscale in millimetres")
+        raise ApiError(
+            422,
+            f"depth PNG is {bits}-bit {_PNG_COLOUR.get(colour, f'colour type {colour}')}; "
+            "expected 16-bit grayscale in millimetres",
+        )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
@@ -143,8 +151,15 @@ def validate_depth(a: np.ndarray) -> np.ndarray:
     return a
 
 
-def decode_depth(body: bytes, content_type: str, *, width: int | None = None, height: int | None = None,
-                 min_side: int = 32, max_side: int = 4096) -> np.ndarray:
+def decode_depth(
+    body: bytes,
+    content_type: str,
+    *,
+    width: int | None = None,
+    height: int | None = None,
+    min_side: int = 32,
+    max_side: int = 4096,
+) -> np.ndarray:
     """Decode and validate a depth upload. Raises ApiError (415 or 422) naming the problem."""
     ct = media_type(content_type)
     if not body:
@@ -180,8 +195,9 @@ def parse_npy(body: bytes, what: str, max_elements: int) -> np.ndarray:
 NPZ_MAX_MEMBERS = 8
 
 
-def read_npz(body: bytes, max_total_bytes: int, names: tuple[str, ...] | None = None,
-             max_members: int = NPZ_MAX_MEMBERS) -> dict[str, bytes]:
+def read_npz(
+    body: bytes, max_total_bytes: int, names: tuple[str, ...] | None = None, max_members: int = NPZ_MAX_MEMBERS
+) -> dict[str, bytes]:
     """Members of an .npz (zip of .npy) as raw .npy bytes (only ``names`` if given).
 
     Zip bombs are refused before anything is decompressed: at most ``max_members`` members,
@@ -199,8 +215,11 @@ def read_npz(body: bytes, max_total_bytes: int, names: tuple[str, ...] | None = 
     for info in wanted:
         total += info.file_size
         if info.file_size > max_total_bytes or total > max_total_bytes:
-            raise ApiError(413, f".npz member {_npz_name(info)!r} unpacks to {info.file_size} bytes "
-                                f"({total} in all); limit {max_total_bytes}")
+            raise ApiError(
+                413,
+                f".npz member {_npz_name(info)!r} unpacks to {info.file_size} bytes "
+                f"({total} in all); limit {max_total_bytes}",
+            )
     out = {}
     for info in wanted:
         name = _npz_name(info)
@@ -234,7 +253,7 @@ class BufferReader(io.RawIOBase):
 
     def readinto(self, b) -> int:
         n = max(0, min(len(b), len(self.view) - self.pos))
-        b[:n] = self.view[self.pos:self.pos + n]
+        b[:n] = self.view[self.pos : self.pos + n]
         self.pos += n
         return n
 

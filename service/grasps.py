@@ -36,7 +36,8 @@ def parse_json(body: bytes | bytearray | memoryview | str, syntax_status: int = 
             raise ApiError(422, 'grasp objects need keys "u", "v", "z" and "q" (a list of 4: w, x, y, z)') from None
     raw = body.encode() if isinstance(body, str) else body
     if (b"true" in raw or b"false" in raw) and any(
-            type(x) is bool for row in rows if isinstance(row, list) for x in row):
+        type(x) is bool for row in rows if isinstance(row, list) for x in row
+    ):
         raise ApiError(422, ROWS_MESSAGE + " (true / false are not numbers)")
     try:
         a = np.array(rows, dtype=np.float64)

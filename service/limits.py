@@ -33,8 +33,12 @@ def worst_case_rss_bytes(settings, ready_rss_bytes: int) -> int:
     """Upper bound on the service's resident memory: its size once ready (model, sessions,
     empty cache), plus a full cache, plus every buffered body at its worst amplification, plus
     the per-request buffers of ``max_inflight`` requests."""
-    return int(ready_rss_bytes + settings.cache_bytes + BODY_AMPLIFICATION * settings.max_buffered_bytes
-               + settings.max_inflight * (PER_REQUEST_BYTES + settings.max_header_bytes))
+    return int(
+        ready_rss_bytes
+        + settings.cache_bytes
+        + BODY_AMPLIFICATION * settings.max_buffered_bytes
+        + settings.max_inflight * (PER_REQUEST_BYTES + settings.max_header_bytes)
+    )
 
 
 EXEMPT = frozenset({"/healthz", "/readyz", "/metrics"})
@@ -78,15 +82,32 @@ class Reservation:
 def _endpoint(path: str) -> str:
     if path.startswith("/v1/images/") and path.endswith("/scores"):
         return "score"
-    return {"/v1/images": "upload", "/v1/score": "score_once", "/metrics": "metrics", "/healthz": "healthz",
-            "/readyz": "readyz", "/v1/model": "model", "/v1/cache": "cache", "/v1/plan": "plan"}.get(path, "other")
+    return {
+        "/v1/images": "upload",
+        "/v1/score": "score_once",
+        "/metrics": "metrics",
+        "/healthz": "healthz",
+        "/readyz": "readyz",
+        "/v1/model": "model",
+        "/v1/cache": "cache",
+        "/v1/plan": "plan",
+    }.get(path, "other")
 
 
 async def _send_overloaded(send, message: str) -> None:
     body = orjson.dumps({"error": {"status": 503, "message": message}})
-    await send({"type": "http.response.start", "status": 503, "headers": [
-        (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-        (b"retry-after", str(RETRY_AFTER_S).encode()), (b"connection", b"close")]})
+    await send(
+        {
+            "type": "http.response.start",
+            "status": 503,
+            "headers": [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(body)).encode()),
+                (b"retry-after", str(RETRY_AFTER_S).encode()),
+                (b"connection", b"close"),
+            ],
+        }
+    )
     await send({"type": "http.response.body", "body": body})
 
 
@@ -94,7 +115,9 @@ class LimitsMiddleware:
     """Pure ASGI middleware: the in-flight bound, the byte budget's per-request reservation,
     request counts and latency per endpoint and status, and the optional access log."""
 
-    def __init__(self, app, metrics: Metrics, log: logging.Logger, access_log: bool, max_inflight: int, max_buffered_bytes: int):
+    def __init__(
+        self, app, metrics: Metrics, log: logging.Logger, access_log: bool, max_inflight: int, max_buffered_bytes: int
+    ):
         self.app, self.metrics, self.log, self.access_log = app, metrics, log, access_log
         self.max_inflight, self.inflight = max_inflight, 0
         self.budget = ByteBudget(max_buffered_bytes)
@@ -116,7 +139,9 @@ class LimitsMiddleware:
         counted = False
         try:
             if not exempt and self.inflight >= self.max_inflight:
-                await _send_overloaded(send_status, f"{self.inflight} requests in flight (limit {self.max_inflight}); retry shortly")
+                await _send_overloaded(
+                    send_status, f"{self.inflight} requests in flight (limit {self.max_inflight}); retry shortly"
+                )
             else:
                 counted = not exempt
                 self.inflight += counted
@@ -129,6 +154,15 @@ class LimitsMiddleware:
             self.metrics.latency.labels(ep).observe(dt)
             self.metrics.requests.labels(ep, str(status[0])).inc()
             if status[0] == CLIENT_GONE:
-                logs.event(self.log, "client disconnected", method=scope["method"], path=scope["path"], ms=round(dt * 1e3, 3))
+                logs.event(
+                    self.log, "client disconnected", method=scope["method"], path=scope["path"], ms=round(dt * 1e3, 3)
+                )
             elif self.access_log:
-                logs.event(self.log, "request", method=scope["method"], path=scope["path"], status=status[0], ms=round(dt * 1e3, 3))
+                logs.event(
+                    self.log,
+                    "request",
+                    method=scope["method"],
+                    path=scope["path"],
+                    status=status[0],
+                    ms=round(dt * 1e3, 3),
+                )

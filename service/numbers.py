@@ -79,19 +79,36 @@ class Number:
         return s
 
     def query_parameter(self) -> dict:
-        return {"name": self.name, "in": "query", "required": False, "schema": self.schema(), "description": self.description}
+        return {
+            "name": self.name,
+            "in": "query",
+            "required": False,
+            "schema": self.schema(),
+            "description": self.description,
+        }
 
 
-CENTER_U = Number("center_u", "crop window centre, column (image px, u); default: the image centre; must lie in the image",
-                  minimum=0.0)
-CENTER_V = Number("center_v", "crop window centre, row (image px, v); default: the image centre; must lie in the image",
-                  minimum=0.0)
+CENTER_U = Number(
+    "center_u",
+    "crop window centre, column (image px, u); default: the image centre; must lie in the image",
+    minimum=0.0,
+)
+CENTER_V = Number(
+    "center_v", "crop window centre, row (image px, v); default: the image centre; must lie in the image", minimum=0.0
+)
 WIDTH = Number("width", "image width (px), raw float32 bodies only", integer=True, minimum=1)
 HEIGHT = Number("height", "image height (px), raw float32 bodies only", integer=True, minimum=1)
-FX = Number("fx", "the camera's focal length along u (px); the image is resampled to the model's (range: GET /v1/model, "
-                 "camera.focal_range_px); default: the model's", exclusive_minimum=0.0)
-FY = Number("fy", "the camera's focal length along v (px); default: fx when fx is given, else the model's",
-            exclusive_minimum=0.0)
+FX = Number(
+    "fx",
+    "the camera's focal length along u (px); the image is resampled to the model's (range: GET /v1/model, "
+    "camera.focal_range_px); default: the model's",
+    exclusive_minimum=0.0,
+)
+FY = Number(
+    "fy",
+    "the camera's focal length along v (px); default: fx when fx is given, else the model's",
+    exclusive_minimum=0.0,
+)
 CX = Number("cx", "the camera's principal point, column (image px); must lie in the image; default: the image centre")
 CY = Number("cy", "the camera's principal point, row (image px); must lie in the image; default: the image centre")
 INTRINSICS = (FX, FY, CX, CY)

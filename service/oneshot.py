@@ -55,8 +55,13 @@ class OneShot:
     def decode(self, max_side: int) -> np.ndarray:
         if self.depth is not None:
             return self.depth
-        return decode_depth(self.depth_body, self.depth_type, width=self.numbers["width"], height=self.numbers["height"],
-                            max_side=max_side)
+        return decode_depth(
+            self.depth_body,
+            self.depth_type,
+            width=self.numbers["width"],
+            height=self.numbers["height"],
+            max_side=max_side,
+        )
 
 
 @dataclass
@@ -71,7 +76,7 @@ class _Part:
     def data(self, body) -> bytes | memoryview:
         if self.chunks is not None:
             return b"".join(self.chunks)
-        return memoryview(body)[self.start:self.end] if self.start >= 0 else b""
+        return memoryview(body)[self.start : self.end] if self.start >= 0 else b""
 
 
 def split_multipart(body, content_type_header: str) -> dict[str, _Part]:
@@ -116,7 +121,7 @@ def split_multipart(body, content_type_header: str) -> dict[str, _Part]:
             part.end = end
             return
         if part.chunks is None:  # data from the parser's look-behind buffer: fall back to copies
-            part.chunks = [bytes(memoryview(body)[part.start:part.end])] if part.start >= 0 else []
+            part.chunks = [bytes(memoryview(body)[part.start : part.end])] if part.start >= 0 else []
         part.chunks.append(bytes(data[start:end]))
 
     def on_part_end():
@@ -128,9 +133,18 @@ def split_multipart(body, content_type_header: str) -> dict[str, _Part]:
         state["ended"] = True
 
     try:
-        parser = MultipartParser(boundary, {
-            "on_part_begin": on_part_begin, "on_header_field": on_header_field, "on_header_value": on_header_value,
-            "on_header_end": on_header_end, "on_part_data": on_part_data, "on_part_end": on_part_end, "on_end": on_end})
+        parser = MultipartParser(
+            boundary,
+            {
+                "on_part_begin": on_part_begin,
+                "on_header_field": on_header_field,
+                "on_header_value": on_header_value,
+                "on_header_end": on_header_end,
+                "on_part_data": on_part_data,
+                "on_part_end": on_part_end,
+                "on_end": on_end,
+            },
+        )
         parser.write(body)
         parser.finalize()
     except ApiError:
@@ -158,9 +172,13 @@ def parse_multipart(body, content_type_header: str) -> OneShot:
         grasps_array = parse_binary(g)
     else:
         if len(g) == 0:
-            raise ApiError(422, 'multipart part "grasps" is empty; expected JSON {"grasps": [[u, v, z, qw, qx, qy, qz], ...]}')
+            raise ApiError(
+                422, 'multipart part "grasps" is empty; expected JSON {"grasps": [[u, v, z, qw, qx, qy, qz], ...]}'
+            )
         grasps_array = parse_json(g, syntax_status=422)  # a field's value, not the body's syntax
-    fields = {name: _text(p, body) for name, p in parts.items() if p.filename is None and name not in ("depth", "grasps")}
+    fields = {
+        name: _text(p, body) for name, p in parts.items() if p.filename is None and name not in ("depth", "grasps")
+    }
     return OneShot(depth.data(body), depth.content_type, grasps_array, parse_all(ONE_SHOT_NUMBERS, fields))
 
 

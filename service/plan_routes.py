@@ -36,25 +36,46 @@ MAX_CEM = 10
 K = Number("k", f"grasps to return, best first (1 to {MAX_K})", integer=True, minimum=1, maximum=MAX_K)
 FX = Number("fx", "the camera's focal length along u (px); default: the model's", exclusive_minimum=0.0)
 FY = Number("fy", "the camera's focal length along v (px); default: the model's", exclusive_minimum=0.0)
-CX = Number("cx", "principal point, column (px); default: the model's for an image of its size, else the image centre",
-            minimum=0.0)
-CY = Number("cy", "principal point, row (px); default: the model's for an image of its size, else the image centre",
-            minimum=0.0)
-SEED = Number("seed", "sampling seed: the same image, parameters and seed plan the same grasps (default 0)",
-              integer=True, minimum=0)
-CEM = Number("cem", f"cross-entropy refinement iterations of the approach angle (0 to {MAX_CEM}, default 0)",
-             integer=True, minimum=0, maximum=MAX_CEM)
-ROI = tuple(Number(f"roi[{i}]", f"region of interest {name} (px)", minimum=0.0)
-            for i, name in enumerate(("u0", "v0", "u1", "v1")))
+CX = Number(
+    "cx",
+    "principal point, column (px); default: the model's for an image of its size, else the image centre",
+    minimum=0.0,
+)
+CY = Number(
+    "cy", "principal point, row (px); default: the model's for an image of its size, else the image centre", minimum=0.0
+)
+SEED = Number(
+    "seed",
+    "sampling seed: the same image, parameters and seed plan the same grasps (default 0)",
+    integer=True,
+    minimum=0,
+)
+CEM = Number(
+    "cem",
+    f"cross-entropy refinement iterations of the approach angle (0 to {MAX_CEM}, default 0)",
+    integer=True,
+    minimum=0,
+    maximum=MAX_CEM,
+)
+ROI = tuple(
+    Number(f"roi[{i}]", f"region of interest {name} (px)", minimum=0.0)
+    for i, name in enumerate(("u0", "v0", "u1", "v1"))
+)
 PLAN_NUMBERS = (K, FX, FY, CX, CY, SEED, CEM, WIDTH, HEIGHT)
 
 
 def roi_parameter() -> dict:
     """The ``roi`` query parameter: ``u0,v0,u1,v1`` (an OpenAPI array, form style, not exploded)."""
-    return {"name": "roi", "in": "query", "required": False, "style": "form", "explode": False,
-            "description": "region of interest u0,v0,u1,v1 (px, inclusive corners, clipped to the image); "
-                           "grasps lie in it. Default: the whole image",
-            "schema": {"type": "array", "items": ROI[0].schema() | {"description": "px"}, "minItems": 4, "maxItems": 4}}
+    return {
+        "name": "roi",
+        "in": "query",
+        "required": False,
+        "style": "form",
+        "explode": False,
+        "description": "region of interest u0,v0,u1,v1 (px, inclusive corners, clipped to the image); "
+        "grasps lie in it. Default: the whole image",
+        "schema": {"type": "array", "items": ROI[0].schema() | {"description": "px"}, "minItems": 4, "maxItems": 4},
+    }
 
 
 def parse_roi(raw: str | None) -> tuple[float, float, float, float] | None:
@@ -63,8 +84,9 @@ def parse_roi(raw: str | None) -> tuple[float, float, float, float] | None:
         return None
     parts = raw.split(",")
     if len(parts) != 4:
-        raise ApiError(422, f"field roi must be four numbers u0,v0,u1,v1 (px), got {len(parts)} value(s)",
-                       {"field": "roi"})
+        raise ApiError(
+            422, f"field roi must be four numbers u0,v0,u1,v1 (px), got {len(parts)} value(s)", {"field": "roi"}
+        )
     values = []
     for number, part in zip(ROI, parts):
         v = number.parse(part)
@@ -78,9 +100,12 @@ def plan_parameters() -> list[dict]:
     return [n.query_parameter() for n in PLAN_NUMBERS] + [roi_parameter()]
 
 
-@router.post("/v1/plan", summary="Plan the best k grasps on a depth image",
-             openapi_extra={"requestBody": doc.PLAN_BODY, "parameters": plan_parameters()},
-             responses={200: doc.PLAN_RESPONSE, **doc.errors(doc.PLAN_ERRORS)})
+@router.post(
+    "/v1/plan",
+    summary="Plan the best k grasps on a depth image",
+    openapi_extra={"requestBody": doc.PLAN_BODY, "parameters": plan_parameters()},
+    responses={200: doc.PLAN_RESPONSE, **doc.errors(doc.PLAN_ERRORS)},
+)
 async def plan_grasps(request: Request, svc: Authorized):
     """Body: the depth image (metres, 0 = no reading) as for ``POST /v1/images``. Query: ``k``,
     the camera (``fx``, ``fy``, ``cx``, ``cy``; each defaults to the model's), ``roi``, ``seed``,
@@ -94,8 +119,11 @@ async def plan_grasps(request: Request, svc: Authorized):
     body = await read_body(request, s.max_body_bytes, s.request_timeout_s)
     ct = media_type(request.headers.get("content-type"))
     if ct == JSON:
-        raise ApiError(415, "POST /v1/plan takes the depth image itself (one of "
-                            f"{', '.join(DEPTH_TYPES)}); planning on an uploaded image's id is not offered")
+        raise ApiError(
+            415,
+            "POST /v1/plan takes the depth image itself (one of "
+            f"{', '.join(DEPTH_TYPES)}); planning on an uploaded image's id is not offered",
+        )
     depth = decode_depth(body, ct, width=n["width"], height=n["height"], max_side=s.max_image_side)
     k = 5 if n["k"] is None else n["k"]
     seed = 0 if n["seed"] is None else n["seed"]
@@ -106,5 +134,6 @@ async def plan_grasps(request: Request, svc: Authorized):
     except PlanningError as e:
         raise ApiError(422, f"{e.field}: {e}", {"field": e.field}) from None
     svc.metrics.observe_plan(result.seconds.get("total", 0.0), len(result.grasps))
-    return json_response({**result.to_dict(), "k": k, "seed": seed, "cem": params.cem_iterations,
-                          "intrinsics": intr.to_dict()})
+    return json_response(
+        {**result.to_dict(), "k": k, "seed": seed, "cem": params.cem_iterations, "intrinsics": intr.to_dict()}
+    )

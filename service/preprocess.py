@@ -31,10 +31,16 @@ def window_input(depth: np.ndarray, origin_uv, geom: CropGeometry, max_missing_f
     try:
         image, center, frac = crop_filled(depth, (ou, ov), geom)
     except NoValidDepth:
-        raise ApiError(422, f"{where} has no valid depth pixel (all 0 = no reading, also within {MARGIN_PX} px around it)",
-                       {"missing_fraction": 1.0}) from None
+        raise ApiError(
+            422,
+            f"{where} has no valid depth pixel (all 0 = no reading, also within {MARGIN_PX} px around it)",
+            {"missing_fraction": 1.0},
+        ) from None
     if frac > max_missing_fraction:
-        raise ApiError(422, f"{100 * frac:.1f}% of {where} has no depth reading (0); at most "
-                            f"{100 * max_missing_fraction:g}% may be missing (setting max_missing_fraction)",
-                       {"missing_fraction": frac})
+        raise ApiError(
+            422,
+            f"{100 * frac:.1f}% of {where} has no depth reading (0); at most "
+            f"{100 * max_missing_fraction:g}% may be missing (setting max_missing_fraction)",
+            {"missing_fraction": frac},
+        )
     return WindowInput(image, center, frac)

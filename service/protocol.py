@@ -33,8 +33,9 @@ HTTP = "service.protocol:HeaderTimeoutProtocol"
 def error_response(status: int, message: str) -> bytes:
     """A whole HTTP/1.1 response with the service's JSON error body; closes the connection."""
     body = orjson.dumps({"error": {"status": status, "message": message}})
-    return (STATUS_LINE[status] + b"content-type: application/json\r\nconnection: close\r\n"
-            b"content-length: %d\r\n\r\n%s" % (len(body), body))
+    return STATUS_LINE[
+        status
+    ] + b"content-type: application/json\r\nconnection: close\r\ncontent-length: %d\r\n\r\n%s" % (len(body), body)
 
 
 class _Refused(Exception):

@@ -49,9 +49,13 @@ def window_key(prefix: str, key: str, origin) -> str:
 def pack_entry(entry: CachedImage) -> bytes:
     """Bytes of an image entry (without its windows): JSON metadata (shape, intrinsics, window
     mode) + the zlib-compressed little-endian float32 depth image at the model's focal length."""
-    meta = {"shape": list(entry.depth.shape), "camera": entry.camera.to_dict(), "resampled": entry.resampled.to_dict(),
-            "assumed": list(entry.assumed),
-            "fixed_center": None if entry.fixed_center is None else [float(x) for x in entry.fixed_center]}
+    meta = {
+        "shape": list(entry.depth.shape),
+        "camera": entry.camera.to_dict(),
+        "resampled": entry.resampled.to_dict(),
+        "assumed": list(entry.assumed),
+        "fixed_center": None if entry.fixed_center is None else [float(x) for x in entry.fixed_center],
+    }
     m = orjson.dumps(meta)
     depth = zlib.compress(np.ascontiguousarray(entry.depth, dtype="<f4").tobytes(), 1)
     return _HEADER.pack(MAGIC, len(m)) + m + depth
@@ -65,15 +69,20 @@ def unpack_entry(data: bytes) -> CachedImage:
     if magic != MAGIC or len(data) < _HEADER.size + n:
         raise ValueError("cache entry has a wrong magic or length")
     try:
-        meta = orjson.loads(data[_HEADER.size:_HEADER.size + n])
+        meta = orjson.loads(data[_HEADER.size : _HEADER.size + n])
         h, w = (int(x) for x in meta["shape"])
-        raw = zlib.decompress(data[_HEADER.size + n:])
+        raw = zlib.decompress(data[_HEADER.size + n :])
         if len(raw) != 4 * h * w:
             raise ValueError("depth has a wrong length")
         depth = np.frombuffer(raw, dtype="<f4").astype(np.float32).reshape(h, w)
         fc = meta["fixed_center"]
-        return CachedImage(depth, Intrinsics.from_dict(meta["camera"]), Intrinsics.from_dict(meta["resampled"]),
-                           tuple(meta["assumed"]), None if fc is None else np.array(fc, dtype=np.float64))
+        return CachedImage(
+            depth,
+            Intrinsics.from_dict(meta["camera"]),
+            Intrinsics.from_dict(meta["resampled"]),
+            tuple(meta["assumed"]),
+            None if fc is None else np.array(fc, dtype=np.float64),
+        )
     except (orjson.JSONDecodeError, zlib.error, KeyError, TypeError) as e:
         raise ValueError(f"cache entry is corrupt: {e}") from None
 
@@ -107,8 +116,18 @@ class RedisCache:
 
     backend = "redis"
 
-    def __init__(self, url: str, max_entries: int, max_bytes: int, log: logging.Logger | None = None, *,
-                 ttl_s: float = 24 * 3600, timeout_s: float = 0.5, retry_s: float = 1.0, prefix: str = KEY_PREFIX):
+    def __init__(
+        self,
+        url: str,
+        max_entries: int,
+        max_bytes: int,
+        log: logging.Logger | None = None,
+        *,
+        ttl_s: float = 24 * 3600,
+        timeout_s: float = 0.5,
+        retry_s: float = 1.0,
+        prefix: str = KEY_PREFIX,
+    ):
         import redis  # the [service] extra; imported here so the memory backend never needs it
         from redis.backoff import NoBackoff
         from redis.retry import Retry
@@ -119,8 +138,13 @@ class RedisCache:
         self.prefix = prefix
         self.log = log or logging.getLogger("vgq.service")
         self.local = MemoryCache(max_entries, max_bytes)
-        self.redis = redis.Redis.from_url(url, socket_timeout=timeout_s, socket_connect_timeout=timeout_s,
-                                          health_check_interval=30, retry=Retry(NoBackoff(), 1))  # 1 quick reconnect
+        self.redis = redis.Redis.from_url(
+            url,
+            socket_timeout=timeout_s,
+            socket_connect_timeout=timeout_s,
+            health_check_interval=30,
+            retry=Retry(NoBackoff(), 1),
+        )  # 1 quick reconnect
         self._redis_errors = (redis.RedisError, OSError)
         self._lock = threading.Lock()
         self.hits = self.misses = self.errors = 0
@@ -148,8 +172,13 @@ class RedisCache:
                 try:
                     e = unpack_entry(data)
                 except ValueError as err:
-                    logs.event(self.log, "cache entry in redis is corrupt; treated as a miss", logging.WARNING,
-                               key=key, error=str(err))
+                    logs.event(
+                        self.log,
+                        "cache entry in redis is corrupt; treated as a miss",
+                        logging.WARNING,
+                        key=key,
+                        error=str(err),
+                    )
                 else:
                     self.local.put(key, e)
         with self._lock:
@@ -181,7 +210,13 @@ class RedisCache:
             try:
                 found[o] = unpack_window(data)
             except ValueError as err:
-                logs.event(self.log, "window entry in redis is corrupt; encoded again", logging.WARNING, key=key, error=str(err))
+                logs.event(
+                    self.log,
+                    "window entry in redis is corrupt; encoded again",
+                    logging.WARNING,
+                    key=key,
+                    error=str(err),
+                )
         if found:
             self.local.add_windows(key, entry, found)
             with self._lock:
@@ -203,8 +238,15 @@ class RedisCache:
 
     def stats(self) -> dict:
         s = self.local.stats()
-        s.update(backend=self.backend, hits=self.hits, misses=self.misses, errors=self.errors, available=self.available,
-                 redis_url=redacted(self.url), ttl_s=self.ttl_ms / 1000)
+        s.update(
+            backend=self.backend,
+            hits=self.hits,
+            misses=self.misses,
+            errors=self.errors,
+            available=self.available,
+            redis_url=redacted(self.url),
+            ttl_s=self.ttl_ms / 1000,
+        )
         return s
 
     # ---- Redis calls that never raise ---------------------------------------------------------------------
@@ -221,9 +263,15 @@ class RedisCache:
                 was_up, self.available = self.available, False
                 self._down_until = time.monotonic() + self.retry_s
             if was_up:
-                logs.event(self.log, "redis cache unavailable: serving from the local cache only; ids not held here "
-                                     "answer 404 (upload again)", logging.ERROR, op=op, redis_url=redacted(self.url),
-                           error=repr(e))
+                logs.event(
+                    self.log,
+                    "redis cache unavailable: serving from the local cache only; ids not held here "
+                    "answer 404 (upload again)",
+                    logging.ERROR,
+                    op=op,
+                    redis_url=redacted(self.url),
+                    error=repr(e),
+                )
             return None
         if not self.available:
             with self._lock:

@@ -34,7 +34,9 @@ router = APIRouter()
 
 
 def json_response(obj, status: int = 200, headers: dict | None = None) -> Response:
-    return Response(orjson.dumps(obj, option=orjson.OPT_SERIALIZE_NUMPY), status_code=status, media_type=JSON, headers=headers)
+    return Response(
+        orjson.dumps(obj, option=orjson.OPT_SERIALIZE_NUMPY), status_code=status, media_type=JSON, headers=headers
+    )
 
 
 def service_of(request: Request) -> Service:
@@ -49,8 +51,11 @@ async def authorized(request: Request) -> Service:
     if key and not hmac.compare_digest(request.headers.get("x-api-key", "").encode(), key.encode()):
         raise ApiError(401, "missing or wrong API key (header X-API-Key)")
     if not svc.ready:
-        raise ApiError(503, "model not ready" + (f": {svc.load_error}" if svc.load_error else "; retry shortly"),
-                       headers={"retry-after": "1"})
+        raise ApiError(
+            503,
+            "model not ready" + (f": {svc.load_error}" if svc.load_error else "; retry shortly"),
+            headers={"retry-after": "1"},
+        )
     return svc
 
 
@@ -62,9 +67,16 @@ def _scores_response(request: Request, svc: Service, payload: dict, s: Scores) -
     application/octet-stream``, little-endian float32 ``p_success`` (k,) with the rest in headers:
     ``x-calibrated``, ``x-ood-count`` (grasps with a flag; their flags need the JSON answer)."""
     if accepts(request.headers.get("accept"), OCTET):
-        return Response(s.p_success.astype("<f4").tobytes(), media_type=OCTET, headers={
-            "x-image-id": payload["image_id"], "x-calibrated": str(svc.calibration is not None).lower(),
-            "x-ood-count": str(int(np.count_nonzero(s.ood_mask))), "x-windows-encoded": str(s.windows_encoded)})
+        return Response(
+            s.p_success.astype("<f4").tobytes(),
+            media_type=OCTET,
+            headers={
+                "x-image-id": payload["image_id"],
+                "x-calibrated": str(svc.calibration is not None).lower(),
+                "x-ood-count": str(int(np.count_nonzero(s.ood_mask))),
+                "x-windows-encoded": str(s.windows_encoded),
+            },
+        )
     payload.update(svc.scores_info(s))
     return json_response(payload)
 
@@ -84,53 +96,95 @@ async def healthz():
     return json_response({"status": "alive"})
 
 
-@router.get("/readyz", summary="Readiness: the model is loaded and warmed up",
-            responses={200: doc.STATUS_RESPONSE, 503: doc.NOT_READY, **doc.errors(doc.PROTOCOL)})
+@router.get(
+    "/readyz",
+    summary="Readiness: the model is loaded and warmed up",
+    responses={200: doc.STATUS_RESPONSE, 503: doc.NOT_READY, **doc.errors(doc.PROTOCOL)},
+)
 async def readyz(request: Request):
     svc = service_of(request)
     if svc.ready:
         return json_response({"status": "ready", "model_version": svc.model.version})
-    return json_response(redact_paths({"status": "loading" if svc.load_error is None else "failed", "error": svc.load_error}), 503)
+    return json_response(
+        redact_paths({"status": "loading" if svc.load_error is None else "failed", "error": svc.load_error}), 503
+    )
 
 
-@router.get("/v1/model", summary="Model card and service limits",
-            responses={200: doc.MODEL_RESPONSE, **doc.errors(doc.PROTOCOL + (503,))})
+@router.get(
+    "/v1/model",
+    summary="Model card and service limits",
+    responses={200: doc.MODEL_RESPONSE, **doc.errors(doc.PROTOCOL + (503,))},
+)
 async def model_info(request: Request):
     svc = service_of(request)
     if not svc.ready:
         raise ApiError(503, "model not ready", headers={"retry-after": "1"})
     s = svc.settings
-    limits = {name: getattr(s, name) for name in ("max_grasps", "max_body_bytes", "max_buffered_bytes", "max_inflight",
-                                                   "max_image_side", "max_header_bytes", "max_headers", "max_url_bytes",
-                                                   "request_timeout_s")}
+    limits = {
+        name: getattr(s, name)
+        for name in (
+            "max_grasps",
+            "max_body_bytes",
+            "max_buffered_bytes",
+            "max_inflight",
+            "max_image_side",
+            "max_header_bytes",
+            "max_headers",
+            "max_url_bytes",
+            "request_timeout_s",
+        )
+    }
     card = svc.model.card
     lo, hi = svc.z_range
-    return json_response(redact_paths({
-        "model_card": card.to_dict(), "head_precision": svc.model.head_precision, "encoder": svc.model.encoder_info,
-        "limits": limits,
-        "depth_content_types": list(DEPTH_TYPES),
-        "camera": {"intrinsics": card.intrinsics.to_dict(), "focal_range_px": focal_range(card.intrinsics),
-                   "focal_ratio_range": list(FOCAL_RATIO_RANGE)},
-        "calibrated": svc.calibration is not None, "calibration": card.calibration or None,
-        "ood": {"flags": {str(bit): name for bit, name in OOD_FLAGS.items()}, "z_range": [lo, hi],
-                "z_range_source": svc.z_range_source, "window_missing_fraction": s.ood_window_missing}}))
+    return json_response(
+        redact_paths(
+            {
+                "model_card": card.to_dict(),
+                "head_precision": svc.model.head_precision,
+                "encoder": svc.model.encoder_info,
+                "limits": limits,
+                "depth_content_types": list(DEPTH_TYPES),
+                "camera": {
+                    "intrinsics": card.intrinsics.to_dict(),
+                    "focal_range_px": focal_range(card.intrinsics),
+                    "focal_ratio_range": list(FOCAL_RATIO_RANGE),
+                },
+                "calibrated": svc.calibration is not None,
+                "calibration": card.calibration or None,
+                "ood": {
+                    "flags": {str(bit): name for bit, name in OOD_FLAGS.items()},
+                    "z_range": [lo, hi],
+                    "z_range_source": svc.z_range_source,
+                    "window_missing_fraction": s.ood_window_missing,
+                },
+            }
+        )
+    )
 
 
-@router.get("/v1/cache", summary="Image cache statistics", responses={200: doc.CACHE_RESPONSE, **doc.errors(doc.PROTOCOL)})
+@router.get(
+    "/v1/cache", summary="Image cache statistics", responses={200: doc.CACHE_RESPONSE, **doc.errors(doc.PROTOCOL)}
+)
 async def cache_stats(request: Request):
     return json_response(redact_paths(service_of(request).cache.stats()))
 
 
-@router.get("/metrics", summary="Prometheus metrics",
-            responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}, **doc.errors(doc.PROTOCOL)})
+@router.get(
+    "/metrics",
+    summary="Prometheus metrics",
+    responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}, **doc.errors(doc.PROTOCOL)},
+)
 async def metrics(request: Request):
     return Response(service_of(request).metrics.render(), media_type="text/plain; version=0.0.4")
 
 
 # ---- guarded routes -----------------------------------------------------------------------------
-@router.post("/v1/images", summary="Upload a depth image: crop, encode once, cache",
-             openapi_extra={"requestBody": doc.UPLOAD_BODY, "parameters": [n.query_parameter() for n in UPLOAD_NUMBERS]},
-             responses={200: doc.UPLOAD_RESPONSE, **doc.errors(doc.BODY_ERRORS)})
+@router.post(
+    "/v1/images",
+    summary="Upload a depth image: crop, encode once, cache",
+    openapi_extra={"requestBody": doc.UPLOAD_BODY, "parameters": [n.query_parameter() for n in UPLOAD_NUMBERS]},
+    responses={200: doc.UPLOAD_RESPONSE, **doc.errors(doc.BODY_ERRORS)},
+)
 async def upload(request: Request, svc: Authorized):
     """Body: the depth image (see the content types). ``fx``, ``fy``, ``cx``, ``cy``: the camera's
     intrinsics (px); the image is resampled to the model's focal length (omitted: the model's are
@@ -152,8 +206,12 @@ async def upload(request: Request, svc: Authorized):
     return json_response(svc.image_info(key, entry, False))
 
 
-@router.post("/v1/images/{image_id}/scores", summary="Score k grasps against an uploaded image",
-             openapi_extra={"requestBody": doc.SCORE_BODY, "parameters": [doc.STRICT]}, responses={200: doc.SCORE_RESPONSE, **doc.errors(doc.BODY_ERRORS)})
+@router.post(
+    "/v1/images/{image_id}/scores",
+    summary="Score k grasps against an uploaded image",
+    openapi_extra={"requestBody": doc.SCORE_BODY, "parameters": [doc.STRICT]},
+    responses={200: doc.SCORE_RESPONSE, **doc.errors(doc.BODY_ERRORS)},
+)
 async def score(image_id: str, request: Request, svc: Authorized):
     """Body: JSON ``{"grasps": [[u, v, z, qw, qx, qy, qz], ...]}`` or little-endian float32 k x 7
     (``application/octet-stream``), u, v in the uploaded image's pixels. Returns per grasp, in the
@@ -173,12 +231,17 @@ async def score(image_id: str, request: Request, svc: Authorized):
     else:
         raise ApiError(415, f"unsupported grasp content type {ct!r}; use {JSON} or {OCTET}")
     result = svc.score(image_id, entry, grasps, strict)
-    return _scores_response(request, svc, {"image_id": image_id, "model_version": svc.model.version,
-                                           **svc.camera_info(entry)}, result)
+    return _scores_response(
+        request, svc, {"image_id": image_id, "model_version": svc.model.version, **svc.camera_info(entry)}, result
+    )
 
 
-@router.post("/v1/score", summary="One-shot: upload + score in one request (fills the cache)",
-             openapi_extra={"requestBody": doc.ONE_SHOT_BODY, "parameters": [doc.STRICT]}, responses={200: doc.SCORE_RESPONSE, **doc.errors(doc.BODY_ERRORS)})
+@router.post(
+    "/v1/score",
+    summary="One-shot: upload + score in one request (fills the cache)",
+    openapi_extra={"requestBody": doc.ONE_SHOT_BODY, "parameters": [doc.STRICT]},
+    responses={200: doc.SCORE_RESPONSE, **doc.errors(doc.BODY_ERRORS)},
+)
 async def score_once(request: Request, svc: Authorized):
     """``multipart/form-data`` with parts ``depth`` (a file: .npy, 16-bit PNG, or raw float32 with
     ``width``/``height`` fields) and ``grasps`` (JSON text or a float32 k x 7 file), optional fields
@@ -205,5 +268,9 @@ async def score_once(request: Request, svc: Authorized):
         svc.place(entry, shot.grasps)  # a bad batch costs no inference and fills no cache
         svc.put(key, entry)
     result = svc.score(key, entry, shot.grasps, strict)
-    return _scores_response(request, svc, {"image_id": key, "cached": cached, "model_version": svc.model.version,
-                                           **svc.camera_info(entry)}, result)
+    return _scores_response(
+        request,
+        svc,
+        {"image_id": key, "cached": cached, "model_version": svc.model.version, **svc.camera_info(entry)},
+        result,
+    )

@@ -36,8 +36,14 @@ def session_options(threads: int) -> ort.SessionOptions:
 class FastModel:
     """Fast-VGQ-CNN: ``encode`` (1 crop -> 1024 image term) and ``score`` (k poses)."""
 
-    def __init__(self, model_dir: str | Path, threads: int = 1, head_precision: str = "auto", encoder_precision: str = "auto",
-                 select_s: float = 0.3):
+    def __init__(
+        self,
+        model_dir: str | Path,
+        threads: int = 1,
+        head_precision: str = "auto",
+        encoder_precision: str = "auto",
+        select_s: float = 0.3,
+    ):
         """``head_precision``: ``fp32``, ``int8`` (the card's checked ``head_int8`` graph, see
         export/quantize.py) or ``auto`` (int8 when the model folder has one).
         ``encoder_precision``: ``fp32``, ``int8`` (the card's checked ``encoder_int8`` graph, see
@@ -54,20 +60,28 @@ class FastModel:
             raise ModelError(f"head_precision must be one of {HEAD_PRECISIONS}, got {head_precision!r}")
         has_int8 = "head_int8" in self.card.files
         if head_precision == "int8" and not has_int8:
-            raise ModelError(f"{model_dir}: head_precision int8 asked for, but the model has no int8 head "
-                             "(export it with --int8-head)")
+            raise ModelError(
+                f"{model_dir}: head_precision int8 asked for, but the model has no int8 head "
+                "(export it with --int8-head)"
+            )
         self.head_precision = "int8" if has_int8 and head_precision != "fp32" else "fp32"
         head_file = self.card.files["head_int8" if self.head_precision == "int8" else "head"]
         if encoder_precision not in ENCODER_PRECISIONS:
             raise ModelError(f"encoder_precision must be one of {ENCODER_PRECISIONS}, got {encoder_precision!r}")
         available = [p for p, role in ENCODER_FILES.items() if role in self.card.files]
         if encoder_precision != "auto" and encoder_precision not in available:
-            raise ModelError(f"{model_dir}: encoder_precision {encoder_precision} asked for, but the model has no such encoder "
-                             "(export it with python -m export.int8_encoder)")
+            raise ModelError(
+                f"{model_dir}: encoder_precision {encoder_precision} asked for, but the model has no such encoder "
+                "(export it with python -m export.int8_encoder)"
+            )
         so = session_options(threads)
         try:
-            encoders = {p: ort.InferenceSession(str(model_dir / self.card.files[ENCODER_FILES[p]]), so, providers=["CPUExecutionProvider"])
-                        for p in (available if encoder_precision == "auto" else [encoder_precision])}
+            encoders = {
+                p: ort.InferenceSession(
+                    str(model_dir / self.card.files[ENCODER_FILES[p]]), so, providers=["CPUExecutionProvider"]
+                )
+                for p in (available if encoder_precision == "auto" else [encoder_precision])
+            }
             self.head = ort.InferenceSession(str(model_dir / head_file), so, providers=["CPUExecutionProvider"])
         except Exception as e:  # onnxruntime raises its own exception types
             raise ModelError(f"cannot open ONNX graphs in {model_dir}: {e}") from e
@@ -76,8 +90,13 @@ class FastModel:
         self.encoder_precision = min(timings, key=timings.get) if timings else next(iter(encoders))
         self.encoder = encoders[self.encoder_precision]  # the others are dropped
         #: how the encoder was chosen: reported by /v1/model and the start-up log
-        self.encoder_info = {"precision": self.encoder_precision, "requested": encoder_precision, "available": available,
-                             "median_ms": {p: round(t * 1e3, 4) for p, t in timings.items()}, "threads": threads}
+        self.encoder_info = {
+            "precision": self.encoder_precision,
+            "requested": encoder_precision,
+            "available": available,
+            "median_ms": {p: round(t * 1e3, 4) for p, t in timings.items()},
+            "threads": threads,
+        }
         self.version = self.card.model_version
         self.n_pose = len(self.card.normalization.pose_columns)
         self.encode_seconds = 0.0

@@ -86,9 +86,12 @@ class Service:
         """Load (unless given) and warm up the model; then mark ready."""
         try:
             if self.model is None:
-                self.model = FastModel(self.settings.model_dir, threads=self.settings.ort_threads,
-                                       head_precision=self.settings.head_precision,
-                                       encoder_precision=self.settings.encoder_precision)
+                self.model = FastModel(
+                    self.settings.model_dir,
+                    threads=self.settings.ort_threads,
+                    head_precision=self.settings.head_precision,
+                    encoder_precision=self.settings.encoder_precision,
+                )
             self.calibration = self.model.card.calibrator()
             self.z_range, self.z_range_source = training_z_range(self.model.card)
             self.model.warm_up()
@@ -96,9 +99,16 @@ class Service:
             gc.freeze()  # start-up objects out of the collector's way: no GC pauses on them later
             self.ready = True
             self.metrics.ready.set(1)
-            logs.event(self.log, "ready", model_version=self.model.version, head=self.model.head_precision,
-                       encoder=self.model.encoder_info, threads=self.settings.ort_threads, cache=self.cache.backend,
-                       calibrated=self.calibration is not None)
+            logs.event(
+                self.log,
+                "ready",
+                model_version=self.model.version,
+                head=self.model.head_precision,
+                encoder=self.model.encoder_info,
+                threads=self.settings.ort_threads,
+                cache=self.cache.backend,
+                calibrated=self.calibration is not None,
+            )
         except Exception as e:  # reported by /readyz and the log; the process stays up for diagnosis
             self.load_error = str(e)
             logs.event(self.log, "model load failed", logging.ERROR, error=str(e))
@@ -115,8 +125,11 @@ class Service:
             cu = (w - 1) / 2 if cu is None else cu
             cv = (h - 1) / 2 if cv is None else cv
             if not (0 <= cu <= w - 1 and 0 <= cv <= h - 1):
-                raise ApiError(422, f"window centre ({cu}, {cv}) must lie inside the {h}x{w} image "
-                                    f"(u in [0, {w - 1}], v in [0, {h - 1}])")
+                raise ApiError(
+                    422,
+                    f"window centre ({cu}, {cv}) must lie inside the {h}x{w} image "
+                    f"(u in [0, {w - 1}], v in [0, {h - 1}])",
+                )
         resampled_depth, resampled = to_model_camera(depth, camera, model, self.settings.max_image_side, assumed)
         entry = CachedImage(resampled_depth, camera, resampled, assumed)
         if cu is not None:
@@ -154,17 +167,24 @@ class Service:
                 sx, sy = entry.scale
                 c = map_pixels(entry.fixed_center[None], entry.resampled, entry.camera)[0]
                 ru, rv = geom.kappa_px / sx, geom.kappa_px / sy
-                raise ApiError(422, f"{int(bad.sum())} grasps lie outside the window the model was trained for: u in "
-                                    f"[{c[0] - ru:g}, {c[0] + ru:g}], v in [{c[1] - rv:g}, {c[1] + rv:g}] (image px); upload "
-                                    "without center_u / center_v to have windows placed for every grasp",
-                               {"grasps": np.flatnonzero(bad)[:20].tolist()})
+                raise ApiError(
+                    422,
+                    f"{int(bad.sum())} grasps lie outside the window the model was trained for: u in "
+                    f"[{c[0] - ru:g}, {c[0] + ru:g}], v in [{c[1] - rv:g}, {c[1] + rv:g}] (image px); upload "
+                    "without center_u / center_v to have windows placed for every grasp",
+                    {"grasps": np.flatnonzero(bad)[:20].tolist()},
+                )
         else:
             h, w = entry.image_shape
             u, v = g[:, 0], g[:, 1]
             bad = finite & ~((u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5))
             if bad.any():
-                raise ApiError(422, f"{int(bad.sum())} grasps lie outside the {h}x{w} image (u in [-0.5, {w - 0.5}], "
-                                    f"v in [-0.5, {h - 0.5}] px)", {"grasps": np.flatnonzero(bad)[:20].tolist()})
+                raise ApiError(
+                    422,
+                    f"{int(bad.sum())} grasps lie outside the {h}x{w} image (u in [-0.5, {w - 0.5}], "
+                    f"v in [-0.5, {h - 0.5}] px)",
+                    {"grasps": np.flatnonzero(bad)[:20].tolist()},
+                )
             centres = grid_window_centers(safe, entry.depth.shape, geom)
         mapped = g.copy()
         mapped[:, :2] = uv
@@ -193,7 +213,7 @@ class Service:
         terms = self.model.encode(np.stack(crops))
         self.metrics.encoder.observe(self.model.encode_seconds)
         self.metrics.windows_encoded.inc(len(origins))
-        return {o: EncodedWindow(terms[i:i + 1].copy(), m) for i, (o, m) in enumerate(zip(origins, missing))}
+        return {o: EncodedWindow(terms[i : i + 1].copy(), m) for i, (o, m) in enumerate(zip(origins, missing))}
 
     def score(self, key: str, entry: CachedImage, grasps: np.ndarray, strict: bool = False) -> Scores:
         rows, origins, uv = self.place(entry, grasps)
@@ -208,17 +228,24 @@ class Service:
             new = [o for o in new if o not in entry.windows]
         # flags before any encoding: a strict request that fails costs no inference
         geom, cap = self.model.geometry, self.settings.ood_window_missing
-        frac = {o: entry.windows[o].missing_fraction if o in entry.windows else
-                float(missing_mask(crop_window(entry.depth, o, geom)).mean()) for o in where}
+        frac = {
+            o: entry.windows[o].missing_fraction
+            if o in entry.windows
+            else float(missing_mask(crop_window(entry.depth, o, geom)).mean())
+            for o in where
+        }
         win_missing = np.array([frac[o] > cap for o in where], dtype=bool)[inverse]
         g = np.asarray(grasps, dtype=np.float64).copy()
         g[:, :2] = uv
         mask = ood_flags(g, entry.depth, self.z_range, win_missing)
         if strict and mask.any():
             bad = np.flatnonzero(mask)
-            raise ApiError(422, f"{len(bad)} grasps are outside what the model was trained on (strict=true): "
-                                + "; ".join(f"{i}: {', '.join(flag_names(mask[i]))}" for i in bad[:5]),
-                           {"grasps": bad[:20].tolist(), "ood": {str(i): flag_names(mask[i]) for i in bad[:20]}})
+            raise ApiError(
+                422,
+                f"{len(bad)} grasps are outside what the model was trained on (strict=true): "
+                + "; ".join(f"{i}: {', '.join(flag_names(mask[i]))}" for i in bad[:5]),
+                {"grasps": bad[:20].tolist(), "ood": {str(i): flag_names(mask[i]) for i in bad[:20]}},
+            )
         encoded = self._encode(dict.fromkeys(new), entry, where) if new else {}
         if encoded:
             self.cache.add_windows(key, entry, encoded)
@@ -233,32 +260,59 @@ class Service:
     # ---- answers -------------------------------------------------------------------------------
     def camera_info(self, entry: CachedImage) -> dict:
         c, r = entry.camera, entry.resampled
-        return {"intrinsics": {k: getattr(c, k) for k in ("fx", "fy", "cx", "cy")}, "intrinsics_assumed": list(entry.assumed),
-                "resampled": {"image_shape": [r.height, r.width], "scale": list(entry.scale),
-                              "intrinsics": {k: getattr(r, k) for k in ("fx", "fy", "cx", "cy")}}}
+        return {
+            "intrinsics": {k: getattr(c, k) for k in ("fx", "fy", "cx", "cy")},
+            "intrinsics_assumed": list(entry.assumed),
+            "resampled": {
+                "image_shape": [r.height, r.width],
+                "scale": list(entry.scale),
+                "intrinsics": {k: getattr(r, k) for k in ("fx", "fy", "cx", "cy")},
+            },
+        }
 
     def image_info(self, key: str, entry: CachedImage, cached: bool) -> dict:
-        out = {"image_id": key, "cached": cached, "model_version": self.model.version,
-               "image_shape": list(entry.image_shape), "missing_fraction": entry.missing_fraction, **self.camera_info(entry)}
+        out = {
+            "image_id": key,
+            "cached": cached,
+            "model_version": self.model.version,
+            "image_shape": list(entry.image_shape),
+            "missing_fraction": entry.missing_fraction,
+            **self.camera_info(entry),
+        }
         if entry.fixed_center is None:
             out["windows"] = "grid"
             return out
         k = self.model.geometry.kappa_px
         sx, sy = entry.scale
         c = map_pixels(entry.fixed_center[None], entry.resampled, entry.camera)[0]
-        out.update(windows="fixed", window_center=[float(c[0]), float(c[1])],
-                   grasp_range={"u": [float(c[0] - k / sx), float(c[0] + k / sx)], "v": [float(c[1] - k / sy), float(c[1] + k / sy)]})
+        out.update(
+            windows="fixed",
+            window_center=[float(c[0]), float(c[1])],
+            grasp_range={
+                "u": [float(c[0] - k / sx), float(c[0] + k / sx)],
+                "v": [float(c[1] - k / sy), float(c[1] + k / sy)],
+            },
+        )
         return out
 
     def scores_info(self, s: Scores) -> dict:
-        return {"p_success": s.p_success, "raw_score": s.raw_score, "calibrated": self.calibration is not None,
-                "ood": s.ood(), "ood_mask": s.ood_mask, "windows": s.windows, "windows_encoded": s.windows_encoded,
-                "missing_fraction": s.missing_fraction}
+        return {
+            "p_success": s.p_success,
+            "raw_score": s.raw_score,
+            "calibrated": self.calibration is not None,
+            "ood": s.ood(),
+            "ood_mask": s.ood_mask,
+            "windows": s.windows,
+            "windows_encoded": s.windows_encoded,
+            "missing_fraction": s.missing_fraction,
+        }
 
 
 def make_cache(settings: Settings, log: logging.Logger):
     if settings.cache_backend == "redis":
         from .redis_cache import RedisCache
 
-        return RedisCache(settings.redis_url, settings.cache_entries, settings.cache_bytes, log, ttl_s=settings.cache_ttl_s)
+        return RedisCache(
+            settings.redis_url, settings.cache_entries, settings.cache_bytes, log, ttl_s=settings.cache_ttl_s
+        )
     return MemoryCache(settings.cache_entries, settings.cache_bytes)

@@ -46,8 +46,11 @@ def one_shot(http: httpx.Client, depth, g) -> float:
     buf = io.BytesIO()
     np.savez(buf, depth=depth, grasps=g)
     t = time.perf_counter()
-    r = http.post("/v1/score", content=buf.getvalue(), headers={"content-type": "application/x-npz",
-                                                                   "accept": "application/octet-stream"})
+    r = http.post(
+        "/v1/score",
+        content=buf.getvalue(),
+        headers={"content-type": "application/x-npz", "accept": "application/octet-stream"},
+    )
     dt = time.perf_counter() - t
     if r.status_code != 200:
         raise RuntimeError(f"HTTP {r.status_code}: {r.text[:200]}")
@@ -79,7 +82,7 @@ def main(argv=None) -> int:
                 ms = 1000 * np.array(times)
                 out[n] = {"p50_ms": round(float(np.median(ms)), 2), "p90_ms": round(float(np.percentile(ms, 90)), 2)}
     base = out.get(1, {}).get("p50_ms")
-    for n, r in out.items():
+    for r in out.values():
         r["p50_vs_1_window"] = round(r["p50_ms"] / base, 2) if base else None
     print(json.dumps(out, indent=1))
     return 0

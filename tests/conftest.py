@@ -25,7 +25,9 @@ def skip_or_fail_in_ci(reason: str) -> None:
     pytest.skip(reason)
 
 
-def table_scene(h: int = 300, w: int = 300, table_depth: float = 0.7, box=(120, 180, 130, 170), box_height: float = 0.05):
+def table_scene(
+    h: int = 300, w: int = 300, table_depth: float = 0.7, box=(120, 180, 130, 170), box_height: float = 0.05
+):
     """Depth image (metres) of a table seen from above with a box on it."""
     d = np.full((h, w), table_depth, np.float32)
     r0, r1, c0, c1 = box
@@ -70,7 +72,7 @@ def train_briefly(steps: int = 8, seed: int = 0):
     net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns))
     opt = torch.optim.SGD(net.parameters(), lr=0.01, momentum=0.9)
     x, p, y = torch.from_numpy(imgs[:, None]), torch.from_numpy(poses), torch.from_numpy(labels)
-    for s in range(steps):
+    for _ in range(steps):
         i = torch.from_numpy(rng.integers(0, len(imgs), 64))
         loss = torch.nn.functional.cross_entropy(net(x[i], p[i]), y[i])
         opt.zero_grad()
@@ -92,8 +94,16 @@ def model_dir(tmp_path_factory, briefly_trained):
 
     net, imgs, poses = briefly_trained
     out = tmp_path_factory.mktemp("models") / "fast"
-    export_model(net, out, imgs[:32], poses[:32], CropGeometry(96, 32, 36.0), DEFAULT_INTRINSICS,
-                 dataset={"recipe": "synthetic crops (tests)"}, training={"steps": 8})
+    export_model(
+        net,
+        out,
+        imgs[:32],
+        poses[:32],
+        CropGeometry(96, 32, 36.0),
+        DEFAULT_INTRINSICS,
+        dataset={"recipe": "synthetic crops (tests)"},
+        training={"steps": 8},
+    )
     return out
 
 

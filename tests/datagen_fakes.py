@@ -9,7 +9,9 @@ from datagen import storage
 from vgq.pose import canonical_quaternion
 
 
-def fake_object(rng: np.random.Generator, object_id: int, n_images: int = 3, n_grasps: int = 40, positive_rate: float = 0.3):
+def fake_object(
+    rng: np.random.Generator, object_id: int, n_images: int = 3, n_grasps: int = 40, positive_rate: float = 0.3
+):
     """Image and grasp arrays of one object with plausible values (metres, radians)."""
     depth = np.full((n_images, 300, 300), 0.7, np.float32)
     depth[:, 100:200, 120:180] -= rng.uniform(0.02, 0.08, (n_images, 1, 1)).astype(np.float32)
@@ -24,7 +26,9 @@ def fake_object(rng: np.random.Generator, object_id: int, n_images: int = 3, n_g
         "T_world_camera": np.tile(np.eye(4), (n_images, 1, 1)),
     }
     q = canonical_quaternion(rng.standard_normal((n_grasps, 4))).astype(np.float32)
-    quality = np.where(rng.random(n_grasps) < positive_rate, rng.uniform(0.0021, 0.01, n_grasps), rng.uniform(0, 0.0019, n_grasps))
+    quality = np.where(
+        rng.random(n_grasps) < positive_rate, rng.uniform(0.0021, 0.01, n_grasps), rng.uniform(0, 0.0019, n_grasps)
+    )
     grasps = {
         "image_index": rng.integers(0, n_images, n_grasps).astype(np.int32),
         "grasp_id": np.arange(n_grasps, dtype=np.int32),

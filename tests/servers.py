@@ -38,7 +38,10 @@ def service_process(model_dir, *args: str, env: dict | None = None, timeout: flo
     out = open(log_path, "wb") if log_path else subprocess.PIPE
     proc = subprocess.Popen(
         [sys.executable, "-m", "service", "--model-dir", str(model_dir), "--port", str(port), "--threads", "1", *args],
-        cwd=ROOT, env=e, stdout=out, stderr=subprocess.STDOUT,
+        cwd=ROOT,
+        env=e,
+        stdout=out,
+        stderr=subprocess.STDOUT,
     )
     url = f"http://127.0.0.1:{port}"
     try:

@@ -93,8 +93,11 @@ def test_the_service_path_scores_other_cameras_like_the_native_one(scene):
     svc = Service(Settings(threads=1, head_precision="fp32", model_dir=MODEL_DIR))
     svc.load()
     native = svc.model.card.intrinsics
-    cams = {fx: Intrinsics(fx=fx, fy=fx, cx=(s - 1) / 2, cy=(s - 1) / 2, width=s, height=s)
-            for fx in (450.0, 525.0, 615.0) for s in [int(round(native.width * fx / native.fx))]}
+    cams = {
+        fx: Intrinsics(fx=fx, fy=fx, cx=(s - 1) / 2, cy=(s - 1) / 2, width=s, height=s)
+        for fx in (450.0, 525.0, 615.0)
+        for s in [int(round(native.width * fx / native.fx))]
+    }
     p = {fx: [] for fx in cams}
     unsent = {fx: [] for fx in cams}  # control: the same uploads without intrinsics (the model's assumed)
     for n, T_wc in enumerate(T_wcs):

@@ -5,13 +5,21 @@ from __future__ import annotations
 import numpy as np
 import onnxruntime as ort
 import torch
-
 from conftest import synthetic_crops
+
 from export.benchmark import graph_flops, isa_flags, markdown, run_benchmark
 from export.from_onnx import fast_net_from_model_dir, vgq_net_like
 
 # multiply-adds of the 32 x 32 encoder: conv1_1, conv1_2, LRN band, conv2_1, conv2_2, LRN band, fc3, fc4_image
-ENCODER_MACS = 1024 * 64 * 49 + 1024 * 64 * 64 * 25 + 1024 * 64 * 64 + 2 * 256 * 64 * 64 * 9 + 256 * 64 * 64 + 4096 * 1024 + 1024 * 1024
+ENCODER_MACS = (
+    1024 * 64 * 49
+    + 1024 * 64 * 64 * 25
+    + 1024 * 64 * 64
+    + 2 * 256 * 64 * 64 * 9
+    + 256 * 64 * 64
+    + 4096 * 1024
+    + 1024 * 1024
+)
 HEAD_MACS_PER_GRASP = 7 * 16 + 16 * 1024 + 1024 * 1024 + 1024  # pc1, fc4 pose half, fc5, out
 
 
@@ -64,7 +72,9 @@ def test_benchmark_compares_every_encoder_precision_in_one_run(model_dir, tmp_pa
 
     m = tmp_path / "m"
     shutil.copytree(model_dir, m)
-    add_int8_encoder(m, synthetic_crops(32, np.random.default_rng(5))[0], synthetic_crops(300, np.random.default_rng(6)))
+    add_int8_encoder(
+        m, synthetic_crops(32, np.random.default_rng(5))[0], synthetic_crops(300, np.random.default_rng(6))
+    )
     report = run_benchmark(m, ks=(8,), runs=5, threads=1, vgq_budget_s=0.01, log=lambda s: None)
     r = report["rows"]["8"]
     assert set(r["variants"]) == {"fp32", "int8"} and r["encoder_int8"]["runs"] == r["fast_fp32"]["runs"] == 5

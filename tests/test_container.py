@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import re
 import shlex
-import tomllib
 from pathlib import Path
 
 import pytest
+import tomllib
 
 from service.config import Settings
 
@@ -112,8 +112,14 @@ def test_copies_every_first_party_package_the_service_imports(final_stage):
 
     first_party = {p.parent.name for p in ROOT.glob("*/__init__.py")}
     code = "import sys, service.__main__, service.app; print(' '.join(sorted({m.split('.')[0] for m in sys.modules})))"
-    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120,
-                       env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    r = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
+    )
     assert r.returncode == 0, r.stderr
     imported = set(r.stdout.split()) & first_party
     assert {"service", "vgq", "planning"} <= imported

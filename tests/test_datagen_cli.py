@@ -24,7 +24,10 @@ def test_missing_source_folder_subprocess(tmp_path):
     """The real entry point: exit code 2, the path in the message, no traceback."""
     p = subprocess.run(
         [sys.executable, "-m", "datagen", "generate", "--out", str(tmp_path / "o"), "--source", str(tmp_path / "nope")],
-        cwd=ROOT, capture_output=True, text=True, timeout=60,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert p.returncode == 2
     assert "nope" in p.stderr and "does not exist" in p.stderr
@@ -81,7 +84,9 @@ def test_kappa_with_centred_arch_is_refused(tmp_path, capsys):
     from datagen_fakes import fake_dataset
 
     fake_dataset(tmp_path / "g", n_objects=1, n_images=1, n_grasps=3)
-    rc, _, err = run_main(capsys, "crops", "--in", tmp_path / "g", "--out", tmp_path / "c", "--arch", "gqcnn", "--kappa", 10)
+    rc, _, err = run_main(
+        capsys, "crops", "--in", tmp_path / "g", "--out", tmp_path / "c", "--arch", "gqcnn", "--kappa", 10
+    )
     assert rc == 2 and "fast_vgqcnn only" in err
 
 

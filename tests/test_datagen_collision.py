@@ -6,20 +6,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from datagen_fakes import grasp_frame
 
 from datagen.collision import CollisionChecker
 from datagen.gripper import (
     GripperGeometry,
     align_to_table,
     beta_angles,
-    gripper_boxes,
     grasp_frames,
+    gripper_boxes,
     rotation_about_x,
 )
-from datagen_fakes import grasp_frame
 
 EX, EY, EZ = np.eye(3)
-
 
 
 def _box_on_table(extents) -> trimesh.Trimesh:
@@ -52,7 +51,9 @@ def test_omega_rotates_the_frame_about_its_jaw_axis():
 
 
 def test_beta_is_zero_for_a_top_grasp_and_90_deg_for_a_side_grasp():
-    T = np.stack([grasp_frame([0, 0, 0.02], EX, -EZ), grasp_frame([0, 0, 0.02], EX, EY), grasp_frame([0, 0, 0.02], EX, EZ)])
+    T = np.stack(
+        [grasp_frame([0, 0, 0.02], EX, -EZ), grasp_frame([0, 0, 0.02], EX, EY), grasp_frame([0, 0, 0.02], EX, EZ)]
+    )
     np.testing.assert_allclose(beta_angles(T), [0.0, np.pi / 2, np.pi], atol=1e-12)
 
 

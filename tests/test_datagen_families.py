@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from datagen.families import (FAMILIES, FamilyError, build_mesh, family_sources, make_object, object_name,
-                              sample_params)
+from datagen.families import FAMILIES, FamilyError, build_mesh, family_sources, make_object, object_name, sample_params
 from datagen.grasps import AntipodalParams, sample_antipodal_grasps
 from datagen.mesh import MeshError, MeshParams, MeshSource, load_object, stable_poses
 
@@ -123,9 +122,10 @@ def test_holdout_families_go_only_to_test():
 def test_sample_dataset_splits_within_families_and_keeps_family_records(tmp_path):
     import json
 
+    from datagen_fakes import fake_dataset
+
     from datagen import storage
     from datagen.sampling import SamplingParams, sample_dataset
-    from datagen_fakes import fake_dataset
 
     fake_dataset(tmp_path / "raw", n_objects=12, n_grasps=60, n_images=1)
     mp = tmp_path / "raw" / "manifest.json"
@@ -137,8 +137,9 @@ def test_sample_dataset_splits_within_families_and_keeps_family_records(tmp_path
     logs: list[str] = []
     stats = sample_dataset(tmp_path / "raw", tmp_path / "s", SamplingParams(uniform=False), log=logs.append, plot=False)
     out = storage.open_dataset(tmp_path / "s").manifest
-    assert stats["families"] == {f: {"train": n - 2, "val": 1, "test": 1} for f, n in
-                                 (("box", 3), ("mug", 3), ("random_urdfs", 6))}
+    assert stats["families"] == {
+        f: {"train": n - 2, "val": 1, "test": 1} for f, n in (("box", 3), ("mug", 3), ("random_urdfs", 6))
+    }
     for o, src in zip(out["objects"], m["objects"]):
         assert o["family"] == src["family"] and o["params"] == src["params"]
     assert any("objects per family" in line for line in logs)
@@ -197,8 +198,13 @@ def test_cli_unknown_family_subprocess(tmp_path):
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
-    p = subprocess.run([sys.executable, "-m", "datagen", "objects", "--family", "teapot", "--out", str(tmp_path / "o")],
-                       cwd=root, capture_output=True, text=True, timeout=60)
+    p = subprocess.run(
+        [sys.executable, "-m", "datagen", "objects", "--family", "teapot", "--out", str(tmp_path / "o")],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert p.returncode == 2
     assert p.stderr.strip().splitlines() == [p.stderr.strip()] and "teapot" in p.stderr
 
@@ -227,8 +233,14 @@ def test_cli_objects_writes_meshes_parameters_and_a_contact_sheet(tmp_path):
 # ----------------------------------------------------------------------------- generation
 
 
-TINY = {"cameras_per_pose": 1, "max_stable_poses": 1, "antipodal.num_samples": 8, "quality.num_samples": 3,
-        "num_objects": 0, "families": {"box": 1, "torus": 1}}
+TINY = {
+    "cameras_per_pose": 1,
+    "max_stable_poses": 1,
+    "antipodal.num_samples": 8,
+    "quality.num_samples": 3,
+    "num_objects": 0,
+    "families": {"box": 1, "torus": 1},
+}
 
 
 def test_tiny_generation_records_family_and_params_and_resumes(tmp_path):

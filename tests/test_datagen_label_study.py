@@ -20,9 +20,13 @@ def test_auc_matches_the_pairwise_definition_with_ties():
 
 def test_the_paper_label_is_robust_fc_above_the_threshold_at_collision_free_grasps():
     r = {
-        "fc": np.array([0.001, 0.003, 0.003]), "fc_fixed": np.array([0.001, 0.003, 0.003]),
-        "cf_nominal": np.array([True, True, False]), "p_cf": np.array([1.0, 0.5, 0.0]),
-        "pad_q": np.zeros(3), "pad_q_fixed": np.zeros(3), "robust_pad_q": np.zeros(3),
+        "fc": np.array([0.001, 0.003, 0.003]),
+        "fc_fixed": np.array([0.001, 0.003, 0.003]),
+        "cf_nominal": np.array([True, True, False]),
+        "p_cf": np.array([1.0, 0.5, 0.0]),
+        "pad_q": np.zeros(3),
+        "pad_q_fixed": np.zeros(3),
+        "robust_pad_q": np.zeros(3),
         "label_held": np.array([[1, 1], [0, 1], [0, 0]], bool),
     }
     c = candidate_labels(r, 0.002)

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import trimesh
+from datagen_fakes import grasp_frame
 
 from datagen.gripper import GripperGeometry
 from datagen.pads import pad_contacts, pad_quality
 from datagen.quality import QualityParams, ferrari_canny
-from datagen_fakes import grasp_frame
 
 EX, EY, EZ = np.eye(3)
 G = GripperGeometry()

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from datagen_fakes import grasp_frame
 
 from datagen.physics import GraspSimulator, PhysicsParams, execution_noise, perturbed_frames, run_trials
-from datagen_fakes import grasp_frame
 
 EX, EY, EZ = np.eye(3)
 
@@ -89,10 +89,17 @@ def test_the_physics_label_labels_each_grasp_once_per_pose_for_all_cameras(tmp_p
     box = trimesh.creation.box(extents=[0.035, 0.04, 0.10])  # lies on a 4 x 10 cm face, 3.5 cm wide on top
     path = tmp_path / "box.stl"
     box.export(str(path))
-    cfg = DatagenConfig().with_overrides({
-        "cameras_per_pose": 2, "max_stable_poses": 1, "antipodal.num_samples": 12, "quality.num_samples": 3,
-        "label.kind": "physics", "label.trials": 2, "mesh.rescale": "keep",
-    })
+    cfg = DatagenConfig().with_overrides(
+        {
+            "cameras_per_pose": 2,
+            "max_stable_poses": 1,
+            "antipodal.num_samples": 12,
+            "quality.num_samples": 3,
+            "label.kind": "physics",
+            "label.trials": 2,
+            "mesh.rescale": "keep",
+        }
+    )
     _, g, info = generate_object_with_info(MeshSource("box", path), cfg, 0, 1)
     assert info["label"] == "physics" and info["physics"][0]["pose_stable"]
     assert info["physics"][0]["trials"] > 0

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import skip_or_fail_in_ci
+
 from datagen import storage
 from datagen.config import ConfigError, DatagenConfig
 from datagen.mesh import mesh_sources
@@ -85,8 +85,20 @@ def test_resume_after_sigkill_matches_uninterrupted_run(tmp_path):
     """Kill a real `python -m datagen generate` after its first shard, rerun it: the dataset
     equals an uninterrupted run (made here with a 2-process pool)."""
     out = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "datagen", "generate", "--out", str(out), "--objects", "3", "--workers", "1", "--quiet",
-           *TINY_FLAGS]
+    cmd = [
+        sys.executable,
+        "-m",
+        "datagen",
+        "generate",
+        "--out",
+        str(out),
+        "--objects",
+        "3",
+        "--workers",
+        "1",
+        "--quiet",
+        *TINY_FLAGS,
+    ]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
@@ -134,7 +146,6 @@ def test_rerun_with_other_config_is_refused(tmp_path):
     run_generate(tmp_path, cfg, progress=False, log=logs.append)
     assert any("resuming" in s for s in logs)
     assert (tmp_path / "shards" / "obj_00000.npz").read_bytes() == before
-
 
 
 def test_ray_run_writes_the_same_dataset_as_the_local_run(tmp_path):

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from datagen_fakes import grasp_frame
 from scipy import ndimage
 
 from datagen.camera import look_at_table_origin
 from datagen.gripper import grasp_frames
 from datagen.project import project_grasps
 from datagen.render import render_depth
-from datagen_fakes import grasp_frame
 from vgq.camera import DEFAULT_INTRINSICS
 from vgq.pose import matrix_from_quaternion
 
@@ -83,7 +83,9 @@ def test_quaternion_is_canonical_and_is_the_camera_frame_rotation():
 
 def test_jaw_angle_is_measured_from_u_towards_v():
     T_wc = look_at_table_origin(0.7, 0.0, 0.0)[0]  # camera x = world +y, camera y = world +x
-    T = np.stack([grasp_frame([0, 0, 0.02], EY, -EZ), grasp_frame([0, 0, 0.02], EX, -EZ), grasp_frame([0, 0, 0.02], -EY, -EZ)])
+    T = np.stack(
+        [grasp_frame([0, 0, 0.02], EY, -EZ), grasp_frame([0, 0, 0.02], EX, -EZ), grasp_frame([0, 0, 0.02], -EY, -EZ)]
+    )
     np.testing.assert_allclose(project_grasps(T, T_wc)["jaw_angle"], [0.0, np.pi / 2, np.pi], atol=1e-9)
 
 
@@ -100,7 +102,9 @@ def test_jaw_angle_follows_the_projected_contacts():
 
 def test_grasps_outside_the_view_are_flagged():
     T_wc = look_at_table_origin(0.5, 0.0, 0.0)[0]
-    T = np.stack([grasp_frame([0, 0, 0.0], EX, -EZ), grasp_frame([1.0, 0, 0.0], EX, -EZ), grasp_frame([0, 0, 0.8], EX, -EZ)])
+    T = np.stack(
+        [grasp_frame([0, 0, 0.0], EX, -EZ), grasp_frame([1.0, 0, 0.0], EX, -EZ), grasp_frame([0, 0, 0.8], EX, -EZ)]
+    )
     np.testing.assert_array_equal(project_grasps(T, T_wc)["in_image"], [True, False, False])
 
 

@@ -27,7 +27,14 @@ import pytest
 import trimesh
 
 from datagen.grasps import AntipodalParams, sample_antipodal_grasps
-from datagen.quality import QualityParams, ferrari_canny, ferrari_canny_batch, hull_quality, robust_ferrari_canny, rotation_matrices
+from datagen.quality import (
+    QualityParams,
+    ferrari_canny,
+    ferrari_canny_batch,
+    hull_quality,
+    robust_ferrari_canny,
+    rotation_matrices,
+)
 
 P = QualityParams()
 
@@ -58,12 +65,15 @@ def test_hull_distance_of_a_shifted_box_is_its_nearest_face():
     assert hull_quality(corners * 0.004) == pytest.approx(0.001, rel=1e-6)
 
 
-@pytest.mark.parametrize("a, s, mu, k, r", [
-    (0.015, 25.0, 0.5, 8, 0.01),   # the defaults: torsion-limited, epsilon just below g = 0.003927
-    (0.015, 10.0, 0.5, 8, 0.01),
-    (0.03, 50.0, 0.8, 4, 0.005),
-    (0.01, 25.0, 0.3, 12, 0.05),   # a wide finger pad: the cone edges limit it, not torsion
-])
+@pytest.mark.parametrize(
+    "a, s, mu, k, r",
+    [
+        (0.015, 25.0, 0.5, 8, 0.01),  # the defaults: torsion-limited, epsilon just below g = 0.003927
+        (0.015, 10.0, 0.5, 8, 0.01),
+        (0.03, 50.0, 0.8, 4, 0.005),
+        (0.01, 25.0, 0.3, 12, 0.05),  # a wide finger pad: the cone edges limit it, not torsion
+    ],
+)
 def test_symmetric_soft_finger_grasp_has_its_closed_form_epsilon(a, s, mu, k, r):
     c, n = symmetric_grasp(a)
     p = dataclasses.replace(P, num_cone_faces=k, finger_radius=r)

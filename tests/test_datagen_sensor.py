@@ -165,11 +165,18 @@ def test_realistic_preset_misses_few_pixels_and_keeps_the_rest_close(box_scene):
     assert 0.001 < np.mean(fr) < 0.02
 
 
-@pytest.mark.parametrize("field, value, words", [
-    ("gp_rate", 1.5, "probability"), ("baseline_m", 2.0, "[-1, 1]"), ("blob_radius_px", [6, 2], "pair"),
-    ("gamma_shape", -1, ">= 0"), ("quantum_m", float("nan"), "finite"), ("edge_width_px", 0, "integer"),
-    ("edge_angle_deg", 60, "(0, 45]"),
-])
+@pytest.mark.parametrize(
+    "field, value, words",
+    [
+        ("gp_rate", 1.5, "probability"),
+        ("baseline_m", 2.0, "[-1, 1]"),
+        ("blob_radius_px", [6, 2], "pair"),
+        ("gamma_shape", -1, ">= 0"),
+        ("quantum_m", float("nan"), "finite"),
+        ("edge_width_px", 0, "integer"),
+        ("edge_angle_deg", 60, "(0, 45]"),
+    ],
+)
 def test_out_of_range_values_name_the_setting(field, value, words):
     with pytest.raises(ValueError, match=field) as e:
         PRESETS["clean"].with_overrides({field: value})
@@ -178,13 +185,37 @@ def test_out_of_range_values_name_the_setting(field, value, words):
 
 def test_cli_rejects_a_bad_sensor_value_with_exit_2_and_one_line(tmp_path, capsys):
     fake_dataset(tmp_path / "g", n_objects=1, n_images=1, n_grasps=3)
-    rc = datagen_main(["crops", "--in", str(tmp_path / "g"), "--out", str(tmp_path / "c"), "--arch", "fast_vgqcnn",
-                       "--quiet", "--sensor-set", "edge_dropout=2"])
+    rc = datagen_main(
+        [
+            "crops",
+            "--in",
+            str(tmp_path / "g"),
+            "--out",
+            str(tmp_path / "c"),
+            "--arch",
+            "fast_vgqcnn",
+            "--quiet",
+            "--sensor-set",
+            "edge_dropout=2",
+        ]
+    )
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1 and "sensor.edge_dropout" in err
     assert not (tmp_path / "c" / "manifest.json").exists()
-    rc = datagen_main(["crops", "--in", str(tmp_path / "g"), "--out", str(tmp_path / "c"), "--arch", "fast_vgqcnn",
-                       "--quiet", "--sensor", "kinect"])
+    rc = datagen_main(
+        [
+            "crops",
+            "--in",
+            str(tmp_path / "g"),
+            "--out",
+            str(tmp_path / "c"),
+            "--arch",
+            "fast_vgqcnn",
+            "--quiet",
+            "--sensor",
+            "kinect",
+        ]
+    )
     assert rc == 2 and "kinect" in capsys.readouterr().err
 
 

@@ -12,8 +12,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-
 from servers import running_service
+
 from vgq.model_card import ModelCard
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "examples"))
@@ -57,8 +57,12 @@ def served(heldout) -> np.ndarray:
     with running_service(DEFAULT, "--head-precision", "fp32") as url, httpx.Client(base_url=url) as c:
         for j in range(len(heldout)):
             body = io.BytesIO()
-            np.savez(body, depth=heldout.depth[heldout.image_index[j]], grasps=heldout.grasps[j:j + 1],
-                     center=heldout.center[j].astype(np.float64))
+            np.savez(
+                body,
+                depth=heldout.depth[heldout.image_index[j]],
+                grasps=heldout.grasps[j : j + 1],
+                center=heldout.center[j].astype(np.float64),
+            )
             r = c.post("/v1/score", content=body.getvalue(), headers={"content-type": "application/x-npz"})
             assert r.status_code == 200, r.text
             p[j] = r.json()["p_success"][0]
@@ -101,7 +105,7 @@ def test_broken_serving_paths_fall_below_the_bound(heldout):
     g = h.grasps.astype(np.float64)
 
     def ba(transform):
-        moved = np.concatenate([transform(g[j:j + 1], h.center[j]) for j in range(len(g))])
+        moved = np.concatenate([transform(g[j : j + 1], h.center[j]) for j in range(len(g))])
         return balanced_accuracy(h.labels, s.scores(terms, s.poses_each(moved, h.center)))
 
     def swap(x, c):

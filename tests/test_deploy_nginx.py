@@ -16,9 +16,9 @@ import httpx
 import numpy as np
 import pytest
 import yaml
-
 from conftest import table_scene
 from servers import grasps_at
+
 from service.client import ServiceClient
 from tools.loadtest import topology as topo_mod
 
@@ -72,8 +72,22 @@ def test_loadtest_through_the_balancer_has_no_errors(topo):
     from tools.loadtest.cli import main
 
     lb, _, _ = topo
-    report = main(["--url", lb, "--clients", "4", "--duration", "3", "--warmup", "0.5", "--k", "32",
-                   "--mix", "upload=1,score=2,once=1"])
+    report = main(
+        [
+            "--url",
+            lb,
+            "--clients",
+            "4",
+            "--duration",
+            "3",
+            "--warmup",
+            "0.5",
+            "--k",
+            "32",
+            "--mix",
+            "upload=1,score=2,once=1",
+        ]
+    )
     assert report["errors"] == 0, report["error_messages"]
     assert all(e["requests"] > 0 for e in report["endpoints"].values()) and report["grasps_per_s"] > 0
 
@@ -87,8 +101,27 @@ def test_killing_a_replica_mid_load_loses_no_request_silently(model_dir, tmp_pat
 
     with topology(model_dir, tmp_path / "lb") as (lb, ((a, proc_a), _), log):
         out = {}
-        load = threading.Thread(target=lambda: out.setdefault("report", main(
-            ["--url", lb, "--clients", "4", "--duration", "4", "--warmup", "0", "--k", "32", "--mix", "upload=1,score=4,once=1"])))
+        load = threading.Thread(
+            target=lambda: out.setdefault(
+                "report",
+                main(
+                    [
+                        "--url",
+                        lb,
+                        "--clients",
+                        "4",
+                        "--duration",
+                        "4",
+                        "--warmup",
+                        "0",
+                        "--k",
+                        "32",
+                        "--mix",
+                        "upload=1,score=4,once=1",
+                    ]
+                ),
+            )
+        )
         load.start()
         time.sleep(1.5)
         proc_a.kill()
@@ -110,21 +143,33 @@ def test_killing_a_replica_mid_load_loses_no_request_silently(model_dir, tmp_pat
 def test_compose_runs_replicas_behind_nginx_with_redis():
     c = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())["services"]
     assert set(c) == {"redis", "service", "nginx"}
-    assert c["service"]["environment"]["VGQ_CACHE_BACKEND"] == "redis" and "redis:6379" in c["service"]["environment"]["VGQ_REDIS_URL"]
+    assert (
+        c["service"]["environment"]["VGQ_CACHE_BACKEND"] == "redis"
+        and "redis:6379" in c["service"]["environment"]["VGQ_REDIS_URL"]
+    )
     assert c["service"]["deploy"]["replicas"] >= 2
     mounts = " ".join(c["nginx"]["volumes"])
     assert "nginx/proxy.conf:/etc/nginx/vgq-proxy.conf" in mounts and "nginx/nginx.conf:/etc/nginx/nginx.conf" in mounts
     conf = (DEPLOY / "nginx" / "nginx.conf").read_text()
     assert "include /etc/nginx/vgq-proxy.conf;" in conf and "server service:8000" in conf
-    assert "proxy_next_upstream error timeout http_502 http_503 non_idempotent;" in (DEPLOY / "nginx" / "proxy.conf").read_text()
+    assert (
+        "proxy_next_upstream error timeout http_502 http_503 non_idempotent;"
+        in (DEPLOY / "nginx" / "proxy.conf").read_text()
+    )
 
 
 def test_kubernetes_manifests_probe_scale_and_share_redis():
-    docs = [d for f in sorted((DEPLOY / "k8s").glob("*.yaml")) if f.name != "kustomization.yaml"
-            for d in yaml.safe_load_all(f.read_text())]
+    docs = [
+        d
+        for f in sorted((DEPLOY / "k8s").glob("*.yaml"))
+        if f.name != "kustomization.yaml"
+        for d in yaml.safe_load_all(f.read_text())
+    ]
     by = {(d["kind"], d["metadata"]["name"]): d for d in docs}
     dep = by[("Deployment", "vgq-service")]["spec"]["template"]["spec"]["containers"][0]
-    assert dep["readinessProbe"]["httpGet"]["path"] == "/readyz" and dep["livenessProbe"]["httpGet"]["path"] == "/healthz"
+    assert (
+        dep["readinessProbe"]["httpGet"]["path"] == "/readyz" and dep["livenessProbe"]["httpGet"]["path"] == "/healthz"
+    )
     env = {e["name"]: e["value"] for e in dep["env"]}
     assert env["VGQ_CACHE_BACKEND"] == "redis" and "vgq-redis:6379" in env["VGQ_REDIS_URL"]
     assert ("Service", "vgq-service") in by and ("Deployment", "vgq-redis") in by and ("Service", "vgq-redis") in by
@@ -132,4 +177,6 @@ def test_kubernetes_manifests_probe_scale_and_share_redis():
     assert hpa["scaleTargetRef"]["name"] == "vgq-service" and hpa["metrics"][0]["resource"]["name"] == "cpu"
     assert dep["resources"]["requests"]["cpu"]  # CPU utilisation is relative to the request
     kust = yaml.safe_load((DEPLOY / "k8s" / "kustomization.yaml").read_text())
-    assert sorted(kust["resources"]) == sorted(f.name for f in (DEPLOY / "k8s").glob("*.yaml") if f.name != "kustomization.yaml")
+    assert sorted(kust["resources"]) == sorted(
+        f.name for f in (DEPLOY / "k8s").glob("*.yaml") if f.name != "kustomization.yaml"
+    )

@@ -33,7 +33,9 @@ def pct(x: float) -> float:
     return round(100 * x, 1)
 
 
-@pytest.mark.parametrize("text, row", [(README, "| Fast-VGQ-CNN (bundled)"), (TRAINING, "| **Fast-VGQ-CNN, kappa 36 px**")])
+@pytest.mark.parametrize(
+    "text, row", [(README, "| Fast-VGQ-CNN (bundled)"), (TRAINING, "| **Fast-VGQ-CNN, kappa 36 px**")]
+)
 def test_bundled_model_row_is_the_cards_test_metrics(card, text, row):
     m = card.metrics["test"]
     assert percents(text, row) == [pct(m["balanced_accuracy"]), pct(m["tpr"]), pct(m["tnr"])]
@@ -57,10 +59,17 @@ def test_test_split_size_and_training_samples_are_the_cards(card):
 
 def test_int8_check_numbers_are_the_cards(card):
     q = card.export["int8_head"]
-    assert percents(TRAINING, "| int8 head of the bundled model") == [pct(q["balanced_accuracy_int8"]),
-                                                                       pct(q["balanced_accuracy_fp32"])]
-    assert (f"balanced accuracy {100 * q['balanced_accuracy_int8']:.2f}% vs {100 * q['balanced_accuracy_fp32']:.2f}% for fp32"
-            in PERFORMANCE)
-    assert f"mean {q['mean_abs_diff_probability']:.4f}" in PERFORMANCE and f"max {q['max_abs_diff_probability']:.3f}" in PERFORMANCE
+    assert percents(TRAINING, "| int8 head of the bundled model") == [
+        pct(q["balanced_accuracy_int8"]),
+        pct(q["balanced_accuracy_fp32"]),
+    ]
+    assert (
+        f"balanced accuracy {100 * q['balanced_accuracy_int8']:.2f}% vs {100 * q['balanced_accuracy_fp32']:.2f}% for fp32"
+        in PERFORMANCE
+    )
+    assert (
+        f"mean {q['mean_abs_diff_probability']:.4f}" in PERFORMANCE
+        and f"max {q['max_abs_diff_probability']:.3f}" in PERFORMANCE
+    )
     assert f"{q['decisions_changed']} of {q['n']} decisions" in PERFORMANCE
     assert f"~{q['mean_abs_diff_probability']:.3f} on average (at most ~{q['max_abs_diff_probability']:.2f}" in README

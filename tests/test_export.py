@@ -10,8 +10,8 @@ import onnx
 import onnxruntime as ort
 import pytest
 import torch
-
 from conftest import synthetic_crops
+
 from export.graphs import ExportLRN, HeadGraph
 from export.onnx_export import ExportError, export_model
 from training.networks import GraspQualityNet, LocalResponseNorm
@@ -103,6 +103,7 @@ def strongly_activated(net: GraspQualityNet, crops: np.ndarray, poses: np.ndarra
 
 def encode_without_lrn(net: GraspQualityNet, x: torch.Tensor, which: int) -> torch.Tensor:
     """``net.encode`` with its first (0) or second (1) LRN left out."""
+
     def lrn(y, i):
         return y if i == which else net.lrn(y)
 
@@ -162,7 +163,9 @@ def test_folded_head_equals_network_head():
     net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns))
     with torch.no_grad():
         t = net.encode(torch.from_numpy(imgs[:1, None]))
-        assert torch.allclose(HeadGraph(net)(t, torch.from_numpy(poses)), net.head(t, torch.from_numpy(poses)), atol=1e-6)
+        assert torch.allclose(
+            HeadGraph(net)(t, torch.from_numpy(poses)), net.head(t, torch.from_numpy(poses)), atol=1e-6
+        )
 
 
 @pytest.mark.parametrize("arch", ["vgqcnn", "gqcnn"])
@@ -177,7 +180,14 @@ def test_one_piece_export_for_vgqcnn_and_gqcnn(tmp_path, arch):
 def test_export_refuses_wrong_inputs_and_writes_nothing(tmp_path):
     net = GraspQualityNet("fast_vgqcnn").eval()
     with pytest.raises(ExportError, match="poses"):
-        export_model(net, tmp_path / "m", np.zeros((4, 32, 32), np.float32), np.zeros((4, 5), np.float32), GEOM, DEFAULT_INTRINSICS)
+        export_model(
+            net,
+            tmp_path / "m",
+            np.zeros((4, 32, 32), np.float32),
+            np.zeros((4, 5), np.float32),
+            GEOM,
+            DEFAULT_INTRINSICS,
+        )
     assert list(tmp_path.iterdir()) == []
 
 
@@ -195,8 +205,9 @@ def _tiny_run(tmp_path):
     from training.train import train
 
     make_synthetic_crop_dataset(tmp_path / "d", 16, 8, 8, positive_rate=0.5, seed=0)
-    train(TrainConfig(samples=16, batch_size=8, val_every_samples=10**6), tmp_path / "d", tmp_path / "run",
-          progress=False)
+    train(
+        TrainConfig(samples=16, batch_size=8, val_every_samples=10**6), tmp_path / "d", tmp_path / "run", progress=False
+    )
     return tmp_path / "d", tmp_path / "run"
 
 
@@ -206,9 +217,22 @@ def test_export_cli_records_recipe_and_pose_only_baseline(tmp_path):
 
     data, run = _tiny_run(tmp_path)
     run_baseline(data, BaselineConfig(model="logreg", epochs=1, batch_size=8), tmp_path / "b", progress=False)
-    main(["--run", str(run), "--data", str(data), "--out", str(tmp_path / "m"), "--verify-n", "4",
-          "--recipe", "python -m datagen recipe --out data/recipe",
-          "--baseline", str(tmp_path / "b" / "baseline_logreg.json")])
+    main(
+        [
+            "--run",
+            str(run),
+            "--data",
+            str(data),
+            "--out",
+            str(tmp_path / "m"),
+            "--verify-n",
+            "4",
+            "--recipe",
+            "python -m datagen recipe --out data/recipe",
+            "--baseline",
+            str(tmp_path / "b" / "baseline_logreg.json"),
+        ]
+    )
     card = ModelCard.load(tmp_path / "m")
     assert card.dataset["recipe"] == "python -m datagen recipe --out data/recipe"
     base = card.metrics["baseline_logreg"]
@@ -225,11 +249,22 @@ def test_export_cli_refuses_baseline_of_another_dataset(tmp_path, capsys):
 
     data, run = _tiny_run(tmp_path)
     make_synthetic_crop_dataset(tmp_path / "other", 16, 8, 8, positive_rate=0.5, seed=1)
-    run_baseline(tmp_path / "other", BaselineConfig(model="logreg", epochs=1, batch_size=8), tmp_path / "b",
-                 progress=False)
+    run_baseline(
+        tmp_path / "other", BaselineConfig(model="logreg", epochs=1, batch_size=8), tmp_path / "b", progress=False
+    )
     with pytest.raises(SystemExit) as e:
-        main(["--run", str(run), "--data", str(data), "--out", str(tmp_path / "m"),
-              "--baseline", str(tmp_path / "b" / "baseline_logreg.json")])
+        main(
+            [
+                "--run",
+                str(run),
+                "--data",
+                str(data),
+                "--out",
+                str(tmp_path / "m"),
+                "--baseline",
+                str(tmp_path / "b" / "baseline_logreg.json"),
+            ]
+        )
     assert e.value.code == 2 and "not on" in capsys.readouterr().err
     assert not (tmp_path / "m").exists()
 
@@ -240,8 +275,9 @@ def int8_model(tmp_path_factory, briefly_trained):
     net, imgs, poses = briefly_trained
     chk_imgs, chk_poses, chk_labels = synthetic_crops(400, np.random.default_rng(7))
     out = tmp_path_factory.mktemp("int8") / "m"
-    card = export_model(net, out, imgs[:16], poses[:16], GEOM, DEFAULT_INTRINSICS,
-                        int8_check=(chk_imgs, chk_poses, chk_labels))
+    card = export_model(
+        net, out, imgs[:16], poses[:16], GEOM, DEFAULT_INTRINSICS, int8_check=(chk_imgs, chk_poses, chk_labels)
+    )
     return out, card
 
 
@@ -272,14 +308,22 @@ def test_int8_check_refuses_a_head_that_scores_differently(int8_model):
     out, _ = int8_model
     imgs, poses, labels = synthetic_crops(64, np.random.default_rng(3))
     with pytest.raises(QuantizationError, match="unlike the fp32 head"):
-        check_int8_head(out / "encoder.onnx", out / "head.onnx", out / "head_int8.onnx", imgs, poses, labels,
-                        max_abs_diff=0.0)
+        check_int8_head(
+            out / "encoder.onnx", out / "head.onnx", out / "head_int8.onnx", imgs, poses, labels, max_abs_diff=0.0
+        )
 
 
 def test_int8_head_is_for_fast_vgqcnn_only(tmp_path, briefly_trained):
     _, imgs, poses = briefly_trained
     net = GraspQualityNet("vgqcnn").eval()
     with pytest.raises(ExportError, match="fast_vgqcnn only"):
-        export_model(net, tmp_path / "v", imgs[:4], poses[:4, 2:], GEOM, DEFAULT_INTRINSICS,
-                     int8_check=(imgs[:200], poses[:200, 2:], np.arange(200) % 2))
+        export_model(
+            net,
+            tmp_path / "v",
+            imgs[:4],
+            poses[:4, 2:],
+            GEOM,
+            DEFAULT_INTRINSICS,
+            int8_check=(imgs[:200], poses[:200, 2:], np.arange(200) % 2),
+        )
     assert not (tmp_path / "v").exists()

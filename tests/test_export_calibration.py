@@ -9,8 +9,8 @@ import warnings
 import numpy as np
 import pytest
 import torch
-
 from conftest import synthetic_crops
+
 from export.calibrate import DIAGRAM, calibration_report, native_positivity
 from export.onnx_export import export_model
 from vgq.camera import DEFAULT_INTRINSICS
@@ -57,8 +57,12 @@ def tiny_run(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("calib")
     make_synthetic_crop_dataset(root / "d", 64, 48, 48, positive_rate=0.3, seed=0)
-    train(TrainConfig(samples=64, batch_size=16, base_lr=0.05, val_every_samples=10**6, class_balance="loss_weights"),
-          root / "d", root / "run", progress=False)
+    train(
+        TrainConfig(samples=64, batch_size=16, base_lr=0.05, val_every_samples=10**6, class_balance="loss_weights"),
+        root / "d",
+        root / "run",
+        progress=False,
+    )
     return root / "d", root / "run"
 
 
@@ -67,11 +71,26 @@ def test_export_cli_calibrates_for_the_manifests_native_positivity(tiny_run, tmp
 
     data, run = tiny_run
     manifest = json.loads((data / "manifest.json").read_text())
-    main(["--run", str(run), "--data", str(data), "--out", str(tmp_path / "m"), "--verify-n", "4",
-          "--reliability-png", str(tmp_path / "docs" / "reliability_diagram.png")])
+    main(
+        [
+            "--run",
+            str(run),
+            "--data",
+            str(data),
+            "--out",
+            str(tmp_path / "m"),
+            "--verify-n",
+            "4",
+            "--reliability-png",
+            str(tmp_path / "docs" / "reliability_diagram.png"),
+        ]
+    )
     k = ModelCard.load(tmp_path / "m").calibration
     nc = manifest["native_counts"]
-    assert k["target_positivity"] == pytest.approx(nc["positive"] / nc["n"]) and "native_counts" in k["target_positivity_source"]
+    assert (
+        k["target_positivity"] == pytest.approx(nc["positive"] / nc["n"])
+        and "native_counts" in k["target_positivity_source"]
+    )
     assert k["fit"]["split"] == "val" and k["fit"]["n"] == 48 and k["test"]["split"] == "test"
     assert (tmp_path / "docs" / "reliability_diagram.png").read_bytes() == (tmp_path / "m" / DIAGRAM).read_bytes()
 
@@ -80,8 +99,22 @@ def test_export_cli_temperature_and_given_positivity(tiny_run, tmp_path):
     from export.__main__ import main
 
     data, run = tiny_run
-    main(["--run", str(run), "--data", str(data), "--out", str(tmp_path / "m"), "--verify-n", "4",
-          "--calibration-method", "temperature", "--native-positivity", "0.05"])
+    main(
+        [
+            "--run",
+            str(run),
+            "--data",
+            str(data),
+            "--out",
+            str(tmp_path / "m"),
+            "--verify-n",
+            "4",
+            "--calibration-method",
+            "temperature",
+            "--native-positivity",
+            "0.05",
+        ]
+    )
     k = ModelCard.load(tmp_path / "m").calibration
     assert k["method"] == "temperature" and k["target_positivity"] == 0.05 and k["temperature"] > 0
 
@@ -96,13 +129,23 @@ def test_export_cli_refuses_a_bad_positivity(tiny_run, tmp_path, capsys):
 
 
 def test_native_positivity_prefers_given_then_manifest_then_sampled_source(tmp_path):
-    m = {"counts": {"train": {"n": 100, "positive": 19}}, "native_counts": {"n": 1000, "positive": 47, "positivity": 0.047}}
+    m = {
+        "counts": {"train": {"n": 100, "positive": 19}},
+        "native_counts": {"n": 1000, "positive": 47, "positivity": 0.047},
+    }
     assert native_positivity(m, 0.1) == (0.1, "given (--native-positivity)")
     assert native_positivity(m)[0] == pytest.approx(0.047)
     src = tmp_path / "sampled"
     src.mkdir()
-    (src / "manifest.json").write_text(json.dumps({"format": "vgq-grasps", "format_version": 1, "sampling": {
-        "stats": {"steps": {"native": {"grasps": 2000, "positive": 80, "positivity": 4.0}}}}}))
+    (src / "manifest.json").write_text(
+        json.dumps(
+            {
+                "format": "vgq-grasps",
+                "format_version": 1,
+                "sampling": {"stats": {"steps": {"native": {"grasps": 2000, "positive": 80, "positivity": 4.0}}}},
+            }
+        )
+    )
     old = {"counts": m["counts"], "source": {"dataset": str(src)}}  # a crop manifest from before native_counts
     assert native_positivity(old)[0] == pytest.approx(0.04)
     assert native_positivity({"counts": m["counts"]})[0] == pytest.approx(0.19)
@@ -115,7 +158,9 @@ def test_export_cli_without_both_classes_in_val_exits_2_naming_the_way_out(tmp_p
     from training.train import train
 
     make_synthetic_crop_dataset(tmp_path / "d", 16, 8, 8, positive_rate=0.0, seed=0)  # no positives anywhere
-    train(TrainConfig(samples=16, batch_size=8, val_every_samples=10**6), tmp_path / "d", tmp_path / "run", progress=False)
+    train(
+        TrainConfig(samples=16, batch_size=8, val_every_samples=10**6), tmp_path / "d", tmp_path / "run", progress=False
+    )
     args = ["--run", str(tmp_path / "run"), "--data", str(tmp_path / "d"), "--verify-n", "4"]
     with pytest.raises(SystemExit) as e:
         main([*args, "--out", str(tmp_path / "m")])

@@ -8,8 +8,8 @@ import shutil
 import numpy as np
 import onnx
 import pytest
-
 from conftest import synthetic_crops
+
 from export.int8_encoder import add_int8_encoder, main
 from export.quantize import QuantizationError, check_encoder_variant, encoder_nodes_to_quantize
 from service.config import Settings
@@ -50,11 +50,28 @@ def test_check_refuses_an_encoder_that_scores_differently(int8_enc_model):
     out, _ = int8_enc_model
     imgs, poses, labels = synthetic_crops(200, np.random.default_rng(23))
     with pytest.raises(QuantizationError, match="scores unlike"):
-        check_encoder_variant(out / "encoder.onnx", out / "encoder_int8.onnx", out / "head.onnx", imgs, poses, labels,
-                              max_mean_abs_diff=0.0)
+        check_encoder_variant(
+            out / "encoder.onnx",
+            out / "encoder_int8.onnx",
+            out / "head.onnx",
+            imgs,
+            poses,
+            labels,
+            max_mean_abs_diff=0.0,
+        )
     # the fp32 encoder against itself: identical, passes with zero tolerance
-    same = check_encoder_variant(out / "encoder.onnx", out / "encoder.onnx", out / "head.onnx", imgs, poses, labels,
-                                 precision="fp32", max_mean_abs_diff=0.0, max_flip_fraction=0.0, max_bacc_drop=0.0)
+    same = check_encoder_variant(
+        out / "encoder.onnx",
+        out / "encoder.onnx",
+        out / "head.onnx",
+        imgs,
+        poses,
+        labels,
+        precision="fp32",
+        max_mean_abs_diff=0.0,
+        max_flip_fraction=0.0,
+        max_bacc_drop=0.0,
+    )
     assert same.decisions_changed == 0 and same.max_abs_diff_probability == 0.0
 
 
@@ -64,16 +81,30 @@ def test_refused_encoder_leaves_the_folder_unchanged(tmp_path, model_dir, monkey
     out = tmp_path / "m"
     shutil.copytree(model_dir, out)
     before = (out / "model_card.json").read_text()
-    monkeypatch.setattr(ie, "check_encoder_variant", lambda *a, **k: (_ for _ in ()).throw(QuantizationError("refused")))
+    monkeypatch.setattr(
+        ie, "check_encoder_variant", lambda *a, **k: (_ for _ in ()).throw(QuantizationError("refused"))
+    )
     with pytest.raises(QuantizationError):
-        ie.add_int8_encoder(out, synthetic_crops(32, np.random.default_rng(1))[0], synthetic_crops(50, np.random.default_rng(2)))
+        ie.add_int8_encoder(
+            out, synthetic_crops(32, np.random.default_rng(1))[0], synthetic_crops(50, np.random.default_rng(2))
+        )
     assert (out / "model_card.json").read_text() == before and sorted(p.name for p in out.iterdir()) == sorted(
-        p.name for p in model_dir.iterdir())
+        p.name for p in model_dir.iterdir()
+    )
 
 
 def test_cli_exits_2_with_one_line_for_a_missing_dataset(tmp_path, model_dir, capsys):
     with pytest.raises(SystemExit) as e:
-        main(["--model-dir", str(model_dir), "--calibration", str(tmp_path / "nope"), "--check", str(tmp_path / "nope.npz")])
+        main(
+            [
+                "--model-dir",
+                str(model_dir),
+                "--calibration",
+                str(tmp_path / "nope"),
+                "--check",
+                str(tmp_path / "nope.npz"),
+            ]
+        )
     assert e.value.code == 2 and capsys.readouterr().err.startswith("int8-encoder:")
 
 
@@ -106,13 +137,28 @@ def test_export_cli_int8_encoder_flag_checks_and_records_the_outcome(tmp_path, c
     refusal is logged and nothing of it is left in the folder."""
     import logging
 
-    from export.__main__ import main as export_main
     from test_export import _tiny_run
+
+    from export.__main__ import main as export_main
 
     data, run = _tiny_run(tmp_path)
     with caplog.at_level(logging.INFO):
-        export_main(["--run", str(run), "--data", str(data), "--out", str(tmp_path / "m"), "--verify-n", "4",
-                     "--no-calibration", "--int8-encoder", "--int8-check-n", "100"])
+        export_main(
+            [
+                "--run",
+                str(run),
+                "--data",
+                str(data),
+                "--out",
+                str(tmp_path / "m"),
+                "--verify-n",
+                "4",
+                "--no-calibration",
+                "--int8-encoder",
+                "--int8-check-n",
+                "100",
+            ]
+        )
     card = ModelCard.load(tmp_path / "m")
     kept = (tmp_path / "m" / "encoder_int8.onnx").is_file()
     assert kept == ("encoder_int8" in card.files) == ("int8_encoder" in card.export)

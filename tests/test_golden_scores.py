@@ -16,7 +16,6 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-
 from servers import running_service
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -105,6 +104,7 @@ def test_default_int8_service_equals_the_int8_head_run_directly(stored, depth):
         r = httpx.post(f"{url}/v1/images/{up.json()['image_id']}/scores", json={"grasps": stored["grasps"]})
     assert r.status_code == 200, r.text
     p8 = np.asarray(r.json()["p_success"])
-    np.testing.assert_allclose(p8, golden.hand_scores(depth, np.array(stored["grasps"]), head="head_int8.onnx"),
-                               atol=TOL, rtol=0)
+    np.testing.assert_allclose(
+        p8, golden.hand_scores(depth, np.array(stored["grasps"]), head="head_int8.onnx"), atol=TOL, rtol=0
+    )
     assert np.abs(p8 - stored["p_success"]).max() <= 0.05  # the card's int8 check bound

@@ -6,12 +6,12 @@ import json
 import os
 
 import pytest
+from servers import running_service
 
 from tools.loadtest.cli import main
 from tools.loadtest.client import check_target
 from tools.loadtest.report import server_latency_totals, server_rss_bytes
 from tools.loadtest.workload import Mix
-from servers import running_service
 
 
 @pytest.fixture(scope="module")
@@ -22,8 +22,24 @@ def url(model_dir):
 
 def test_loadtest_reports_every_endpoint_with_zero_errors(url, tmp_path):
     out = tmp_path / "load.json"
-    report = main(["--url", url, "--clients", "2", "--duration", "2", "--warmup", "0.2", "--k", "32",
-                   "--mix", "upload=1,score=4,once=1", "--json", str(out)])
+    report = main(
+        [
+            "--url",
+            url,
+            "--clients",
+            "2",
+            "--duration",
+            "2",
+            "--warmup",
+            "0.2",
+            "--k",
+            "32",
+            "--mix",
+            "upload=1,score=4,once=1",
+            "--json",
+            str(out),
+        ]
+    )
     assert report["config"]["transport"] == "httpx" and set(report["endpoints"]) == {"upload", "score", "score_once"}
     assert all(e["requests"] > 0 and e["errors"] == 0 for e in report["endpoints"].values())
     assert report["errors"] == 0 and report["grasps_per_s"] > 0
@@ -42,8 +58,22 @@ def test_single_client_uses_the_raw_transport_and_scores_every_call(url):
 def test_bad_requests_in_the_mix_all_get_a_named_4xx(url, clients):
     """`bad=N` rotates malformed requests (NaN depth, truncated .npy, corrupt PNG, zip bomb,
     broken JSON, zero quaternion, unknown id): every one must be a 4xx with a message."""
-    report = main(["--url", url, "--clients", str(clients), "--duration", "1.5", "--warmup", "0", "--k", "16",
-                   "--mix", "upload=1,score=1,once=0,bad=7"])
+    report = main(
+        [
+            "--url",
+            url,
+            "--clients",
+            str(clients),
+            "--duration",
+            "1.5",
+            "--warmup",
+            "0",
+            "--k",
+            "16",
+            "--mix",
+            "upload=1,score=1,once=0,bad=7",
+        ]
+    )
     bad = report["endpoints"]["bad"]
     assert bad["requests"] >= 7 and bad["errors"] == 0 and report["errors"] == 0, report["error_messages"]
 
@@ -72,14 +102,16 @@ def test_server_rss_reads_this_process():
 
 
 def test_server_latency_totals_sum_over_status_labels():
-    text = "\n".join([
-        "# TYPE vgq_request_seconds histogram",
-        'vgq_request_seconds_bucket{endpoint="score",le="0.001"} 3.0',
-        'vgq_request_seconds_count{endpoint="score"} 4.0',
-        'vgq_request_seconds_sum{endpoint="score"} 0.008',
-        'vgq_request_seconds_count{endpoint="upload"} 1.0',
-        'vgq_request_seconds_sum{endpoint="upload"} 0.005',
-    ])
+    text = "\n".join(
+        [
+            "# TYPE vgq_request_seconds histogram",
+            'vgq_request_seconds_bucket{endpoint="score",le="0.001"} 3.0',
+            'vgq_request_seconds_count{endpoint="score"} 4.0',
+            'vgq_request_seconds_sum{endpoint="score"} 0.008',
+            'vgq_request_seconds_count{endpoint="upload"} 1.0',
+            'vgq_request_seconds_sum{endpoint="upload"} 0.005',
+        ]
+    )
     assert server_latency_totals(text) == {"score": (0.008, 4.0), "upload": (0.005, 1.0)}
 
 
@@ -87,31 +119,75 @@ def test_locustfile_runs_the_same_cycle_headless(url, tmp_path):
     """tools/loadtest/locustfile.py with Locust (optional extra ``locust``): every request type
     is sent and none fails."""
     import csv
+    import importlib.util
     import subprocess
     import sys
     from pathlib import Path
-
-    import importlib.util
 
     if importlib.util.find_spec("locust") is None:  # not imported here: gevent would patch this process
         pytest.skip("locust not installed (pip install 'vgq-cnn[locust]')")
     root = Path(__file__).resolve().parent.parent
     prefix = tmp_path / "run"
-    r = subprocess.run([sys.executable, "-m", "locust", "-f", str(root / "tools" / "loadtest" / "locustfile.py"), "--host", url,
-                        "--headless", "--users", "2", "--spawn-rate", "2", "--run-time", "3s", "--csv", str(prefix),
-                        "--only-summary"], cwd=root, env={**os.environ, "VGQ_LOADTEST_K": "16", "VGQ_LOADTEST_MIX": "upload=1,score=2,once=1"},
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "locust",
+            "-f",
+            str(root / "tools" / "loadtest" / "locustfile.py"),
+            "--host",
+            url,
+            "--headless",
+            "--users",
+            "2",
+            "--spawn-rate",
+            "2",
+            "--run-time",
+            "3s",
+            "--csv",
+            str(prefix),
+            "--only-summary",
+        ],
+        cwd=root,
+        env={**os.environ, "VGQ_LOADTEST_K": "16", "VGQ_LOADTEST_MIX": "upload=1,score=2,once=1"},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     rows = {row["Name"]: row for row in csv.DictReader(open(f"{prefix}_stats.csv"))}
     assert {"upload", "score", "score_once"} <= set(rows), r.stderr[-2000:]
-    assert all(int(rows[n]["Request Count"]) > 0 and int(rows[n]["Failure Count"]) == 0 for n in ("upload", "score", "score_once"))
+    assert all(
+        int(rows[n]["Request Count"]) > 0 and int(rows[n]["Failure Count"]) == 0
+        for n in ("upload", "score", "score_once")
+    )
 
 
 def test_sweep_measures_each_setting_and_plots(model_dir, tmp_path):
     from tools.loadtest.sweep import main as sweep_main
 
     png = tmp_path / "sweep.png"
-    points = sweep_main(["--clients", "1,2", "--workers", "1", "--threads", "1", "--duration", "1.5", "--k", "16", "--mix", "upload=1,score=1,once=1",
-                         "--model-dir", str(model_dir), "--plot", str(png), "--json", str(tmp_path / "s.json")])
+    points = sweep_main(
+        [
+            "--clients",
+            "1,2",
+            "--workers",
+            "1",
+            "--threads",
+            "1",
+            "--duration",
+            "1.5",
+            "--k",
+            "16",
+            "--mix",
+            "upload=1,score=1,once=1",
+            "--model-dir",
+            str(model_dir),
+            "--plot",
+            str(png),
+            "--json",
+            str(tmp_path / "s.json"),
+        ]
+    )
     assert [(p["workers"], p["threads"], p["clients"]) for p in points] == [(1, 1, 1), (1, 1, 2)]
     assert all(p["errors"] == 0 and p["endpoints"]["score_once"]["requests"] > 0 for p in points)
     assert png.read_bytes()[:4] == b"\x89PNG" and json.loads((tmp_path / "s.json").read_text())[1]["clients"] == 2

@@ -14,7 +14,9 @@ from tests.planning_scenes import boxes_scene
 
 
 def _run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "planning", *map(str, args)], capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "planning", *map(str, args)], capture_output=True, text=True, timeout=120
+    )
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +62,10 @@ def test_cli_bad_input_exits_2_with_one_line(depth_file, args, words):
 def test_cli_rejects_missing_and_empty_images(tmp_path):
     np.save(tmp_path / "zeros.npy", np.zeros((300, 300), np.float32))
     (tmp_path / "junk.npy").write_bytes(b"not a numpy file")
-    for f, words in ((tmp_path / "missing.npy", "not found"), (tmp_path / "zeros.npy", "no valid depth"),
-                     (tmp_path / "junk.npy", "cannot read")):
+    for f, words in (
+        (tmp_path / "missing.npy", "not found"),
+        (tmp_path / "zeros.npy", "no valid depth"),
+        (tmp_path / "junk.npy", "cannot read"),
+    ):
         r = _run(f)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and words in r.stderr, r.stderr

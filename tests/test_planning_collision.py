@@ -60,8 +60,9 @@ def test_a_grasp_whose_finger_holds_an_observed_point_collides():
     in_finger = tcp + [g.max_width / 2 + g.finger_depth / 2, 0.0, -0.02]
     behind_palm = tcp + [0.0, 0.0, -0.12]  # in the swept approach behind the palm
     beside = tcp + [0.0, 0.05, 0.0]
-    results = [GripperCollision(g, None, np.array([p])).collides(T[None])[0]
-               for p in (between, in_finger, behind_palm, beside)]
+    results = [
+        GripperCollision(g, None, np.array([p])).collides(T[None])[0] for p in (between, in_finger, behind_palm, beside)
+    ]
     assert results == [False, True, True, False]
 
 
@@ -70,8 +71,9 @@ def test_the_fast_point_test_matches_a_plain_box_test():
 
     rng = np.random.default_rng(3)
     pts = rng.uniform(-0.15, 0.15, (40, 3))
-    frames = np.stack([_frame(rng.uniform(-0.05, 0.05, 3), rng.standard_normal(3), rng.standard_normal(3))
-                       for _ in range(300)])
+    frames = np.stack(
+        [_frame(rng.uniform(-0.05, 0.05, 3), rng.standard_normal(3), rng.standard_normal(3)) for _ in range(300)]
+    )
     fast = GripperCollision(GripperGeometry(), None, pts, point_clearance=0.0).collides(frames)
     c, h = gripper_boxes(GripperGeometry(), swept=True)
     local = np.einsum("fji,fmj->fmi", frames[:, :3, :3], pts[None] - frames[:, None, :3, 3])

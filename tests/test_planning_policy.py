@@ -57,13 +57,15 @@ def test_nms_keeps_only_distinct_grasps():
         T[:3, 3] = c
         return T
 
-    frames = np.stack([
-        frame([0, 0, 0.6], np.array([1.0, 0, 0])),
-        frame([0.003, 0, 0.6], np.array([1.0, 0.1, 0])),  # same place, same axis: suppressed
-        frame([0.003, 0, 0.6], np.array([0.0, 1.0, 0])),  # same place, crossed axis: kept
-        frame([0.05, 0, 0.6], np.array([1.0, 0, 0])),  # elsewhere: kept
-        frame([0.0, 0, 0.6], np.array([-1.0, 0, 0])),  # reversed axis is the same line: suppressed
-    ])
+    frames = np.stack(
+        [
+            frame([0, 0, 0.6], np.array([1.0, 0, 0])),
+            frame([0.003, 0, 0.6], np.array([1.0, 0.1, 0])),  # same place, same axis: suppressed
+            frame([0.003, 0, 0.6], np.array([0.0, 1.0, 0])),  # same place, crossed axis: kept
+            frame([0.05, 0, 0.6], np.array([1.0, 0, 0])),  # elsewhere: kept
+            frame([0.0, 0, 0.6], np.array([-1.0, 0, 0])),  # reversed axis is the same line: suppressed
+        ]
+    )
     scores = np.array([0.9, 0.95, 0.5, 0.4, 0.3])
     assert nms(frames, scores, 10, 0.01, np.radians(30)).tolist() == [1, 2, 3]
     assert nms(frames, scores, 2, 0.01, np.radians(30)).tolist() == [1, 2]

@@ -10,7 +10,6 @@ import sys
 
 import numpy as np
 import pytest
-
 from servers import ROOT, running_service
 
 README = (ROOT / "README.md").read_text()
@@ -50,13 +49,17 @@ def test_any_camera_example_runs(url):
     assert len([ln for ln in code.splitlines() if ln.strip()]) <= 6
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
-    assert "'image_shape': [256, 256]" in r.stdout and "[[" in r.stdout  # 300 px at 615 px -> 256 px at 525; flags per grasp
+    assert (
+        "'image_shape': [256, 256]" in r.stdout and "[[" in r.stdout
+    )  # 300 px at 615 px -> 256 px at 525; flags per grasp
 
 
 @pytest.mark.skipif(shutil.which("curl") is None, reason="curl is not installed")
 def test_curl_example_runs(url):
     cmds = [b for b in blocks("bash") if "curl" in b][0].replace("http://127.0.0.1:8000", url)
-    r = subprocess.run(["bash", "-c", "set -euo pipefail\n" + cmds], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        ["bash", "-c", "set -euo pipefail\n" + cmds], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
     assert r.returncode == 0, r.stderr
     assert '"p_success"' in r.stdout
 
@@ -73,7 +76,9 @@ def test_plan_curl_example_runs(url):
     import json
 
     cmd = [b for b in blocks("bash") if "/v1/plan" in b][0].replace("http://127.0.0.1:8000", url)
-    r = subprocess.run(["bash", "-c", "set -euo pipefail\n" + cmd], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        ["bash", "-c", "set -euo pipefail\n" + cmd], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout)
     assert len(d["grasps"]) == 3 and d["reason"] is None

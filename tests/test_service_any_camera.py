@@ -85,10 +85,16 @@ def test_intrinsics_by_query_multipart_and_npz_score_alike(url):
     assert up["intrinsics"] == intr and up["intrinsics_assumed"] == []
     assert up["resampled"]["image_shape"] == [300, 300] and up["resampled"]["intrinsics"]["fx"] == pytest.approx(525.0)
     by_query = scores(url, up["image_id"], g)
-    multipart = httpx.post(f"{url}/v1/score", files={"depth": ("d.npy", npy(depth), "application/x-npy")},
-                           data={"grasps": json.dumps({"grasps": g.tolist()}), **{k: str(v) for k, v in intr.items()}})
-    one_npz = httpx.post(f"{url}/v1/score", content=npz(depth=depth, grasps=g, intrinsics=list(intr.values())),
-                         headers={"content-type": "application/x-npz"})
+    multipart = httpx.post(
+        f"{url}/v1/score",
+        files={"depth": ("d.npy", npy(depth), "application/x-npy")},
+        data={"grasps": json.dumps({"grasps": g.tolist()}), **{k: str(v) for k, v in intr.items()}},
+    )
+    one_npz = httpx.post(
+        f"{url}/v1/score",
+        content=npz(depth=depth, grasps=g, intrinsics=list(intr.values())),
+        headers={"content-type": "application/x-npz"},
+    )
     for r in (multipart, one_npz):
         assert r.status_code == 200, r.text
         assert r.json()["intrinsics"] == intr and r.json()["intrinsics_assumed"] == []
@@ -113,16 +119,32 @@ def test_omitted_intrinsics_are_the_model_s_and_the_answer_says_so(url):
     assert up["intrinsics_assumed"] == ["fx", "fy", "cx", "cy"]
     assert up["intrinsics"] == {"fx": 525.0, "fy": 525.0, "cx": 319.5, "cy": 239.5}
     assert up["resampled"]["scale"] == [1.0, 1.0]
-    assert scores(url, up["image_id"], grasps_at(center=(320, 240), k=2))["intrinsics_assumed"] == ["fx", "fy", "cx", "cy"]
-    r = httpx.post(f"{url}/v1/score", content=npz(depth=table_scene(), grasps=grasps_at(k=2)),
-                   headers={"content-type": "application/x-npz"}).json()
+    assert scores(url, up["image_id"], grasps_at(center=(320, 240), k=2))["intrinsics_assumed"] == [
+        "fx",
+        "fy",
+        "cx",
+        "cy",
+    ]
+    r = httpx.post(
+        f"{url}/v1/score",
+        content=npz(depth=table_scene(), grasps=grasps_at(k=2)),
+        headers={"content-type": "application/x-npz"},
+    ).json()
     assert r["intrinsics_assumed"] == ["fx", "fy", "cx", "cy"]
     assert upload(url, wide_scene(), fx=600).json()["intrinsics_assumed"] == ["fy", "cx", "cy"]
 
 
-BAD_INTRINSICS = [({"fx": 0}, "fx"), ({"fx": -500}, "fx"), ({"fy": "nan"}, "fy"), ({"fx": "inf"}, "fx"),
-                  ({"fx": 2000}, "fx"), ({"fy": 200}, "fy"), ({"cx": -5}, "cx"), ({"cy": 480}, "cy"),
-                  ({"cx": "1e400"}, "cx")]
+BAD_INTRINSICS = [
+    ({"fx": 0}, "fx"),
+    ({"fx": -500}, "fx"),
+    ({"fy": "nan"}, "fy"),
+    ({"fx": "inf"}, "fx"),
+    ({"fx": 2000}, "fx"),
+    ({"fy": 200}, "fy"),
+    ({"cx": -5}, "cx"),
+    ({"cy": 480}, "cy"),
+    ({"cx": "1e400"}, "cx"),
+]
 
 
 @pytest.mark.parametrize("params, field", BAD_INTRINSICS)
@@ -131,16 +153,29 @@ def test_bad_intrinsics_are_a_422_naming_the_field(url, params, field):
     assert r.status_code == 422, r.text
     e = r.json()["error"]
     assert e["message"].startswith(f"field {field}") and e["details"]["field"] == field
-    m = httpx.post(f"{url}/v1/score", files={"depth": ("d.npy", npy(wide_scene()), "application/x-npy")},
-                   data={"grasps": json.dumps({"grasps": grasps_at(k=1).tolist()}), **{k: str(v) for k, v in params.items()}})
+    m = httpx.post(
+        f"{url}/v1/score",
+        files={"depth": ("d.npy", npy(wide_scene()), "application/x-npy")},
+        data={"grasps": json.dumps({"grasps": grasps_at(k=1).tolist()}), **{k: str(v) for k, v in params.items()}},
+    )
     assert m.status_code == 422 and m.json()["error"]["details"]["field"] == field
 
 
-@pytest.mark.parametrize("intr, field", [([0, 525, 149.5, 149.5], "fx"), ([525, np.nan, 149.5, 149.5], "fy"),
-                                         ([525, 525, 400, 149.5], "cx"), ([525, 525, 149.5, -1], "cy")])
+@pytest.mark.parametrize(
+    "intr, field",
+    [
+        ([0, 525, 149.5, 149.5], "fx"),
+        ([525, np.nan, 149.5, 149.5], "fy"),
+        ([525, 525, 400, 149.5], "cx"),
+        ([525, 525, 149.5, -1], "cy"),
+    ],
+)
 def test_bad_npz_intrinsics_are_a_422_naming_the_field(url, intr, field):
-    r = httpx.post(f"{url}/v1/score", content=npz(depth=table_scene(), grasps=grasps_at(k=1), intrinsics=intr),
-                   headers={"content-type": "application/x-npz"})
+    r = httpx.post(
+        f"{url}/v1/score",
+        content=npz(depth=table_scene(), grasps=grasps_at(k=1), intrinsics=intr),
+        headers={"content-type": "application/x-npz"},
+    )
     assert r.status_code == 422 and r.json()["error"]["details"]["field"] == field
 
 
@@ -236,8 +271,13 @@ def flagged_grasps():
 def test_each_grasp_carries_the_reasons_its_score_is_not_to_be_trusted(url):
     up = upload(url, flagged_scene()).json()
     r = scores(url, up["image_id"], flagged_grasps())
-    assert r["ood"] == [[], ["approach_away_from_camera"], ["center_on_missing_depth"], ["z_outside_training_range"],
-                        ["window_mostly_missing"]]
+    assert r["ood"] == [
+        [],
+        ["approach_away_from_camera"],
+        ["center_on_missing_depth"],
+        ["z_outside_training_range"],
+        ["window_mostly_missing"],
+    ]
     assert r["ood_mask"] == [0, 1, 4, 2, 8]
     info = httpx.get(f"{url}/v1/model").json()["ood"]
     assert info["flags"]["2"] == "z_outside_training_range" and info["z_range"][0] < 0.65 < info["z_range"][1]
@@ -246,24 +286,34 @@ def test_each_grasp_carries_the_reasons_its_score_is_not_to_be_trusted(url):
 
 def test_strict_turns_flags_into_a_422_listing_grasps_and_reasons(url):
     iid = upload(url, flagged_scene()).json()["image_id"]
-    r = httpx.post(f"{url}/v1/images/{iid}/scores", params={"strict": "true"}, json={"grasps": flagged_grasps().tolist()})
+    r = httpx.post(
+        f"{url}/v1/images/{iid}/scores", params={"strict": "true"}, json={"grasps": flagged_grasps().tolist()}
+    )
     assert r.status_code == 422
     e = r.json()["error"]
     assert e["details"]["grasps"] == [1, 2, 3, 4] and e["details"]["ood"]["3"] == ["z_outside_training_range"]
     assert "strict" in e["message"] and "approach_away_from_camera" in e["message"]
     ok = scores(url, iid, flagged_grasps()[:1], strict="true")
     assert ok["ood"] == [[]]
-    shot = httpx.post(f"{url}/v1/score?strict=1", content=npz(depth=flagged_scene(), grasps=flagged_grasps()),
-                      headers={"content-type": "application/x-npz"})
+    shot = httpx.post(
+        f"{url}/v1/score?strict=1",
+        content=npz(depth=flagged_scene(), grasps=flagged_grasps()),
+        headers={"content-type": "application/x-npz"},
+    )
     assert shot.status_code == 422 and shot.json()["error"]["details"]["grasps"] == [1, 2, 3, 4]
-    bad = httpx.post(f"{url}/v1/images/{iid}/scores", params={"strict": "maybe"}, json={"grasps": flagged_grasps().tolist()})
+    bad = httpx.post(
+        f"{url}/v1/images/{iid}/scores", params={"strict": "maybe"}, json={"grasps": flagged_grasps().tolist()}
+    )
     assert bad.status_code == 422 and bad.json()["error"]["details"]["field"] == "strict"
 
 
 def test_binary_answers_count_flagged_grasps_in_a_header(url):
     iid = upload(url, flagged_scene()).json()["image_id"]
-    r = httpx.post(f"{url}/v1/images/{iid}/scores", content=flagged_grasps().astype("<f4").tobytes(),
-                   headers={"content-type": "application/octet-stream", "accept": "application/octet-stream"})
+    r = httpx.post(
+        f"{url}/v1/images/{iid}/scores",
+        content=flagged_grasps().astype("<f4").tobytes(),
+        headers={"content-type": "application/octet-stream", "accept": "application/octet-stream"},
+    )
     assert r.status_code == 200 and len(r.content) == 5 * 4
     assert r.headers["x-ood-count"] == "4" and r.headers["x-calibrated"] in ("true", "false")
 
@@ -314,16 +364,22 @@ def heldout_balanced_accuracies(url: str) -> dict:
             anywhere[rows], windows = r["raw_score"], windows + r["windows"]
             for ctr in np.unique(held.center[rows], axis=0):
                 m = rows[np.all(held.center[rows] == ctr, axis=1)]
-                per_window[m] = c.score_details(c.upload(held.depth[i], center=tuple(map(float, ctr))),
-                                                held.grasps[m])["raw_score"]
+                per_window[m] = c.score_details(c.upload(held.depth[i], center=tuple(map(float, ctr))), held.grasps[m])[
+                    "raw_score"
+                ]
 
     def ba(p):
         y, pred = held.labels == 1, p > 0.5
         return float((pred[y].mean() + (~pred[~y]).mean()) / 2)
 
-    return {"grasps": len(held), "images": len(held.depth), "per_window": ba(per_window), "anywhere": ba(anywhere),
-            "uploads_per_window": len(np.unique(np.column_stack([held.image_index, held.center]), axis=0)),
-            "windows_anywhere": windows}
+    return {
+        "grasps": len(held),
+        "images": len(held.depth),
+        "per_window": ba(per_window),
+        "anywhere": ba(anywhere),
+        "uploads_per_window": len(np.unique(np.column_stack([held.image_index, held.center]), axis=0)),
+        "windows_anywhere": windows,
+    }
 
 
 BUNDLED = __import__("servers").ROOT / "models" / "fast-vgqcnn-default"

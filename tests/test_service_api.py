@@ -8,9 +8,9 @@ import httpx
 import numpy as np
 import pytest
 from PIL import Image
+from servers import grasps_at, running_service
 
 from service.client import ServiceClient, ServiceError
-from servers import grasps_at, running_service
 
 NPY = {"content-type": "application/x-npy"}
 
@@ -19,7 +19,6 @@ def npy(a) -> bytes:
     b = io.BytesIO()
     np.save(b, a)
     return b.getvalue()
-
 
 
 @pytest.fixture(scope="module")
@@ -107,8 +106,12 @@ def test_png_millimetres_upload_scores_like_npy(url, client, scene):
 
 def test_raw_float32_upload_needs_and_uses_shape(url, client, scene):
     raw = scene.astype("<f4").tobytes()
-    r = httpx.post(f"{url}/v1/images", content=raw, headers={"content-type": "application/octet-stream"},
-                   params={"width": 300, "height": 300})
+    r = httpx.post(
+        f"{url}/v1/images",
+        content=raw,
+        headers={"content-type": "application/octet-stream"},
+        params={"width": 300, "height": 300},
+    )
     assert r.status_code == 200
     g = grasps_at(k=4)
     assert np.allclose(client.score(r.json()["image_id"], g), client.score(client.upload(scene), g), atol=1e-6)
@@ -122,8 +125,11 @@ def test_one_shot_npz_matches_upload_then_score(client, scene):
 def test_one_shot_multipart_fills_the_cache(url, client, scene):
     d = scene + 0.003
     g = grasps_at(k=4)
-    r = httpx.post(f"{url}/v1/score", files={"depth": ("d.npy", npy(d), "application/x-npy")},
-                   data={"grasps": '{"grasps": %s}' % g.tolist()})
+    r = httpx.post(
+        f"{url}/v1/score",
+        files={"depth": ("d.npy", npy(d), "application/x-npy")},
+        data={"grasps": f'{{"grasps": {g.tolist()}}}'},
+    )
     assert r.status_code == 200 and r.json()["cached"] is False
     up = httpx.post(f"{url}/v1/images", content=npy(d), headers=NPY).json()
     assert up["cached"] is True and up["image_id"] == r.json()["image_id"]
@@ -211,8 +217,15 @@ def test_health_ready_model_and_metrics(url, client, scene):
     assert card["architecture"] == "fast_vgqcnn" and card["geometry"]["window"] == 96
     client.score(client.upload(scene), grasps_at(k=4))
     text = httpx.get(f"{url}/metrics").text
-    for name in ("vgq_request_seconds_bucket", "vgq_encoder_seconds", "vgq_head_seconds", "vgq_grasps_per_request",
-                 "vgq_cache_hits_total", "vgq_cache_evictions_total", 'vgq_requests_total{endpoint="score",status="200"}'):
+    for name in (
+        "vgq_request_seconds_bucket",
+        "vgq_encoder_seconds",
+        "vgq_head_seconds",
+        "vgq_grasps_per_request",
+        "vgq_cache_hits_total",
+        "vgq_cache_evictions_total",
+        'vgq_requests_total{endpoint="score",status="200"}',
+    ):
         assert name in text, name
 
 

@@ -11,7 +11,6 @@ import subprocess
 
 import httpx
 import pytest
-
 from servers import running_service
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -21,9 +20,21 @@ OFFLINE = "MAP * ~NOTFOUND, EXCLUDE 127.0.0.1"  # any host but loopback fails to
 def rendered_dom(url: str) -> str:
     if CHROMIUM is None:
         pytest.skip("chromium not installed (apt-get install chromium; .ci/run does)")
-    r = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                        f"--host-resolver-rules={OFFLINE}", "--virtual-time-budget=15000", "--dump-dom", url],
-                       capture_output=True, timeout=120)
+    r = subprocess.run(
+        [
+            CHROMIUM,
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-dev-shm-usage",
+            f"--host-resolver-rules={OFFLINE}",
+            "--virtual-time-budget=15000",
+            "--dump-dom",
+            url,
+        ],
+        capture_output=True,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr.decode()[-2000:]
     return r.stdout.decode()
 

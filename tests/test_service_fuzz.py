@@ -15,15 +15,20 @@ import httpx
 import numpy as np
 import pytest
 
-schemathesis = pytest.importorskip("schemathesis", reason="schemathesis not installed (pip install 'schemathesis==4.32.5')")
+schemathesis = pytest.importorskip(
+    "schemathesis", reason="schemathesis not installed (pip install 'schemathesis==4.32.5')"
+)
 
+from conftest import table_scene  # noqa: E402
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from PIL import Image  # noqa: E402
-from schemathesis.checks import (content_type_conformance, not_a_server_error, response_schema_conformance,
-                                 status_code_conformance)  # noqa: E402
-
-from conftest import table_scene  # noqa: E402
+from schemathesis.checks import (  # noqa: E402
+    content_type_conformance,
+    not_a_server_error,
+    response_schema_conformance,
+    status_code_conformance,  # noqa: E402
+)
 from servers import running_service  # noqa: E402
 
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]
@@ -164,8 +169,9 @@ schema = schemathesis.openapi.from_dict(_service_schema())
 
 
 @schema.parametrize()
-@settings(max_examples=MAX_EXAMPLES, deadline=None, derandomize=True, database=None,
-          suppress_health_check=list(HealthCheck))
+@settings(
+    max_examples=MAX_EXAMPLES, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck)
+)
 def test_schema_fuzz(case, url, image_id):
     if "image_id" in (case.path_parameters or {}) and len(case.path_parameters["image_id"]) % 2 == 0:
         case.path_parameters["image_id"] = image_id  # half the score requests hit a real cached image
@@ -184,8 +190,11 @@ def _json_rows(body) -> bool:
     """``body`` is {"grasps": [[7 finite numbers], ...]} (rows the fuzz may move into the window)."""
     rows = body.get("grasps") if isinstance(body, dict) else None
     return isinstance(rows, list) and all(
-        isinstance(r, list) and len(r) == 7 and all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                                                   and np.isfinite(x) and abs(x) < 1e12 for x in r) for r in rows)
+        isinstance(r, list)
+        and len(r) == 7
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) and abs(x) < 1e12 for x in r)
+        for r in rows
+    )
 
 
 def test_schema_fuzz_reached_the_model():
@@ -209,8 +218,9 @@ def test_one_shot_npz_fuzz(url):
     @settings(**FUZZ)
     @given(body=npz_bodies, binary=st.booleans())
     def fuzz(body, binary):
-        case = schema["/v1/score"]["POST"].Case(body=body, media_type="application/x-npz",
-                                                headers={"accept": "application/octet-stream"} if binary else {})
+        case = schema["/v1/score"]["POST"].Case(
+            body=body, media_type="application/x-npz", headers={"accept": "application/octet-stream"} if binary else {}
+        )
         r = case.call_and_validate(base_url=url, checks=CHECKS)
         status.append(r.status_code)
         if r.status_code == 200 and not binary:
@@ -230,11 +240,17 @@ def test_score_grasps_fuzz(url, image_id):
     def fuzz(grasps, as_json):
         op = schema["/v1/images/{image_id}/scores"]["POST"]
         if as_json:
-            case = op.Case(path_parameters={"image_id": image_id}, media_type="application/json",
-                           body={"grasps": [[float(x) if np.isfinite(x) else 0.0 for x in row] for row in grasps.reshape(-1, 7)]})
+            case = op.Case(
+                path_parameters={"image_id": image_id},
+                media_type="application/json",
+                body={"grasps": [[float(x) if np.isfinite(x) else 0.0 for x in row] for row in grasps.reshape(-1, 7)]},
+            )
         else:
-            case = op.Case(path_parameters={"image_id": image_id}, media_type="application/octet-stream",
-                           body=np.asarray(grasps, "<f4").tobytes())
+            case = op.Case(
+                path_parameters={"image_id": image_id},
+                media_type="application/octet-stream",
+                body=np.asarray(grasps, "<f4").tobytes(),
+            )
         r = case.call_and_validate(base_url=url, checks=CHECKS)
         status.append(r.status_code)
         if r.status_code == 200:
@@ -254,7 +270,9 @@ def test_huge_depth_pixel_never_yields_a_null_score(url):
     depth[150, 150] = 1e30
     up = httpx.post(f"{url}/v1/images", content=_npy(depth), headers={"content-type": "application/x-npy"})
     if up.status_code == 200:
-        r = httpx.post(f"{url}/v1/images/{up.json()['image_id']}/scores", json={"grasps": [[150, 150, 0.66, 1, 0, 0, 0]]})
+        r = httpx.post(
+            f"{url}/v1/images/{up.json()['image_id']}/scores", json={"grasps": [[150, 150, 0.66, 1, 0, 0, 0]]}
+        )
         assert r.status_code != 200 or np.isfinite(np.asarray(r.json()["p_success"], float)).all(), r.text
     else:
         assert 400 <= up.status_code < 500 and "error" in up.json()

@@ -16,7 +16,6 @@ import time
 import httpx
 import numpy as np
 import pytest
-
 from conftest import table_scene
 from servers import grasps_at, running_service, service_process
 from test_service_bad_input import npy
@@ -29,8 +28,18 @@ MAX_HEADER = 16 * 1024
 def served(model_dir, tmp_path_factory):
     """(URL, log file) of one service for the module."""
     log = tmp_path_factory.mktemp("limits") / "service.log"
-    with service_process(model_dir, "--request-timeout-s", str(TIMEOUT_S), "--max-body-bytes", "2000000",
-                         "--max-buffered-bytes", "3000000", "--max-inflight", "6", log_path=log) as (u, _):
+    with service_process(
+        model_dir,
+        "--request-timeout-s",
+        str(TIMEOUT_S),
+        "--max-body-bytes",
+        "2000000",
+        "--max-buffered-bytes",
+        "3000000",
+        "--max-inflight",
+        "6",
+        log_path=log,
+    ) as (u, _):
         yield u, log
 
 
@@ -51,7 +60,7 @@ def _exchange(url: str, data: bytes, timeout: float = 10.0, chunk: int = 65536) 
         t0 = time.monotonic()
         try:
             for i in range(0, len(data), chunk):
-                s.sendall(data[i:i + chunk])
+                s.sendall(data[i : i + chunk])
         except (BrokenPipeError, ConnectionResetError):
             pass
         got = b""
@@ -133,9 +142,15 @@ def test_long_url_is_414(url):
     assert "request target exceeds" in _json_error(_exchange(url, req)[0], 414)["message"]
 
 
-@pytest.mark.parametrize("req", [b"GET / HTTP/1.1\r\nBad Header Line\r\n\r\n", b"\x16\x03\x01 TLS hello\r\n\r\n",
-                                 b"POST /v1/images HTTP/1.1\r\nHost: x\r\nContent-Length: -5\r\n\r\n"],
-                         ids=["bad-header", "tls-to-http", "negative-length"])
+@pytest.mark.parametrize(
+    "req",
+    [
+        b"GET / HTTP/1.1\r\nBad Header Line\r\n\r\n",
+        b"\x16\x03\x01 TLS hello\r\n\r\n",
+        b"POST /v1/images HTTP/1.1\r\nHost: x\r\nContent-Length: -5\r\n\r\n",
+    ],
+    ids=["bad-header", "tls-to-http", "negative-length"],
+)
 def test_parser_errors_answer_the_json_error_shape(url, req):
     assert "invalid HTTP request" in _json_error(_exchange(url, req)[0], 400)["message"]
 
@@ -164,8 +179,10 @@ def test_body_timeout_408_closes_the_connection(url):
 
 def _stalled_upload(url: str, declared: int) -> socket.socket:
     s = socket.create_connection(_addr(url), timeout=10)
-    s.sendall(b"POST /v1/images HTTP/1.1\r\nHost: x\r\nContent-Type: application/x-npy\r\n"
-              b"Content-Length: %d\r\n\r\n\x93NUMPY" % declared)
+    s.sendall(
+        b"POST /v1/images HTTP/1.1\r\nHost: x\r\nContent-Type: application/x-npy\r\n"
+        b"Content-Length: %d\r\n\r\n\x93NUMPY" % declared
+    )
     return s
 
 
@@ -173,8 +190,11 @@ def test_byte_budget_refuses_a_body_that_does_not_fit_with_503(url):
     held = _stalled_upload(url, 1_900_000)  # reserves 1.9 of the 3 MB budget while it stalls
     try:
         time.sleep(0.3)
-        r = httpx.post(f"{url}/v1/images", content=npy(np.full((700, 700), 0.7, np.float32)),
-                       headers={"content-type": "application/x-npy"})
+        r = httpx.post(
+            f"{url}/v1/images",
+            content=npy(np.full((700, 700), 0.7, np.float32)),
+            headers={"content-type": "application/x-npy"},
+        )
         assert r.status_code == 503 and r.headers["retry-after"] == "1", r.text
         assert "do not fit" in r.json()["error"]["message"]
         ok = httpx.post(f"{url}/v1/images", content=npy(table_scene()), headers={"content-type": "application/x-npy"})
@@ -196,7 +216,12 @@ def test_requests_in_flight_beyond_the_limit_get_503_and_health_still_answers(ur
         for s in held:
             s.close()
     time.sleep(0.3)
-    assert httpx.post(f"{url}/v1/images", content=npy(table_scene()), headers={"content-type": "application/x-npy"}).status_code == 200
+    assert (
+        httpx.post(
+            f"{url}/v1/images", content=npy(table_scene()), headers={"content-type": "application/x-npy"}
+        ).status_code
+        == 200
+    )
 
 
 def _count(metrics: str, line: str) -> float:
@@ -229,7 +254,11 @@ def test_no_absolute_path_in_any_answer(model_dir, tmp_path):
     m = tmp_path / "model"
     shutil.copytree(model_dir, m)
     card = json.loads((m / "model_card.json").read_text())
-    card["dataset"] = {**card.get("dataset", {}), "root": "/home/builder/secret/data/crops", "files": ["/srv/x/shard_0.npz"]}
+    card["dataset"] = {
+        **card.get("dataset", {}),
+        "root": "/home/builder/secret/data/crops",
+        "files": ["/srv/x/shard_0.npz"],
+    }
     (m / "model_card.json").write_text(json.dumps(card))
     with running_service(m) as u:
         for path in ("/v1/model", "/readyz", "/v1/cache", "/healthz", "/openapi.json"):
@@ -237,8 +266,11 @@ def test_no_absolute_path_in_any_answer(model_dir, tmp_path):
             for folder in ("/home/", "/srv/", str(tmp_path), str(model_dir)):
                 assert folder not in text, (path, folder)
         assert httpx.get(u + "/v1/model").json()["model_card"]["dataset"]["root"] == "crops"
-        r = httpx.post(f"{u}/v1/images/{'0' * 32}/scores", content=grasps_at(k=1).tobytes(),
-                       headers={"content-type": "application/octet-stream"})
+        r = httpx.post(
+            f"{u}/v1/images/{'0' * 32}/scores",
+            content=grasps_at(k=1).tobytes(),
+            headers={"content-type": "application/octet-stream"},
+        )
         assert r.status_code == 404 and str(m) not in r.text
 
 
@@ -265,7 +297,10 @@ def test_rss_under_concurrent_large_bodies_stays_under_the_bound(model_dir):
     if os.environ.get("VGQ_RSS_FULL"):
         settings, side = Settings(), 2700  # 29.2 MB of float32 per body
     else:
-        settings, side = Settings(max_body_bytes=8_000_000, max_buffered_bytes=16_000_000, cache_bytes=4096 * 4096), 1400
+        settings, side = (
+            Settings(max_body_bytes=8_000_000, max_buffered_bytes=16_000_000, cache_bytes=4096 * 4096),
+            1400,
+        )
     d = np.full((side, side), 0.7, np.float32)
 
     def body(kind: str, i: int) -> bytes:
@@ -277,8 +312,15 @@ def test_rss_under_concurrent_large_bodies_stays_under_the_bound(model_dir):
             np.save(b, d)
         return b.getvalue()
 
-    with service_process(model_dir, "--max-body-bytes", str(settings.max_body_bytes), "--max-buffered-bytes",
-                         str(settings.max_buffered_bytes), "--cache-bytes", str(settings.cache_bytes)) as (u, proc):
+    with service_process(
+        model_dir,
+        "--max-body-bytes",
+        str(settings.max_body_bytes),
+        "--max-buffered-bytes",
+        str(settings.max_buffered_bytes),
+        "--cache-bytes",
+        str(settings.cache_bytes),
+    ) as (u, proc):
         ready = _proc_bytes(proc.pid, "VmRSS")
         bound = worst_case_rss_bytes(settings, ready)
         for kind, path, ct in (("npz", "/v1/score", "application/x-npz"), ("npy", "/v1/images", "application/x-npy")):
@@ -300,7 +342,9 @@ def test_rss_under_concurrent_large_bodies_stays_under_the_bound(model_dir):
             for t in threads:
                 t.join()
             peak = _proc_bytes(proc.pid, "VmHWM")
-            print(f"{kind}: ready {ready / 2**20:.0f} MiB, peak {peak / 2**20:.0f} MiB, bound {bound / 2**20:.0f} MiB, {answers}")
+            print(
+                f"{kind}: ready {ready / 2**20:.0f} MiB, peak {peak / 2**20:.0f} MiB, bound {bound / 2**20:.0f} MiB, {answers}"
+            )
             served = [a for a in answers if a[0] == 200]
             assert served and len(served) < 8, answers  # two max-size bodies at once at most
             assert all(a in ((200, None), (503, "1"), ("closed", None)) for a in answers), answers

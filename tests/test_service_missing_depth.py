@@ -37,8 +37,9 @@ sys.path.insert(0, str(ROOT / "examples"))
 
 #: Dropouts only (no noise): every jump edge (~0.36% of a render) plus Poisson(25) blobs of
 #: 2-6 px: 2.0% of the pixels of the held-out renders on average.
-MISSING_2PCT = SensorModel(edge_jump_m=0.005, edge_angle_deg=5.0, edge_dropout=1.0, blob_rate=25.0,
-                           blob_radius_px=(2.0, 6.0))
+MISSING_2PCT = SensorModel(
+    edge_jump_m=0.005, edge_angle_deg=5.0, edge_dropout=1.0, blob_rate=25.0, blob_radius_px=(2.0, 6.0)
+)
 GEOM = vcrop.CropGeometry(96, 32, 36.0)
 
 
@@ -63,8 +64,12 @@ def url(model_dir):
 def upload(url, depth, **params):
     """Upload with the one fixed window at the image centre (the window these tests make holes in)."""
     params = {"center_u": 149.5, "center_v": 149.5, **params}
-    return httpx.post(f"{url}/v1/images", content=ServiceClient._npy(depth), params=params,
-                      headers={"content-type": "application/x-npy"})
+    return httpx.post(
+        f"{url}/v1/images",
+        content=ServiceClient._npy(depth),
+        params=params,
+        headers={"content-type": "application/x-npy"},
+    )
 
 
 def test_upload_reports_the_missing_fraction_of_the_window(url):
@@ -160,8 +165,12 @@ def score_heldout(url: str, images: np.ndarray, held) -> tuple[np.ndarray, np.nd
     with ServiceClient(url) as c:
         for j in range(len(held)):
             buf = io.BytesIO()
-            np.savez(buf, depth=images[int(held.image_index[j])], grasps=held.grasps[j : j + 1],
-                     center=held.center[j].astype(np.float64))
+            np.savez(
+                buf,
+                depth=images[int(held.image_index[j])],
+                grasps=held.grasps[j : j + 1],
+                center=held.center[j].astype(np.float64),
+            )
             r = c.http.post("/v1/score", content=buf.getvalue(), headers={"content-type": "application/x-npz"})
             c._raise(r)
             body = r.json()
@@ -186,10 +195,16 @@ def heldout_comparison(url: str, blob_rate: float = 25.0, model: SensorModel | N
     image_missing = float(np.mean(holed == 0))
     p_clean, _ = score_heldout(url, held.depth, held)
     p_holed, window_missing = score_heldout(url, holed, held)
-    return {"grasps": len(held), "images": len(held.depth), "image_missing": image_missing,
-            "window_missing_mean": float(np.nanmean(window_missing)) if np.isfinite(window_missing).any() else None,
-            "ba_clean": balanced_accuracy(held.labels, p_clean), "ba_holed": balanced_accuracy(held.labels, p_holed),
-            "p_clean_mean": float(p_clean.mean()), "p_holed_mean": float(p_holed.mean())}
+    return {
+        "grasps": len(held),
+        "images": len(held.depth),
+        "image_missing": image_missing,
+        "window_missing_mean": float(np.nanmean(window_missing)) if np.isfinite(window_missing).any() else None,
+        "ba_clean": balanced_accuracy(held.labels, p_clean),
+        "ba_holed": balanced_accuracy(held.labels, p_holed),
+        "p_clean_mean": float(p_clean.mean()),
+        "p_holed_mean": float(p_holed.mean()),
+    }
 
 
 @pytest.fixture(scope="module")
@@ -214,8 +229,13 @@ def service_from(root: Path, model_dir: Path):
     """A service subprocess running the code of checkout ``root`` (cwd and PYTHONPATH)."""
     port = free_port()
     env = {**os.environ, "PYTHONPATH": str(root)}
-    proc = subprocess.Popen([sys.executable, "-m", "service", "--model-dir", str(model_dir), "--port", str(port),
-                             "--threads", "1"], cwd=root, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service", "--model-dir", str(model_dir), "--port", str(port), "--threads", "1"],
+        cwd=root,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.STDOUT,
+    )
     url = f"http://127.0.0.1:{port}"
     try:
         for _ in range(600):
@@ -232,8 +252,10 @@ def service_from(root: Path, model_dir: Path):
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description="Balanced accuracy of the bundled model on held-out images, clean vs "
-                                            "2%-missing uploads (sensor-model blobs + edge dropouts).")
+    p = argparse.ArgumentParser(
+        description="Balanced accuracy of the bundled model on held-out images, clean vs "
+        "2%-missing uploads (sensor-model blobs + edge dropouts)."
+    )
     p.add_argument("--root", default=str(ROOT), help="code tree whose service to run (default: this one)")
     p.add_argument("--blob-rate", type=float, default=25.0, help="dropout blobs per image (25: ~2%% missing)")
     p.add_argument("--sensor", help="corrupt with this datagen.sensor preset (e.g. realistic) instead")
@@ -247,12 +269,17 @@ def main(argv=None) -> int:
     with service_from(Path(a.root).resolve(), BUNDLED) as u:
         r = heldout_comparison(u, a.blob_rate, model)
     print(f"service code: {Path(a.root).resolve()}")
-    print(f"{r['grasps']} grasps on {r['images']} held-out images; missing pixels {100 * r['image_missing']:.2f}% "
-          f"of the images, {100 * r['window_missing_mean']:.2f}% of the windows" if r["window_missing_mean"] is not None
-          else f"{r['grasps']} grasps; missing pixels {100 * r['image_missing']:.2f}% of the images (windows: not reported)")
-    print(f"balanced accuracy clean {100 * r['ba_clean']:.1f}%, with missing pixels {100 * r['ba_holed']:.1f}% "
-          f"(change {100 * (r['ba_holed'] - r['ba_clean']):+.1f} points); mean p_success {r['p_clean_mean']:.3f} -> "
-          f"{r['p_holed_mean']:.3f}  [{time.perf_counter() - t0:.0f} s]")
+    print(
+        f"{r['grasps']} grasps on {r['images']} held-out images; missing pixels {100 * r['image_missing']:.2f}% "
+        f"of the images, {100 * r['window_missing_mean']:.2f}% of the windows"
+        if r["window_missing_mean"] is not None
+        else f"{r['grasps']} grasps; missing pixels {100 * r['image_missing']:.2f}% of the images (windows: not reported)"
+    )
+    print(
+        f"balanced accuracy clean {100 * r['ba_clean']:.1f}%, with missing pixels {100 * r['ba_holed']:.1f}% "
+        f"(change {100 * (r['ba_holed'] - r['ba_clean']):+.1f} points); mean p_success {r['p_clean_mean']:.3f} -> "
+        f"{r['p_holed_mean']:.3f}  [{time.perf_counter() - t0:.0f} s]"
+    )
     return 0
 
 

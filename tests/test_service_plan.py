@@ -57,8 +57,13 @@ def table_only():
 
 
 def post_plan(url, depth, params=None, body=None, content_type="application/x-npy") -> httpx.Response:
-    return httpx.post(f"{url}/v1/plan", content=npy(depth) if body is None else body, params=params or {},
-                      headers={"content-type": content_type}, timeout=60)
+    return httpx.post(
+        f"{url}/v1/plan",
+        content=npy(depth) if body is None else body,
+        params=params or {},
+        headers={"content-type": content_type},
+        timeout=60,
+    )
 
 
 def test_plan_returns_k_distinct_grasps_whose_rows_are_their_poses(url, two_boxes):
@@ -97,7 +102,9 @@ def test_every_upload_format_is_planned(url, two_boxes, fmt):
         r = post_plan(url, depth, {"k": 3}, png_mm(depth), "image/png")
     else:
         h, w = depth.shape
-        r = post_plan(url, depth, {"k": 3, "width": w, "height": h}, depth.astype("<f4").tobytes(), "application/octet-stream")
+        r = post_plan(
+            url, depth, {"k": 3, "width": w, "height": h}, depth.astype("<f4").tobytes(), "application/octet-stream"
+        )
     assert r.status_code == 200, r.text
     assert len(r.json()["grasps"]) == 3
 

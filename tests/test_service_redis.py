@@ -13,9 +13,9 @@ from contextlib import contextmanager
 import httpx
 import numpy as np
 import pytest
-
 from conftest import skip_or_fail_in_ci, table_scene
 from servers import free_port, grasps_at, running_service
+
 from service.cache import CachedImage, EncodedWindow
 from service.client import ServiceClient, ServiceError
 from vgq.camera import Intrinsics
@@ -34,9 +34,25 @@ def redis_server(port: int | None = None):
     import redis
 
     port = port or free_port()
-    proc = subprocess.Popen(["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
-                             "--maxmemory", "64mb", "--maxmemory-policy", "allkeys-lru"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [
+            "redis-server",
+            "--port",
+            str(port),
+            "--bind",
+            "127.0.0.1",
+            "--save",
+            "",
+            "--appendonly",
+            "no",
+            "--maxmemory",
+            "64mb",
+            "--maxmemory-policy",
+            "allkeys-lru",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     url = f"redis://127.0.0.1:{port}/0"
     try:
         deadline = time.monotonic() + 10
@@ -59,7 +75,6 @@ def stop(proc: subprocess.Popen) -> None:
         proc.wait(5)
 
 
-
 def redis_env(url: str) -> dict:
     return {"VGQ_CACHE_BACKEND": "redis", "VGQ_REDIS_URL": url}
 
@@ -74,8 +89,11 @@ def metric(base: str, name: str) -> float:
 @pytest.fixture(scope="module")
 def shared(model_dir):
     """Redis + two service processes A and B sharing it."""
-    with redis_server() as (rurl, _), running_service(model_dir, env=redis_env(rurl)) as a, \
-            running_service(model_dir, env=redis_env(rurl)) as b:
+    with (
+        redis_server() as (rurl, _),
+        running_service(model_dir, env=redis_env(rurl)) as a,
+        running_service(model_dir, env=redis_env(rurl)) as b,
+    ):
         yield rurl, a, b
 
 
@@ -187,7 +205,9 @@ def test_two_replicas_share_entries_and_count_hits(rurl):
     assert np.array_equal(got.depth, e.depth) and got.camera == e.camera and got.image_shape == (40, 48)
     assert got.windows == {}  # windows are read when a grasp needs them
     b.fetch_windows("k1", got, [(-24, -28), (48, -28)])
-    assert list(got.windows) == [(-24, -28)] and np.array_equal(got.windows[(-24, -28)].term, e.windows[(-24, -28)].term)
+    assert list(got.windows) == [(-24, -28)] and np.array_equal(
+        got.windows[(-24, -28)].term, e.windows[(-24, -28)].term
+    )
     assert b.stats()["windows_fetched"] == 1 and b.stats()["windows_encoded"] == 0
     assert b.get("nope") is None
     assert (b.stats()["hits"], b.stats()["misses"], b.stats()["errors"]) == (1, 1, 0)
@@ -232,7 +252,9 @@ def test_outage_is_counted_logged_once_and_does_not_stall(rurl):
     assert c.get("k") is not None and c.get("x3") is not None
     assert c.stats()["errors"] == 1 and c.stats()["available"] is False
     msgs = [r.getMessage() for r in h.records]
-    assert msgs == ["redis cache unavailable: serving from the local cache only; ids not held here answer 404 (upload again)"]
+    assert msgs == [
+        "redis cache unavailable: serving from the local cache only; ids not held here answer 404 (upload again)"
+    ]
     log.removeHandler(h)
 
 

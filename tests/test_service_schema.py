@@ -15,17 +15,18 @@ from __future__ import annotations
 import httpx
 import pytest
 
-schemathesis = pytest.importorskip("schemathesis", reason="schemathesis not installed (pip install 'schemathesis==4.32.5')")
+schemathesis = pytest.importorskip(
+    "schemathesis", reason="schemathesis not installed (pip install 'schemathesis==4.32.5')"
+)
 
 import io  # noqa: E402
 
 import numpy as np  # noqa: E402
+from conftest import table_scene  # noqa: E402
 from hypothesis import HealthCheck, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from PIL import Image  # noqa: E402
 from schemathesis.config import SchemathesisConfig  # noqa: E402
-
-from conftest import table_scene  # noqa: E402
 from servers import grasps_at, running_service  # noqa: E402
 from test_service_bad_input import npy  # noqa: E402
 
@@ -58,17 +59,28 @@ def _service_schema() -> dict:
     return create_app(Settings()).openapi()
 
 
-CONFIG = SchemathesisConfig.from_dict({
-    "checks": {"positive_data_acceptance": {"expected-statuses": POSITIVE_OK}},
-    "generation": {"mode": "all"},
-})
+CONFIG = SchemathesisConfig.from_dict(
+    {
+        "checks": {"positive_data_acceptance": {"expected-statuses": POSITIVE_OK}},
+        "generation": {"mode": "all"},
+    }
+)
 schema = schemathesis.openapi.from_dict(_service_schema(), config=CONFIG)
 
 
 @pytest.fixture(scope="module")
 def url(model_dir):
-    with running_service(model_dir, "--max-grasps", "4", "--max-body-bytes", "400000", "--max-buffered-bytes", "4000000",
-                         "--request-timeout-s", "5") as u:
+    with running_service(
+        model_dir,
+        "--max-grasps",
+        "4",
+        "--max-body-bytes",
+        "400000",
+        "--max-buffered-bytes",
+        "4000000",
+        "--request-timeout-s",
+        "5",
+    ) as u:
         yield u
 
 
@@ -79,7 +91,9 @@ def image_id(url):
 
 
 @schema.parametrize()
-@settings(max_examples=MAX_EXAMPLES, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck))
+@settings(
+    max_examples=MAX_EXAMPLES, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck)
+)
 def test_every_check(case, url, image_id):
     if "image_id" in (case.path_parameters or {}) and len(str(case.path_parameters["image_id"])) % 2 == 0:
         case.path_parameters["image_id"] = image_id  # half the score requests reach a cached image

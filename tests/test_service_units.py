@@ -177,7 +177,9 @@ def test_cache_entry_bytes_round_trip(fixed):
     back = unpack_entry(pack_entry(e))
     assert np.array_equal(back.depth, e.depth) and back.depth.dtype == np.float32
     assert back.camera == e.camera and back.resampled == e.resampled and back.assumed == ("cy",)
-    assert (back.fixed_center is None) == (not fixed) and (not fixed or np.array_equal(back.fixed_center, e.fixed_center))
+    assert (back.fixed_center is None) == (not fixed) and (
+        not fixed or np.array_equal(back.fixed_center, e.fixed_center)
+    )
     assert back.windows == {}
 
 
@@ -224,15 +226,36 @@ def test_redis_url_password_is_redacted():
 
 # ---- settings -----------------------------------------------------------------------------------------------------
 def test_limits_come_from_the_environment():
-    s = from_env({"VGQ_MAX_BODY_BYTES": "4096", "VGQ_MAX_GRASPS": "7", "VGQ_CACHE_BYTES": "8192",
-                  "VGQ_REQUEST_TIMEOUT_S": "2.5", "VGQ_CACHE_TTL_S": "60", "VGQ_CACHE_BACKEND": "redis"})
-    assert (s.max_body_bytes, s.max_grasps, s.cache_bytes, s.request_timeout_s, s.cache_ttl_s, s.cache_backend) == \
-        (4096, 7, 8192, 2.5, 60.0, "redis")
+    s = from_env(
+        {
+            "VGQ_MAX_BODY_BYTES": "4096",
+            "VGQ_MAX_GRASPS": "7",
+            "VGQ_CACHE_BYTES": "8192",
+            "VGQ_REQUEST_TIMEOUT_S": "2.5",
+            "VGQ_CACHE_TTL_S": "60",
+            "VGQ_CACHE_BACKEND": "redis",
+        }
+    )
+    assert (s.max_body_bytes, s.max_grasps, s.cache_bytes, s.request_timeout_s, s.cache_ttl_s, s.cache_backend) == (
+        4096,
+        7,
+        8192,
+        2.5,
+        60.0,
+        "redis",
+    )
 
 
-@pytest.mark.parametrize("kw,word", [({"cache_ttl_s": 0}, "cache_ttl_s"), ({"request_timeout_s": -1}, "request_timeout_s"),
-                                     ({"max_body_bytes": 10}, "max_body_bytes"), ({"cache_backend": "memcached"}, "cache_backend"),
-                                     ({"cache_backend": "redis", "redis_url": "localhost:6379"}, "redis_url")])
+@pytest.mark.parametrize(
+    "kw,word",
+    [
+        ({"cache_ttl_s": 0}, "cache_ttl_s"),
+        ({"request_timeout_s": -1}, "request_timeout_s"),
+        ({"max_body_bytes": 10}, "max_body_bytes"),
+        ({"cache_backend": "memcached"}, "cache_backend"),
+        ({"cache_backend": "redis", "redis_url": "localhost:6379"}, "redis_url"),
+    ],
+)
 def test_bad_limits_are_refused_by_name(kw, word):
     with pytest.raises(ValueError, match=word):
         Settings(**kw)
@@ -263,7 +286,12 @@ def test_integer_fields_refuse_what_is_not_a_usable_integer(raw):
 def test_numbers_accept_text_and_array_elements():
     from service.numbers import CENTER_U, FX, WIDTH
 
-    assert WIDTH.parse("300") == 300 and WIDTH.parse("300.0") == 300 and WIDTH.parse(None) is None and WIDTH.parse("") is None
+    assert (
+        WIDTH.parse("300") == 300
+        and WIDTH.parse("300.0") == 300
+        and WIDTH.parse(None) is None
+        and WIDTH.parse("") is None
+    )
     assert CENTER_U.parse(np.float64(12.5)) == 12.5 and CENTER_U.parse("0") == 0.0
     assert status_of(CENTER_U.parse, np.float32(np.nan))[1] == "field center_u must be finite, got np.float32(nan)"
     assert status_of(FX.parse, "0")[0] == 422 and FX.schema()["exclusiveMinimum"] == 0.0
@@ -272,11 +300,22 @@ def test_numbers_accept_text_and_array_elements():
 def test_absolute_paths_are_cut_to_their_last_part():
     from service.errors import redact_paths
 
-    doc = {"root": "/home/ci/data/crops", "msg": "cannot load model from /srv/models/fast: no card", "rel": "examples/x.npy",
-           "win": "C:\\build\\data\\shard.npz", "n": 3, "list": ["/a/b/c.json"], "quantized_nodes": ["/head/fc5/Gemm"],
-           "url": "redis://cache:6379/0 and http://host/a/b/c"}
+    doc = {
+        "root": "/home/ci/data/crops",
+        "msg": "cannot load model from /srv/models/fast: no card",
+        "rel": "examples/x.npy",
+        "win": "C:\\build\\data\\shard.npz",
+        "n": 3,
+        "list": ["/a/b/c.json"],
+        "quantized_nodes": ["/head/fc5/Gemm"],
+        "url": "redis://cache:6379/0 and http://host/a/b/c",
+    }
     out = redact_paths(doc)
-    assert out["root"] == "crops" and out["msg"] == "cannot load model from fast: no card" and out["rel"] == "examples/x.npy"
+    assert (
+        out["root"] == "crops"
+        and out["msg"] == "cannot load model from fast: no card"
+        and out["rel"] == "examples/x.npy"
+    )
     assert out["win"] == "shard.npz" and out["n"] == 3 and out["list"] == ["c.json"]
     assert out["quantized_nodes"] == ["/head/fc5/Gemm"] and out["url"] == doc["url"]
 
@@ -285,11 +324,14 @@ def test_multipart_parts_are_views_into_the_body():
     from service.oneshot import parse_multipart
 
     d = depth()
-    body = bytearray(b"--b\r\nContent-Disposition: form-data; name=\"depth\"; filename=\"d.npy\"\r\n"
-                     b"Content-Type: application/x-npy\r\n\r\n" + _raw_npy(d) +
-                     b"\r\n--b\r\nContent-Disposition: form-data; name=\"grasps\"\r\n\r\n"
-                     b'{"grasps": [[25, 20, 0.6, 1, 0, 0, 0]]}\r\n--b\r\nContent-Disposition: form-data; name=\"center_u\"\r\n\r\n'
-                     b"24.5\r\n--b--\r\n")
+    body = bytearray(
+        b'--b\r\nContent-Disposition: form-data; name="depth"; filename="d.npy"\r\n'
+        b"Content-Type: application/x-npy\r\n\r\n"
+        + _raw_npy(d)
+        + b'\r\n--b\r\nContent-Disposition: form-data; name="grasps"\r\n\r\n'
+        b'{"grasps": [[25, 20, 0.6, 1, 0, 0, 0]]}\r\n--b\r\nContent-Disposition: form-data; name="center_u"\r\n\r\n'
+        b"24.5\r\n--b--\r\n"
+    )
     shot = parse_multipart(body, "multipart/form-data; boundary=b")
     assert isinstance(shot.depth_body, memoryview) and shot.depth_body.obj is body  # no copy of the depth bytes
     assert np.array_equal(shot.decode(4096), d) and shot.numbers["center_u"] == 24.5 and shot.grasps.shape == (1, 7)

@@ -19,16 +19,18 @@ def pose_data(tmp_path_factory):
 
 
 def test_pose_baseline_learns_pose_signal(pose_data, tmp_path):
-    rec = run_baseline(pose_data, BaselineConfig(model="logreg", epochs=10, batch_size=128, lr=0.05), tmp_path / "out",
-                       progress=False)
+    rec = run_baseline(
+        pose_data, BaselineConfig(model="logreg", epochs=10, batch_size=128, lr=0.05), tmp_path / "out", progress=False
+    )
     assert rec["test"]["balanced_accuracy"] > 0.9  # the label is a threshold on qw
     assert (tmp_path / "out" / "baseline_logreg.json").is_file()
     assert (tmp_path / "out" / "heatmap_baseline_logreg.png").is_file()
 
 
 def test_pose_baseline_restricted_columns_see_no_signal(pose_data):
-    rec = run_baseline(pose_data, BaselineConfig(model="mlp", columns="gqcnn", epochs=3, batch_size=256),
-                       progress=False)
+    rec = run_baseline(
+        pose_data, BaselineConfig(model="mlp", columns="gqcnn", epochs=3, batch_size=256), progress=False
+    )
     assert rec["columns"] == ["z"] and rec["test"]["balanced_accuracy"] < 0.65  # z carries no signal
 
 

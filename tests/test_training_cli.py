@@ -8,16 +8,30 @@ from training.synthetic import make_synthetic_crop_dataset
 
 
 def test_cli_missing_data_folder_exits_2(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "training", "train", "--data", str(tmp_path / "missing"),
-                        "--out", str(tmp_path / "run")], capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "training",
+            "train",
+            "--data",
+            str(tmp_path / "missing"),
+            "--out",
+            str(tmp_path / "run"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 2
     assert "missing" in r.stderr and "does not exist" in r.stderr and "Traceback" not in r.stderr
 
 
 def test_cli_wrong_arch_for_dataset_exits_2(tmp_path, capsys):
     make_synthetic_crop_dataset(tmp_path / "d", 8, 4, 4, arch="gqcnn", kappa_px=0.0)
-    rc = main(["train", "--data", str(tmp_path / "d"), "--arch", "fast_vgqcnn", "--out", str(tmp_path / "r"),
-               "--no-progress"])
+    rc = main(
+        ["train", "--data", str(tmp_path / "d"), "--arch", "fast_vgqcnn", "--out", str(tmp_path / "r"), "--no-progress"]
+    )
     assert rc == 2 and "cannot train 'fast_vgqcnn'" in capsys.readouterr().err
 
 

@@ -94,8 +94,9 @@ def test_crops_of_a_sampled_dataset_record_the_positivity_before_sampling(tmp_pa
     from datagen.sampling import SamplingParams, sample_dataset
 
     fake_dataset(tmp_path / "g", n_objects=10, n_images=2, n_grasps=40, seed=4)
-    stats = sample_dataset(tmp_path / "g", tmp_path / "s", SamplingParams(target_positivity=50.0),
-                           log=lambda s: None, plot=False)
+    stats = sample_dataset(
+        tmp_path / "g", tmp_path / "s", SamplingParams(target_positivity=50.0), log=lambda s: None, plot=False
+    )
     m = make_crops(tmp_path / "s", tmp_path / "c", "vgqcnn", log=lambda s: None)
     native = stats["steps"]["native"]
     assert (m["native_counts"]["n"], m["native_counts"]["positive"]) == (native["grasps"], native["positive"])

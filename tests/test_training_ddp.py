@@ -19,9 +19,32 @@ def test_torchrun_two_processes_match_single_process(tmp_path):
     make_synthetic_crop_dataset(data, 16, 8, 8, positive_rate=0.5, seed=2)
     cfg = dict(samples=16, batch_size=8, base_lr=0.05, seed=5, val_every_samples=10**6)
     train(TrainConfig(**cfg), data, tmp_path / "single", progress=False)
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-           "-m", "training", "train", "--data", str(data), "--out", str(tmp_path / "ddp"), "--no-progress",
-           "--samples", "16", "--batch-size", "8", "--base-lr", "0.05", "--seed", "5", "--val-every-samples", "1000000"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node",
+        "2",
+        "-m",
+        "training",
+        "train",
+        "--data",
+        str(data),
+        "--out",
+        str(tmp_path / "ddp"),
+        "--no-progress",
+        "--samples",
+        "16",
+        "--batch-size",
+        "8",
+        "--base-lr",
+        "0.05",
+        "--seed",
+        "5",
+        "--val-every-samples",
+        "1000000",
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
     assert r.returncode == 0, r.stderr[-3000:]

@@ -55,6 +55,8 @@ def test_heatmap_png_written(tmp_path):
 
 def test_training_curves_png_from_log(tmp_path):
     log = tmp_path / "metrics.jsonl"
-    log.write_text('{"kind": "train", "samples": 64, "loss": 0.7}\n{"kind": "val", "samples": 64, "loss": 0.6, '
-                   '"balanced_accuracy": 0.6, "tpr": 0.5, "tnr": 0.7}\nnot json\n')
+    log.write_text(
+        '{"kind": "train", "samples": 64, "loss": 0.7}\n{"kind": "val", "samples": 64, "loss": 0.6, '
+        '"balanced_accuracy": 0.6, "tpr": 0.5, "tnr": 0.7}\nnot json\n'
+    )
     assert plot_training_curves(log, tmp_path / "c.png").stat().st_size > 1000

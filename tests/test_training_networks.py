@@ -30,7 +30,9 @@ def test_output_shapes(arch):
 def test_fast_encode_head_equals_forward():
     torch.manual_seed(0)
     net = GraspQualityNet("fast_vgqcnn").eval()
-    net.set_normalization(Normalization(0.7, 0.1, POSE_COLUMNS["fast_vgqcnn"], [0, 0, 0.7, 0, 0, 0, 0], [4, 4, 0.1, 1, 1, 1, 1]))
+    net.set_normalization(
+        Normalization(0.7, 0.1, POSE_COLUMNS["fast_vgqcnn"], [0, 0, 0.7, 0, 0, 0, 0], [4, 4, 0.1, 1, 1, 1, 1])
+    )
     depth = 0.7 + 0.05 * torch.rand(1, 1, 32, 32)
     poses = torch.randn(5, 7)
     with torch.no_grad():

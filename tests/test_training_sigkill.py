@@ -16,8 +16,23 @@ from training.checkpoint import load_checkpoint
 from training.synthetic import make_synthetic_crop_dataset
 
 ROOT = Path(__file__).resolve().parent.parent
-ARGS = ["--samples", "160", "--batch-size", "16", "--base-lr", "0.05", "--val-every-samples", "80",
-        "--checkpoint-every-samples", "32", "--log-every-steps", "2", "--num-threads", "1", "--no-progress"]
+ARGS = [
+    "--samples",
+    "160",
+    "--batch-size",
+    "16",
+    "--base-lr",
+    "0.05",
+    "--val-every-samples",
+    "80",
+    "--checkpoint-every-samples",
+    "32",
+    "--log-every-steps",
+    "2",
+    "--num-threads",
+    "1",
+    "--no-progress",
+]
 
 
 def train_cmd(data: Path, out: Path, *extra: str) -> list[str]:
@@ -25,7 +40,9 @@ def train_cmd(data: Path, out: Path, *extra: str) -> list[str]:
 
 
 def run(cmd) -> None:
-    r = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=300
+    )
     assert r.returncode == 0, r.stderr[-2000:]
 
 
@@ -35,8 +52,13 @@ def test_sigkill_then_resume_matches_uninterrupted(tmp_path):
     run(train_cmd(data, tmp_path / "whole"))
 
     killed = tmp_path / "killed"
-    proc = subprocess.Popen(train_cmd(data, killed), cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        train_cmd(data, killed),
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     last = killed / "checkpoints" / "last.pt"
     deadline = time.monotonic() + 240
     while not last.exists() and proc.poll() is None and time.monotonic() < deadline:

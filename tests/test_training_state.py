@@ -40,8 +40,16 @@ def test_checkpoint_of_the_dict_based_loop_resumes_to_the_same_weights(tmp_path)
     last = old / "checkpoints" / "last.pt"
     ck = load_checkpoint(last)
     # exactly the state dict the earlier loop saved (its keys, NaN best, world_size)
-    ck["state"] = {"step": 1, "samples_seen": 8, "epoch": 0, "batch_in_epoch": 1,
-                   "best_val_balanced_accuracy": float("nan"), "best_step": -1, "wall_time_s": 1.5, "world_size": 1}
+    ck["state"] = {
+        "step": 1,
+        "samples_seen": 8,
+        "epoch": 0,
+        "batch_in_epoch": 1,
+        "best_val_balanced_accuracy": float("nan"),
+        "best_step": -1,
+        "wall_time_s": 1.5,
+        "world_size": 1,
+    }
     save_checkpoint(last, ck)
     r = train(TrainConfig(samples=24, **CFG), data, old, resume=True, progress=False)
     a, b = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt"), load_checkpoint(last)

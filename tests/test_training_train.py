@@ -50,7 +50,9 @@ def test_normalisation_from_training_split_only(data, run):
     net, meta = load_trained(run)
     sp = open_crop_dataset(data).split("train")
     assert float(net.image_mean) == pytest.approx(float(np.mean(sp.arrays["images"], dtype=np.float64)), rel=1e-6)
-    assert float(net.pose_mean[2]) == pytest.approx(float(np.mean(sp.arrays["poses"][:, 2], dtype=np.float64)), rel=1e-5)
+    assert float(net.pose_mean[2]) == pytest.approx(
+        float(np.mean(sp.arrays["poses"][:, 2], dtype=np.float64)), rel=1e-5
+    )
     assert meta["normalization"]["pose_mean"][3:] == [0.0] * 4 and meta["normalization"]["pose_std"][3:] == [1.0] * 4
 
 
@@ -93,15 +95,23 @@ def test_resume_continues_from_saved_step(data, tmp_path):
     for k in a["model"]:  # the resumed run read the same batches with the same optimizer state
         torch.testing.assert_close(a["model"][k], b["model"][k], rtol=1e-5, atol=1e-6)
     assert b["state"]["samples_seen"] == 24 and b["state"]["epoch"] == 1
-    steps = [json.loads(x)["step"] for x in (killed / "metrics.jsonl").read_text().splitlines()
-             if json.loads(x)["kind"] == "train"]
+    steps = [
+        json.loads(x)["step"]
+        for x in (killed / "metrics.jsonl").read_text().splitlines()
+        if json.loads(x)["kind"] == "train"
+    ]
     assert steps == [1, 2, 3]
 
 
 def test_resume_refuses_changed_hyperparameters(data, run):
     with pytest.raises(CheckpointError, match="base_lr"):
-        train(TrainConfig(samples=16 * 8, val_every_samples=64, **{**FAST, "base_lr": 0.5}), data, run,
-              resume=True, progress=False)
+        train(
+            TrainConfig(samples=16 * 8, val_every_samples=64, **{**FAST, "base_lr": 0.5}),
+            data,
+            run,
+            resume=True,
+            progress=False,
+        )
 
 
 def test_evaluate_writes_metrics_heatmap_and_curves(data, run):
@@ -112,12 +122,18 @@ def test_evaluate_writes_metrics_heatmap_and_curves(data, run):
     net, _ = load_trained(run)
     arrays = open_crop_dataset(data).split("test").arrays
     with torch.no_grad():
-        logits = net(torch.from_numpy(np.asarray(arrays["images"], np.float32)[:, None]),
-                     torch.from_numpy(np.asarray(arrays["poses"], np.float32)))
+        logits = net(
+            torch.from_numpy(np.asarray(arrays["images"], np.float32)[:, None]),
+            torch.from_numpy(np.asarray(arrays["poses"], np.float32)),
+        )
     pred, y = torch.softmax(logits, 1)[:, 1].numpy() > 0.5, np.asarray(arrays["labels"]) == 1
     o = saved["overall"]
     assert o["n"] == 32 and (o["tp"], o["fn"], o["tn"], o["fp"]) == (
-        int((pred & y).sum()), int((~pred & y).sum()), int((~pred & ~y).sum()), int((pred & ~y).sum()))
+        int((pred & y).sum()),
+        int((~pred & y).sum()),
+        int((~pred & ~y).sum()),
+        int((pred & ~y).sum()),
+    )
     assert o["balanced_accuracy"] == pytest.approx(((pred & y).sum() / y.sum() + (~pred & ~y).sum() / (~y).sum()) / 2)
     assert np.nansum(np.array(saved["grid"]["n_positive"], dtype=float)) == saved["overall"]["n_positive"]
     for png in ("heatmap_test.png", "curves.png"):

@@ -7,7 +7,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from vgq.camera import DEFAULT_INTRINSICS, deproject, project
-from vgq.crop import CropGeometry, crop, crop_window, in_training_range, pose_uv, rotated_crop, window_center, window_origin
+from vgq.crop import (
+    CropGeometry,
+    crop,
+    crop_window,
+    in_training_range,
+    pose_uv,
+    rotated_crop,
+    window_center,
+    window_origin,
+)
 from vgq.normalization import Normalization
 from vgq.pose import canonical_quaternion, matrix_from_quaternion, pose_column_indices, quaternion_from_matrix
 

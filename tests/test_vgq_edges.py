@@ -9,20 +9,31 @@ import numpy as np
 import pytest
 
 from vgq.camera import CameraMismatch, Intrinsics, check_client_intrinsics, resampled_intrinsics
-from vgq.ood import APPROACH_AWAY, CENTER_MISSING, WINDOW_MISSING, Z_OUT_OF_RANGE, approach_away, center_missing, ood_flags
+from vgq.ood import (
+    APPROACH_AWAY,
+    CENTER_MISSING,
+    WINDOW_MISSING,
+    Z_OUT_OF_RANGE,
+    approach_away,
+    center_missing,
+    ood_flags,
+)
 from vgq.pose import matrix_from_quaternion, quaternion_from_matrix
 
 MODEL = Intrinsics()  # fx = fy = 525, cx = cy = 149.5, 300 x 300
 
 
-@pytest.mark.parametrize("q, away", [
-    ((1.0, 0.0, 0.0, 0.0), False),   # approach along the principal ray
-    ((0.0, 0.0, 0.0, 1.0), False),   # a turn about the ray keeps the approach
-    ((0.5, 0.5, 0.5, 0.5), True),    # x^2 + y^2 = 1/2 exactly: psi = 90 deg, flagged
-    ((0.8, 0.0, 0.6, 0.0), False),   # 1 - 2 * 0.36 = 0.28 > 0: psi = 73.7 deg
-    ((0.6, 0.8, 0.0, 0.0), True),    # 1 - 2 * 0.64 < 0
-    ((0.0, 0.0, 1.0, 0.0), True),    # half turn about y: approach back at the camera
-])
+@pytest.mark.parametrize(
+    "q, away",
+    [
+        ((1.0, 0.0, 0.0, 0.0), False),  # approach along the principal ray
+        ((0.0, 0.0, 0.0, 1.0), False),  # a turn about the ray keeps the approach
+        ((0.5, 0.5, 0.5, 0.5), True),  # x^2 + y^2 = 1/2 exactly: psi = 90 deg, flagged
+        ((0.8, 0.0, 0.6, 0.0), False),  # 1 - 2 * 0.36 = 0.28 > 0: psi = 73.7 deg
+        ((0.6, 0.8, 0.0, 0.0), True),  # 1 - 2 * 0.64 < 0
+        ((0.0, 0.0, 1.0, 0.0), True),  # half turn about y: approach back at the camera
+    ],
+)
 def test_approach_away_threshold_by_hand(q, away):
     assert approach_away(np.array([q]))[0] == away
 
@@ -30,10 +41,14 @@ def test_approach_away_threshold_by_hand(q, away):
 def test_all_four_flags_add_up():
     depth = np.ones((10, 10), np.float32)
     depth[5, 5] = 0.0
-    g = np.array([[5.0, 5.0, 2.0, 0.0, 0.0, 1.0, 0.0],    # every cause at once
-                  [2.0, 2.0, 0.5, 1.0, 0.0, 0.0, 0.0],    # none
-                  [2.0, 2.0, 0.3, 1.0, 0.0, 0.0, 0.0],    # z at the range's ends: inside
-                  [2.0, 2.0, 0.9, 1.0, 0.0, 0.0, 0.0]])
+    g = np.array(
+        [
+            [5.0, 5.0, 2.0, 0.0, 0.0, 1.0, 0.0],  # every cause at once
+            [2.0, 2.0, 0.5, 1.0, 0.0, 0.0, 0.0],  # none
+            [2.0, 2.0, 0.3, 1.0, 0.0, 0.0, 0.0],  # z at the range's ends: inside
+            [2.0, 2.0, 0.9, 1.0, 0.0, 0.0, 0.0],
+        ]
+    )
     flags = ood_flags(g, depth, (0.3, 0.9), window_missing=np.array([True, False, False, False]))
     assert flags.tolist() == [APPROACH_AWAY | Z_OUT_OF_RANGE | CENTER_MISSING | WINDOW_MISSING, 0, 0, 0]
     assert ood_flags(g[:1], depth, (0.3, 0.9)).tolist() == [APPROACH_AWAY | Z_OUT_OF_RANGE | CENTER_MISSING]
@@ -42,7 +57,17 @@ def test_all_four_flags_add_up():
 def test_center_missing_reads_the_nearest_border_pixel_for_points_outside():
     depth = np.ones((5, 6), np.float32)
     depth[:, 0] = depth[:, -1] = depth[0, :] = depth[-1, :] = 0.0  # a missing border
-    border = [(-3.0, 2.0), (0.0, 2.0), (0.4, 2.0), (5.0, 2.0), (8.0, 2.0), (2.0, -3.0), (2.0, 0.0), (2.0, 4.0), (2.0, 7.0)]
+    border = [
+        (-3.0, 2.0),
+        (0.0, 2.0),
+        (0.4, 2.0),
+        (5.0, 2.0),
+        (8.0, 2.0),
+        (2.0, -3.0),
+        (2.0, 0.0),
+        (2.0, 4.0),
+        (2.0, 7.0),
+    ]
     inside = [(1.0, 2.0), (0.6, 2.0), (4.0, 2.0), (2.0, 1.0), (2.0, 3.0), (3.4, 2.6)]
     assert center_missing(np.array(border), depth).all()
     assert not center_missing(np.array(inside), depth).any()
@@ -101,4 +126,6 @@ def test_pose_conversions_keep_batch_shapes():
         for j in range(3):
             np.testing.assert_allclose(R[i, j], matrix_from_quaternion(q[i, j]), atol=1e-12)
     np.testing.assert_allclose(quaternion_from_matrix(R), q, atol=1e-12)
-    np.testing.assert_allclose(matrix_from_quaternion(np.array([0.0, 0.0, 0.0, 1.0])), np.diag([-1.0, -1.0, 1.0]), atol=1e-12)
+    np.testing.assert_allclose(
+        matrix_from_quaternion(np.array([0.0, 0.0, 0.0, 1.0])), np.diag([-1.0, -1.0, 1.0]), atol=1e-12
+    )

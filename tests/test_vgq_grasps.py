@@ -22,8 +22,15 @@ def grasps(k=6) -> np.ndarray:
     return g
 
 
-@pytest.mark.parametrize("row,col,value,word", [(2, 0, np.nan, "non-finite"), (4, 2, 0.0, "depth z"),
-                                                 (1, 2, MAX_Z_M * 2, "depth z"), (3, 0, 10.0, "outside the window")])
+@pytest.mark.parametrize(
+    "row,col,value,word",
+    [
+        (2, 0, np.nan, "non-finite"),
+        (4, 2, 0.0, "depth z"),
+        (1, 2, MAX_Z_M * 2, "depth z"),
+        (3, 0, 10.0, "outside the window"),
+    ],
+)
 def test_bad_rows_raise_a_value_error_naming_them(row, col, value, word):
     g = grasps()
     g[row, col] = value

@@ -20,11 +20,20 @@ COLUMNS = ("u", "v", "z", "qw", "qx", "qy", "qz")
 
 def a_card(**kw) -> ModelCard:
     norm = Normalization(0.65, 0.03, COLUMNS, [0.5, -1.0, 0.7, 0.0, 0.0, 0.0, 0.0], [4.0, 5.0, 0.1, 1.0, 1.0, 1.0, 1.0])
-    return ModelCard(model_version="fast_vgqcnn-abc", architecture="fast_vgqcnn", geometry=CropGeometry(96, 32, 30.0),
-                     intrinsics=Intrinsics(fx=500.0, fy=510.0, cx=150.0, cy=140.0, width=320, height=280),
-                     normalization=norm, files={"encoder": "e.onnx", "head": "h.onnx"}, dataset={"recipe": "r"},
-                     training={"seed": 3}, metrics={"test": {"n": 5}}, export={"opset": 17}, label_threshold=0.003,
-                     **kw)
+    return ModelCard(
+        model_version="fast_vgqcnn-abc",
+        architecture="fast_vgqcnn",
+        geometry=CropGeometry(96, 32, 30.0),
+        intrinsics=Intrinsics(fx=500.0, fy=510.0, cx=150.0, cy=140.0, width=320, height=280),
+        normalization=norm,
+        files={"encoder": "e.onnx", "head": "h.onnx"},
+        dataset={"recipe": "r"},
+        training={"seed": 3},
+        metrics={"test": {"n": 5}},
+        export={"opset": 17},
+        label_threshold=0.003,
+        **kw,
+    )
 
 
 def test_model_card_round_trip_keeps_every_field(tmp_path):
@@ -72,14 +81,17 @@ def test_normalisation_statistics_by_hand():
     assert Normalization.from_dict(n.to_dict()) == n
 
 
-@pytest.mark.parametrize("bad, match", [
-    (dict(pose_mean=[0.0, 1.0]), "one entry per pose column"),
-    (dict(pose_std=[1.0, 1.0]), "one entry per pose column"),
-    (dict(image_mean=float("nan")), "finite"),
-    (dict(pose_std=[float("inf")]), "finite"),
-    (dict(image_std=0.0), "std must be > 0"),
-    (dict(pose_std=[-1.0]), "std must be > 0"),
-])
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (dict(pose_mean=[0.0, 1.0]), "one entry per pose column"),
+        (dict(pose_std=[1.0, 1.0]), "one entry per pose column"),
+        (dict(image_mean=float("nan")), "finite"),
+        (dict(pose_std=[float("inf")]), "finite"),
+        (dict(image_std=0.0), "std must be > 0"),
+        (dict(pose_std=[-1.0]), "std must be > 0"),
+    ],
+)
 def test_normalisation_refuses_bad_constants(bad, match):
     good = dict(image_mean=0.6, image_std=0.1, pose_columns=("z",), pose_mean=[0.5], pose_std=[0.2])
     with pytest.raises(ValueError, match=match):

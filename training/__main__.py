@@ -18,8 +18,13 @@ from vgq.pose import POSE_COLUMNS
 from .baseline import MODELS, BaselineConfig
 from .config import CLASS_BALANCE, OPTIMIZERS, TrainConfig
 
-CHOICES = {"arch": tuple(POSE_COLUMNS), "class_balance": CLASS_BALANCE, "optimizer": OPTIMIZERS, "model": MODELS,
-           "columns": ("all", *POSE_COLUMNS)}
+CHOICES = {
+    "arch": tuple(POSE_COLUMNS),
+    "class_balance": CLASS_BALANCE,
+    "optimizer": OPTIMIZERS,
+    "model": MODELS,
+    "columns": ("all", *POSE_COLUMNS),
+}
 
 
 def _add_dataclass_options(p: argparse.ArgumentParser, cls, skip=(), help_prefix: str = "") -> None:
@@ -29,13 +34,24 @@ def _add_dataclass_options(p: argparse.ArgumentParser, cls, skip=(), help_prefix
         default = f.default if f.default is not MISSING else None
         flag = "--" + f.name.replace("_", "-")
         if isinstance(default, bool):
-            p.add_argument(flag, dest=f.name, default=default, action=argparse.BooleanOptionalAction,
-                           help=f"{help_prefix}default {default}")
+            p.add_argument(
+                flag,
+                dest=f.name,
+                default=default,
+                action=argparse.BooleanOptionalAction,
+                help=f"{help_prefix}default {default}",
+            )
         else:
             choices = CHOICES.get(f.name)
-            p.add_argument(flag, dest=f.name, type=type(default), default=default, choices=choices,
-                           metavar=None if choices else type(default).__name__.upper(),
-                           help=f"{help_prefix}default {default}")
+            p.add_argument(
+                flag,
+                dest=f.name,
+                type=type(default),
+                default=default,
+                choices=choices,
+                metavar=None if choices else type(default).__name__.upper(),
+                help=f"{help_prefix}default {default}",
+            )
 
 
 def _config_from(args, cls):
@@ -43,8 +59,10 @@ def _config_from(args, cls):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m training",
-                                 description="Train, evaluate and compare VGQ-CNN / Fast-VGQ-CNN / GQ-CNN on crop datasets.")
+    ap = argparse.ArgumentParser(
+        prog="python -m training",
+        description="Train, evaluate and compare VGQ-CNN / Fast-VGQ-CNN / GQ-CNN on crop datasets.",
+    )
     sub = ap.add_subparsers(dest="command", required=True)
 
     t = sub.add_parser("train", help="train a network on a crop dataset")
@@ -93,15 +111,31 @@ def main(argv: list[str] | None = None) -> int:
             from .train import train
 
             r = train(_config_from(args, TrainConfig), args.data, args.out, resume=args.resume, progress=progress)
-            print(json.dumps({"run": str(r.run_dir), "steps": r.steps, "samples_seen": r.samples_seen,
-                              "best_val_balanced_accuracy": None if r.best_val_balanced_accuracy != r.best_val_balanced_accuracy
-                              else r.best_val_balanced_accuracy,
-                              "wall_time_s": round(r.wall_time_s, 1)}))
+            print(
+                json.dumps(
+                    {
+                        "run": str(r.run_dir),
+                        "steps": r.steps,
+                        "samples_seen": r.samples_seen,
+                        "best_val_balanced_accuracy": None
+                        if r.best_val_balanced_accuracy != r.best_val_balanced_accuracy
+                        else r.best_val_balanced_accuracy,
+                        "wall_time_s": round(r.wall_time_s, 1),
+                    }
+                )
+            )
         elif args.command == "evaluate":
             from .evaluate import evaluate
 
-            rec = evaluate(args.run, args.data, args.split, args.out, threshold=args.threshold,
-                           batch_size=args.batch_size, progress=progress)
+            rec = evaluate(
+                args.run,
+                args.data,
+                args.split,
+                args.out,
+                threshold=args.threshold,
+                batch_size=args.batch_size,
+                progress=progress,
+            )
             print(json.dumps({"split": rec["split"], **rec["overall"]}))
         elif args.command == "baseline":
             from .baseline import run_baseline
@@ -116,7 +150,9 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "bench":
             from .bench import measure_train_throughput
 
-            print(json.dumps(measure_train_throughput(args.arch, args.batch_size, args.steps, args.warmup, args.threads)))
+            print(
+                json.dumps(measure_train_throughput(args.arch, args.batch_size, args.steps, args.warmup, args.threads))
+            )
     except (ValueError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -33,7 +33,11 @@ def _finished(run_dir: Path, cfg: TrainConfig) -> dict | None:
     except (OSError, json.JSONDecodeError):
         return None
     t = info.get("training", {})
-    if t.get("finished") and t.get("samples_seen", 0) >= cfg.samples and rec.get("samples_seen", -1) == t.get("samples_seen"):
+    if (
+        t.get("finished")
+        and t.get("samples_seen", 0) >= cfg.samples
+        and rec.get("samples_seen", -1) == t.get("samples_seen")
+    ):
         return rec
     return None
 
@@ -65,9 +69,16 @@ def run_ablation(data_dirs: list[str | Path], out_dir: str | Path, config: Train
                 rec = evaluate(run_dir, s.path, "test", progress=progress)
         if main:
             o = rec["overall"]
-            results.append({"kappa_px": s.geometry.kappa_px, "scale": s.geometry.scale, "data": str(s.path.resolve()),
-                            "run": str(run_dir.resolve()), "samples_seen": rec["samples_seen"],
-                            **{k: o.get(k) for k in ("balanced_accuracy", "tpr", "tnr", "accuracy", "n")}})
+            results.append(
+                {
+                    "kappa_px": s.geometry.kappa_px,
+                    "scale": s.geometry.scale,
+                    "data": str(s.path.resolve()),
+                    "run": str(run_dir.resolve()),
+                    "samples_seen": rec["samples_seen"],
+                    **{k: o.get(k) for k in ("balanced_accuracy", "tpr", "tnr", "accuracy", "n")},
+                }
+            )
         if dist.is_initialized():
             dist.barrier()
     record = {"arch": config.arch, "config": config.to_dict(), "results": results}

@@ -56,8 +56,9 @@ def _features(poses: np.ndarray, cols: tuple[str, ...]) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(poses)[:, idx], dtype=np.float32)
 
 
-def run_baseline(data_dir: str | Path, config: BaselineConfig | None = None, out: str | Path | None = None,
-                 progress: bool = True) -> dict:
+def run_baseline(
+    data_dir: str | Path, config: BaselineConfig | None = None, out: str | Path | None = None, progress: bool = True
+) -> dict:
     """Train the baseline on ``train``, report metrics on ``val`` (if present) and ``test``.
 
     With ``out`` (a folder) writes ``baseline_<model>.json`` and ``heatmap_baseline_<model>.png``.
@@ -93,8 +94,13 @@ def run_baseline(data_dir: str | Path, config: BaselineConfig | None = None, out
 def _fit_and_score(cfg, data, cols, x, y, mean, std, weight, out, progress) -> dict:
     torch.manual_seed(cfg.seed)
     d = len(cols)
-    model = nn.Linear(d, 2) if cfg.model == "logreg" else nn.Sequential(
-        nn.Linear(d, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, 2))
+    model = (
+        nn.Linear(d, 2)
+        if cfg.model == "logreg"
+        else nn.Sequential(
+            nn.Linear(d, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, 2)
+        )
+    )
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     xt = torch.from_numpy((x - mean) / std)
     yt = torch.from_numpy(y)
@@ -124,11 +130,14 @@ def _fit_and_score(cfg, data, cols, x, y, mean, std, weight, out, progress) -> d
             p = predict(sp)
             rec[name] = M.nan_to_none(M.binary_metrics(np.asarray(sp.labels), p))
             if name == "test":
-                grid = M.grid_metrics(np.asarray(sp.labels), p, np.asarray(sp.arrays["camera_d"]),
-                                      np.asarray(sp.arrays["camera_phi"]))
+                grid = M.grid_metrics(
+                    np.asarray(sp.labels), p, np.asarray(sp.arrays["camera_d"]), np.asarray(sp.arrays["camera_phi"])
+                )
                 rec["grid"] = M.grid_to_json(grid)
     if out is not None:
         out = Path(out)
         atomic.write_json(out / f"baseline_{cfg.model}.json", rec)
-        plot_grid_heatmaps(grid, out / f"heatmap_baseline_{cfg.model}.png", title=f"pose-only {cfg.model} baseline (test)")
+        plot_grid_heatmaps(
+            grid, out / f"heatmap_baseline_{cfg.model}.png", title=f"pose-only {cfg.model} baseline (test)"
+        )
     return rec

@@ -14,8 +14,9 @@ from .config import TrainConfig
 from .networks import GraspQualityNet
 
 
-def measure_train_throughput(arch: str = "fast_vgqcnn", batch_size: int = 64, steps: int = 20, warmup: int = 3,
-                             threads: int = 0) -> dict:
+def measure_train_throughput(
+    arch: str = "fast_vgqcnn", batch_size: int = 64, steps: int = 20, warmup: int = 3, threads: int = 0
+) -> dict:
     """Median-free simple timing: ``steps`` timed SGD steps after ``warmup`` untimed ones."""
     if steps <= 0 or warmup < 0 or batch_size <= 0:
         raise ValueError("steps and batch_size must be > 0, warmup >= 0")

@@ -163,5 +163,5 @@ def load_trained(path: str | Path) -> tuple[GraspQualityNet, dict]:
                 continue
             same = Path(m.get("checkpoint", "")).resolve() == ckpt_path.resolve()
             if same and m.get("samples_seen") == int(st["samples_seen"]):  # not a stale evaluation
-                meta["metrics"][m.get("split", f.stem[len("metrics_"):])] = m.get("overall", {})
+                meta["metrics"][m.get("split", f.stem[len("metrics_") :])] = m.get("overall", {})
     return net, meta

@@ -39,8 +39,15 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.arch not in POSE_COLUMNS:
             raise ValueError(f"unknown architecture {self.arch!r}; expected one of {sorted(POSE_COLUMNS)}")
-        for name in ("samples", "batch_size", "decay_every_samples", "val_every_samples",
-                     "checkpoint_every_samples", "log_every_steps", "eval_batch_size"):
+        for name in (
+            "samples",
+            "batch_size",
+            "decay_every_samples",
+            "val_every_samples",
+            "checkpoint_every_samples",
+            "log_every_steps",
+            "eval_batch_size",
+        ):
             if int(getattr(self, name)) <= 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.val_max_samples < 0 or self.num_threads < 0:
@@ -60,7 +67,7 @@ class TrainConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "TrainConfig":
+    def from_dict(cls, d: dict) -> TrainConfig:
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:

@@ -182,7 +182,9 @@ def open_crop_dataset(path: str | Path) -> CropDataset:
         raise DatasetError(f"{path}/manifest.json: bad crop geometry {g} ({e})") from e
     arch = m.get("architecture", m.get("arch"))
     if arch not in POSE_COLUMNS:
-        raise DatasetError(f"{path}/manifest.json: architecture {arch!r} unknown; expected one of {sorted(POSE_COLUMNS)}")
+        raise DatasetError(
+            f"{path}/manifest.json: architecture {arch!r} unknown; expected one of {sorted(POSE_COLUMNS)}"
+        )
     if "intrinsics" in m:
         try:
             intr, from_manifest = Intrinsics.from_dict(m["intrinsics"]), True
@@ -195,7 +197,9 @@ def open_crop_dataset(path: str | Path) -> CropDataset:
         s = _open_split(path, name)
         if s is not None:
             if s.arrays["images"].shape[1:] != (geom.out, geom.out):
-                raise DatasetError(f"crop dataset {path}: images are {s.arrays['images'].shape[1:]}, geometry says {geom.out}")
+                raise DatasetError(
+                    f"crop dataset {path}: images are {s.arrays['images'].shape[1:]}, geometry says {geom.out}"
+                )
             splits[name] = s
     if not splits:
         raise DatasetError(f"crop dataset {path} has none of the split folders {SPLITS}")

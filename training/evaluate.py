@@ -12,7 +12,7 @@ import numpy as np
 from vgq import atomic
 
 from . import metrics as M
-from .checkpoint import RunPaths, resolve_run, load_trained
+from .checkpoint import RunPaths, load_trained, resolve_run
 from .data import DatasetError, open_crop_dataset
 from .plots import plot_grid_heatmaps, plot_training_curves
 from .predict import predict_split
@@ -52,8 +52,15 @@ def evaluate(
     dt = time.time() - t0
     labels = np.asarray(sp.labels)
     overall = M.nan_to_none({**M.binary_metrics(labels, p, threshold), "loss": loss})
-    grid = M.grid_metrics(labels, p, np.asarray(sp.arrays["camera_d"]), np.asarray(sp.arrays["camera_phi"]),
-                          d_step=d_step, phi_step_deg=phi_step_deg, threshold=threshold)
+    grid = M.grid_metrics(
+        labels,
+        p,
+        np.asarray(sp.arrays["camera_d"]),
+        np.asarray(sp.arrays["camera_phi"]),
+        d_step=d_step,
+        phi_step_deg=phi_step_deg,
+        threshold=threshold,
+    )
     if out_dir is None:
         out_dir = RunPaths(run_dir).eval_dir if run_dir is not None else ckpt_path.parent / "eval"
     out_dir = Path(out_dir)

@@ -30,8 +30,16 @@ def from_confusion(c: dict[str, int]) -> dict[str, float]:
     tnr = c["tn"] / neg if neg else math.nan
     bacc = (tpr + tnr) / 2 if pos and neg else math.nan
     acc = (c["tp"] + c["tn"]) / n if n else math.nan
-    return {"tpr": tpr, "tnr": tnr, "balanced_accuracy": bacc, "accuracy": acc,
-            "n": n, "n_positive": pos, "n_negative": neg, **{k: int(v) for k, v in c.items()}}
+    return {
+        "tpr": tpr,
+        "tnr": tnr,
+        "balanced_accuracy": bacc,
+        "accuracy": acc,
+        "n": n,
+        "n_positive": pos,
+        "n_negative": neg,
+        **{k: int(v) for k, v in c.items()},
+    }
 
 
 def binary_metrics(labels: np.ndarray, p_success: np.ndarray, threshold: float = 0.5) -> dict[str, float]:
@@ -96,9 +104,14 @@ def grid_metrics(
 
 def grid_to_json(grid: dict) -> dict:
     """Arrays to lists, NaN to None."""
+
     def conv(a):
         a = np.asarray(a, dtype=np.float64)
-        return [[None if not np.isfinite(x) else float(x) for x in row] for row in a] if a.ndim == 2 else [float(x) for x in a]
+        return (
+            [[None if not np.isfinite(x) else float(x) for x in row] for row in a]
+            if a.ndim == 2
+            else [float(x) for x in a]
+        )
 
     return {k: conv(v) for k, v in grid.items()}
 

@@ -32,16 +32,30 @@ def plot_grid_heatmaps(grid: dict, path: str | Path, title: str = "") -> Path:
     cmap = matplotlib.colormaps["viridis"].with_extremes(bad="0.85")
     for ax, key, name in zip(axes, ("tpr", "tnr"), ("TPR", "TNR")):
         a = np.asarray(grid[key], dtype=float)
-        im = ax.imshow(np.ma.masked_invalid(a), origin="lower", cmap=cmap, vmin=0.0, vmax=1.0, aspect="auto",
-                       extent=(p_edges[0], p_edges[-1], d_edges[0], d_edges[-1]))
+        im = ax.imshow(
+            np.ma.masked_invalid(a),
+            origin="lower",
+            cmap=cmap,
+            vmin=0.0,
+            vmax=1.0,
+            aspect="auto",
+            extent=(p_edges[0], p_edges[-1], d_edges[0], d_edges[-1]),
+        )
         if a.size <= 400:
             for i in range(a.shape[0]):
                 for j in range(a.shape[1]):
                     if np.isfinite(a[i, j]):
                         x = (p_edges[j] + p_edges[j + 1]) / 2
                         y = (d_edges[i] + d_edges[i + 1]) / 2
-                        ax.text(x, y, f"{100 * a[i, j]:.0f}", ha="center", va="center", fontsize=7,
-                                color="white" if a[i, j] < 0.6 else "black")
+                        ax.text(
+                            x,
+                            y,
+                            f"{100 * a[i, j]:.0f}",
+                            ha="center",
+                            va="center",
+                            fontsize=7,
+                            color="white" if a[i, j] < 0.6 else "black",
+                        )
         ax.set_xlabel("camera elevation phi (deg)")
         ax.set_ylabel("camera distance d (m)")
         ax.set_title(name)
@@ -95,7 +109,11 @@ def plot_ablation(results: list[dict], path: str | Path, title: str = "") -> Pat
     rs = sorted(results, key=lambda r: r["kappa_px"])
     k = [r["kappa_px"] / r.get("scale", 3) for r in rs]
     fig, ax = plt.subplots(figsize=(6, 4.2), constrained_layout=True)
-    for key, lab, st in (("balanced_accuracy", "balanced accuracy", "o-"), ("tpr", "TPR", "s--"), ("tnr", "TNR", "^--")):
+    for key, lab, st in (
+        ("balanced_accuracy", "balanced accuracy", "o-"),
+        ("tpr", "TPR", "s--"),
+        ("tnr", "TNR", "^--"),
+    ):
         ax.plot(k, [r.get(key) if r.get(key) is not None else np.nan for r in rs], st, label=lab)
     ax.set_xlabel("kappa = max(|u|, |v|) (px in the 32 x 32 crop)")
     ax.set_ylabel("test metric")

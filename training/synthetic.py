@@ -41,8 +41,16 @@ def write_crop_dataset(
     for name, arrays in splits.items():
         for f in CROP_FIELDS:
             atomic.save_npy(path / name / f"{f}.npy", arrays[f])
-    return write_crop_manifest(path, arch, geometry, counts, label_threshold, source or {},
-                               intrinsics=intrinsics.to_dict(), recipe=recipe or {})
+    return write_crop_manifest(
+        path,
+        arch,
+        geometry,
+        counts,
+        label_threshold,
+        source or {},
+        intrinsics=intrinsics.to_dict(),
+        recipe=recipe or {},
+    )
 
 
 def synthetic_split(

@@ -31,15 +31,29 @@ from vgq import atomic
 from vgq.normalization import Normalization
 
 from . import metrics as M
-from .checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, CheckpointError, RunPaths, load_checkpoint, save_checkpoint
+from .checkpoint import (
+    CHECKPOINT_FORMAT,
+    CHECKPOINT_VERSION,
+    CheckpointError,
+    RunPaths,
+    load_checkpoint,
+    save_checkpoint,
+)
 from .config import TrainConfig
 from .data import CropDataset, CropSplit, DatasetError, open_crop_dataset
 from .networks import GraspQualityNet
 from .predict import predict_split
 
 #: config keys that may change on --resume (they do not change what is learned)
-RESUMABLE_CHANGES = {"samples", "val_every_samples", "val_max_samples", "checkpoint_every_samples",
-                     "log_every_steps", "eval_batch_size", "num_threads"}
+RESUMABLE_CHANGES = {
+    "samples",
+    "val_every_samples",
+    "val_max_samples",
+    "checkpoint_every_samples",
+    "log_every_steps",
+    "eval_batch_size",
+    "num_threads",
+}
 
 
 @dataclass
@@ -84,7 +98,7 @@ class TrainState:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict, where: str = "checkpoint") -> "TrainState":
+    def from_dict(cls, d: dict, where: str = "checkpoint") -> TrainState:
         """The state as saved by this code or by the dict-based loop before it (same keys,
         checkpoint version 1). CheckpointError naming what is missing or malformed."""
         missing = [k for k in ("step", "samples_seen", "epoch", "batch_in_epoch") if k not in d]
@@ -96,7 +110,9 @@ class TrainState:
                 try:
                     kw[f.name] = type(f.default)(d[f.name])
                 except (TypeError, ValueError) as e:
-                    raise CheckpointError(f"{where}: training state {f.name}={d[f.name]!r} is not a number ({e})") from e
+                    raise CheckpointError(
+                        f"{where}: training state {f.name}={d[f.name]!r} is not a number ({e})"
+                    ) from e
         return cls(**kw)
 
 
@@ -204,8 +220,11 @@ def _open_data(cfg: TrainConfig, data_dir, d: _Dist) -> tuple[CropDataset, CropS
         raise DatasetError(f"training split has {len(train_split)} rows, fewer than one batch ({cfg.batch_size})")
     n_pos = int(np.asarray(train_split.labels).sum())
     if d.main and n_pos in (0, len(train_split)):
-        print(f"warning: the training split of {data.path} has only one class "
-              f"({n_pos} positive of {len(train_split)}); nothing to learn", file=sys.stderr)
+        print(
+            f"warning: the training split of {data.path} has only one class "
+            f"({n_pos} positive of {len(train_split)}); nothing to learn",
+            file=sys.stderr,
+        )
     return data, train_split, val_split
 
 
@@ -248,16 +267,33 @@ def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit
     return net, opt, norm, state, last_val, best_val
 
 
-def checkpoint_dict(cfg: TrainConfig, net: GraspQualityNet, opt: torch.optim.Optimizer | None, norm: Normalization,
-                    state: TrainState, data_info: dict, data: CropDataset, val: dict) -> dict:
+def checkpoint_dict(
+    cfg: TrainConfig,
+    net: GraspQualityNet,
+    opt: torch.optim.Optimizer | None,
+    norm: Normalization,
+    state: TrainState,
+    data_info: dict,
+    data: CropDataset,
+    val: dict,
+) -> dict:
     """The one checkpoint layout (version CHECKPOINT_VERSION): tensors and plain containers
     only, so it loads with ``weights_only=True``. ``opt`` None (best.pt: for evaluation and
     export, never resumed from) stores no optimizer state."""
-    return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "arch": cfg.arch,
-            "model": net.state_dict(), "optimizer": None if opt is None else opt.state_dict(),
-            "config": cfg.to_dict(), "normalization": norm.to_dict(), "state": state.to_dict(),
-            "dataset": data_info, "geometry": data.geometry.to_dict(), "intrinsics": data.intrinsics.to_dict(),
-            "val": M.nan_to_none(val)}
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "arch": cfg.arch,
+        "model": net.state_dict(),
+        "optimizer": None if opt is None else opt.state_dict(),
+        "config": cfg.to_dict(),
+        "normalization": norm.to_dict(),
+        "state": state.to_dict(),
+        "dataset": data_info,
+        "geometry": data.geometry.to_dict(),
+        "intrinsics": data.intrinsics.to_dict(),
+        "val": M.nan_to_none(val),
+    }
 
 
 def _sgd_step(model: torch.nn.Module, opt: torch.optim.Optimizer, batch, lr: float, weights) -> float:
@@ -326,15 +362,24 @@ def train(
     def save(path: Path, val: dict, with_optimizer: bool) -> None:
         state.wall_time_s = wall0 + time.time() - t0
         if d.main:
-            save_checkpoint(path, checkpoint_dict(cfg, net, opt if with_optimizer else None, norm, state, data_info, data, val))
+            save_checkpoint(
+                path, checkpoint_dict(cfg, net, opt if with_optimizer else None, norm, state, data_info, data, val)
+            )
 
     total_steps = math.ceil(cfg.samples / cfg.batch_size)
     local_batch = cfg.batch_size // d.world
-    sampler = DistributedSampler(range(len(train_split)), num_replicas=d.world, rank=d.rank,
-                                 shuffle=True, seed=cfg.seed, drop_last=True)
-    bar = tqdm(total=total_steps * cfg.batch_size, initial=min(state.samples_seen, total_steps * cfg.batch_size),
-               unit="sample", unit_scale=True, desc=f"train {cfg.arch}", disable=not (progress and d.main),
-               dynamic_ncols=True)
+    sampler = DistributedSampler(
+        range(len(train_split)), num_replicas=d.world, rank=d.rank, shuffle=True, seed=cfg.seed, drop_last=True
+    )
+    bar = tqdm(
+        total=total_steps * cfg.batch_size,
+        initial=min(state.samples_seen, total_steps * cfg.batch_size),
+        unit="sample",
+        unit_scale=True,
+        desc=f"train {cfg.arch}",
+        disable=not (progress and d.main),
+        dynamic_ncols=True,
+    )
     log = _MetricsLog(paths.metrics, d.main)
     loss_acc, loss_n, ema = 0.0, 0, None
     net.train()
@@ -351,13 +396,27 @@ def train(
                 loss_acc, loss_n = loss_acc + loss, loss_n + 1
                 ema = loss if ema is None else 0.95 * ema + 0.05 * loss
                 bar.update(cfg.batch_size)
-                bar.set_postfix({"loss": f"{ema:.4f}", "lr": f"{lr:.2e}",
-                                 **({"val_bacc": f"{last_val.get('balanced_accuracy', math.nan):.3f}"} if last_val else {})},
-                                refresh=False)
+                bar.set_postfix(
+                    {
+                        "loss": f"{ema:.4f}",
+                        "lr": f"{lr:.2e}",
+                        **({"val_bacc": f"{last_val.get('balanced_accuracy', math.nan):.3f}"} if last_val else {}),
+                    },
+                    refresh=False,
+                )
                 done = state.step >= total_steps
                 if state.step % cfg.log_every_steps == 0 or done:
-                    log.write({"kind": "train", "step": state.step, "samples": state.samples_seen, "epoch": state.epoch,
-                               "loss": loss_acc / loss_n, "lr": lr, "wall_time_s": wall0 + time.time() - t0})
+                    log.write(
+                        {
+                            "kind": "train",
+                            "step": state.step,
+                            "samples": state.samples_seen,
+                            "epoch": state.epoch,
+                            "loss": loss_acc / loss_n,
+                            "lr": lr,
+                            "wall_time_s": wall0 + time.time() - t0,
+                        }
+                    )
                     loss_acc, loss_n = 0.0, 0
                 if _crossed(state.samples_seen, cfg.batch_size, cfg.val_every_samples) or done:
                     last_val = _validate(net, val_split, cfg, d)
@@ -383,12 +442,19 @@ def train(
     if d.main:
         atomic.write_json(paths.run_json, _run_info(cfg, data, norm, state, finished=True, best_val=best_val))
     d.barrier()
-    return TrainResult(paths.root, state.step, state.samples_seen, state.best_val_balanced_accuracy, last_val,
-                       state.wall_time_s)
+    return TrainResult(
+        paths.root, state.step, state.samples_seen, state.best_val_balanced_accuracy, last_val, state.wall_time_s
+    )
 
 
-def _run_info(cfg: TrainConfig, data: CropDataset, norm: Normalization, state: TrainState,
-              finished: bool, best_val: dict | None = None) -> dict:
+def _run_info(
+    cfg: TrainConfig,
+    data: CropDataset,
+    norm: Normalization,
+    state: TrainState,
+    finished: bool,
+    best_val: dict | None = None,
+) -> dict:
     return {
         "arch": cfg.arch,
         "config": cfg.to_dict(),

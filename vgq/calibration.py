@@ -63,7 +63,9 @@ class Calibration:
         if self.method not in METHODS:
             raise ValueError(f"calibration method must be one of {METHODS}, got {self.method!r}")
         if not (np.isfinite(self.slope) and self.slope > 0 and np.isfinite(self.intercept)):
-            raise ValueError(f"calibration needs a finite slope > 0 and a finite intercept, got {self.slope}, {self.intercept}")
+            raise ValueError(
+                f"calibration needs a finite slope > 0 and a finite intercept, got {self.slope}, {self.intercept}"
+            )
         _fraction("fit_positivity", self.fit_positivity)
         _fraction("target_positivity", self.target_positivity)
 
@@ -80,7 +82,7 @@ class Calibration:
         """Calibrated P(success) (float64, same shape) of the network's raw probabilities."""
         return sigmoid(self.slope * logit(p_raw) + self.intercept + self.prior_shift)
 
-    def at_positivity(self, target_positivity: float) -> "Calibration":
+    def at_positivity(self, target_positivity: float) -> Calibration:
         """The same fit, calibrated for another positivity (e.g. a test split's own)."""
         return Calibration(self.method, self.slope, self.intercept, self.fit_positivity, float(target_positivity))
 
@@ -88,11 +90,16 @@ class Calibration:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Calibration":
+    def from_dict(cls, d: dict) -> Calibration:
         """From a ``to_dict`` (other keys, e.g. a model card's report, are ignored)."""
         try:
-            return cls(str(d["method"]), float(d["slope"]), float(d["intercept"]),
-                       float(d["fit_positivity"]), float(d["target_positivity"]))
+            return cls(
+                str(d["method"]),
+                float(d["slope"]),
+                float(d["intercept"]),
+                float(d["fit_positivity"]),
+                float(d["target_positivity"]),
+            )
         except (KeyError, TypeError) as e:
             raise ValueError(f"not a calibration record ({type(e).__name__}: {e}): {d}") from e
 
@@ -126,12 +133,18 @@ def reliability_bins(p: np.ndarray, labels: np.ndarray, n_bins: int = 10, weight
     with np.errstate(invalid="ignore", divide="ignore"):
         conf = np.bincount(b, weights=w * p, minlength=n_bins) / tot
         acc = np.bincount(b, weights=w * y, minlength=n_bins) / tot
-    return {"edges": np.linspace(0.0, 1.0, n_bins + 1), "weight": tot / tot.sum(), "confidence": conf, "accuracy": acc,
-            "count": np.bincount(b, minlength=n_bins)}
+    return {
+        "edges": np.linspace(0.0, 1.0, n_bins + 1),
+        "weight": tot / tot.sum(),
+        "confidence": conf,
+        "accuracy": acc,
+        "count": np.bincount(b, minlength=n_bins),
+    }
 
 
-def expected_calibration_error(p: np.ndarray, labels: np.ndarray, n_bins: int = 10,
-                               weights: np.ndarray | None = None) -> float:
+def expected_calibration_error(
+    p: np.ndarray, labels: np.ndarray, n_bins: int = 10, weights: np.ndarray | None = None
+) -> float:
     """ECE: sum over equal-width bins of (bin share) * |mean prediction - observed rate|."""
     r = reliability_bins(p, labels, n_bins, weights)
     full = r["weight"] > 0

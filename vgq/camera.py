@@ -41,7 +41,7 @@ class Intrinsics:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Intrinsics":
+    def from_dict(cls, d: dict) -> Intrinsics:
         return cls(**{k: d[k] for k in ("fx", "fy", "cx", "cy", "width", "height")})
 
 
@@ -118,8 +118,9 @@ def check_client_intrinsics(camera: Intrinsics, model: Intrinsics) -> tuple[floa
         r = fm / f
         if not lo <= r <= hi:
             raise CameraMismatch(
-                name, f"{name} = {f:g} px is outside the range this model serves: {fm / hi:g} to {fm / lo:g} px "
-                f"({lo:g}x to {hi:g}x the model's focal length ratio; the model was trained at {name} = {fm:g} px)"
+                name,
+                f"{name} = {f:g} px is outside the range this model serves: {fm / hi:g} to {fm / lo:g} px "
+                f"({lo:g}x to {hi:g}x the model's focal length ratio; the model was trained at {name} = {fm:g} px)",
             )
         ratios.append(1.0 if abs(r - 1.0) <= FOCAL_TOLERANCE else r)
     return ratios[0], ratios[1]
@@ -131,8 +132,12 @@ def resampled_intrinsics(camera: Intrinsics, sx: float, sy: float) -> Intrinsics
     w, h = max(1, int(round(camera.width * sx))), max(1, int(round(camera.height * sy)))
     sx_eff, sy_eff = w / camera.width, h / camera.height
     return Intrinsics(
-        fx=camera.fx * sx_eff, fy=camera.fy * sy_eff,
-        cx=(camera.cx + 0.5) * sx_eff - 0.5, cy=(camera.cy + 0.5) * sy_eff - 0.5, width=w, height=h,
+        fx=camera.fx * sx_eff,
+        fy=camera.fy * sy_eff,
+        cx=(camera.cx + 0.5) * sx_eff - 0.5,
+        cy=(camera.cy + 0.5) * sy_eff - 0.5,
+        width=w,
+        height=h,
     )
 
 
@@ -157,8 +162,9 @@ def resample_depth(depth: np.ndarray, camera: Intrinsics, model: Intrinsics) -> 
     sx, sy = check_client_intrinsics(camera, model)
     d = np.asarray(depth, dtype=np.float32)
     if d.shape != (camera.height, camera.width):
-        raise CameraMismatch("width", f"image is {d.shape[1]}x{d.shape[0]} px but the intrinsics say "
-                                      f"{camera.width}x{camera.height}")
+        raise CameraMismatch(
+            "width", f"image is {d.shape[1]}x{d.shape[0]} px but the intrinsics say {camera.width}x{camera.height}"
+        )
     if sx == 1.0 and sy == 1.0:
         return d, camera
     dst = resampled_intrinsics(camera, sx, sy)

@@ -50,7 +50,7 @@ class CropGeometry:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "CropGeometry":
+    def from_dict(cls, d: dict) -> CropGeometry:
         return cls(window=int(d["window"]), out=int(d["out"]), kappa_px=float(d["kappa_px"]))
 
 

@@ -43,8 +43,9 @@ def pose_rows(grasps: np.ndarray, window_center: np.ndarray, geom: CropGeometry,
         raise GraspError(f"{int(bad.sum())} grasps have non-finite values", np.flatnonzero(bad))
     bad = ~((grasps[:, 2] > 0) & (grasps[:, 2] <= MAX_Z_M))
     if bad.any():
-        raise GraspError(f"{int(bad.sum())} grasps have depth z outside (0, {MAX_Z_M:g}] (metres, camera frame)",
-                         np.flatnonzero(bad))
+        raise GraspError(
+            f"{int(bad.sum())} grasps have depth z outside (0, {MAX_Z_M:g}] (metres, camera frame)", np.flatnonzero(bad)
+        )
     q = grasps[:, 3:7]
     bad = np.abs(q).max(axis=1) < ZERO_QUATERNION
     if bad.any():

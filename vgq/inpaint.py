@@ -68,7 +68,9 @@ def fill_nearest(depth: np.ndarray, missing: np.ndarray | None = None) -> np.nda
     return table[labels]
 
 
-def filled_window(depth: np.ndarray, origin_uv, geom: CropGeometry, margin: int = MARGIN_PX) -> tuple[np.ndarray, float]:
+def filled_window(
+    depth: np.ndarray, origin_uv, geom: CropGeometry, margin: int = MARGIN_PX
+) -> tuple[np.ndarray, float]:
     """The ``window`` x ``window`` block of ``depth`` (H, W) metres at integer top-left
     ``origin_uv`` (u, v), with missing pixels filled from the window plus ``margin`` px.
 
@@ -87,7 +89,9 @@ def filled_window(depth: np.ndarray, origin_uv, geom: CropGeometry, margin: int 
     return np.ascontiguousarray(fill_nearest(patch, miss)[inner]), frac
 
 
-def crop_filled(depth: np.ndarray, origin_uv, geom: CropGeometry, margin: int = MARGIN_PX) -> tuple[np.ndarray, np.ndarray, float]:
+def crop_filled(
+    depth: np.ndarray, origin_uv, geom: CropGeometry, margin: int = MARGIN_PX
+) -> tuple[np.ndarray, np.ndarray, float]:
     """The network input of the window at ``origin_uv``: :func:`filled_window`, then the
     bilinear resize of :mod:`vgq.crop`. Returns (image (out, out) float32 metres, window
     centre (2,) image px, missing fraction of the window)."""
@@ -136,8 +140,11 @@ def bench(reps: int = 500, fractions=(0.0, 0.02, 0.10, 0.50), margin: int = MARG
             t.append(time.perf_counter() - t0)
         row = {"missing": got, "ms_median": 1e3 * float(np.median(t)), "ms_p99": 1e3 * float(np.percentile(t, 99))}
         if ndimage is not None:
-            patch = crop_window(d, (origin[0] - margin, origin[1] - margin),
-                                CropGeometry(geom.window + 2 * margin, geom.window + 2 * margin, 0))
+            patch = crop_window(
+                d,
+                (origin[0] - margin, origin[1] - margin),
+                CropGeometry(geom.window + 2 * margin, geom.window + 2 * margin, 0),
+            )
             t = []
             for _ in range(reps):
                 t0 = time.perf_counter()
@@ -152,7 +159,9 @@ def bench(reps: int = 500, fractions=(0.0, 0.02, 0.10, 0.50), margin: int = MARG
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m vgq.inpaint", description="Time the missing-depth fill per crop window.")
+    p = argparse.ArgumentParser(
+        prog="python -m vgq.inpaint", description="Time the missing-depth fill per crop window."
+    )
     p.add_argument("--bench", action="store_true", help="run the benchmark (the only action)")
     p.add_argument("--reps", type=int, default=500)
     a = p.parse_args(argv)
@@ -163,8 +172,10 @@ def main(argv=None) -> int:
         print("vgq.inpaint: error: --reps must be >= 1", file=sys.stderr)
         return 2
     g = CropGeometry()
-    print(f"fill per window: {g.window}x{g.window} window + {MARGIN_PX} px margin, OpenCV {cv2.__version__}, "
-          f"{cv2.getNumThreads()} OpenCV threads, {a.reps} reps")
+    print(
+        f"fill per window: {g.window}x{g.window} window + {MARGIN_PX} px margin, OpenCV {cv2.__version__}, "
+        f"{cv2.getNumThreads()} OpenCV threads, {a.reps} reps"
+    )
     for r in bench(a.reps):
         extra = f"  (scipy EDT {r['scipy_edt_ms_median']:.3f} ms)" if "scipy_edt_ms_median" in r else ""
         print(f"missing {100 * r['missing']:5.1f}%: median {r['ms_median']:.3f} ms, p99 {r['ms_p99']:.3f} ms{extra}")

@@ -61,7 +61,7 @@ class ModelCard:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "ModelCard":
+    def from_dict(cls, d: dict) -> ModelCard:
         if d.get("format") != CARD_FORMAT:
             raise ValueError(f"not a model card (format {d.get('format')!r}, expected {CARD_FORMAT!r})")
         return cls(
@@ -83,7 +83,7 @@ class ModelCard:
         atomic.write_json(Path(model_dir) / CARD_NAME, self.to_dict())
 
     @classmethod
-    def load(cls, model_dir: str | Path) -> "ModelCard":
+    def load(cls, model_dir: str | Path) -> ModelCard:
         p = Path(model_dir) / CARD_NAME
         if not p.is_file():
             raise FileNotFoundError(f"no {CARD_NAME} in model folder {model_dir}")

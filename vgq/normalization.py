@@ -33,7 +33,7 @@ class Normalization:
             raise ValueError("normalisation std must be > 0")
 
     @classmethod
-    def from_data(cls, images: np.ndarray, poses: np.ndarray, pose_columns) -> "Normalization":
+    def from_data(cls, images: np.ndarray, poses: np.ndarray, pose_columns) -> Normalization:
         """Statistics of training images (any shape, metres) and poses (n, len(pose_columns))."""
         pose_columns = tuple(pose_columns)
         images = np.asarray(images)
@@ -84,7 +84,7 @@ class Normalization:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Normalization":
+    def from_dict(cls, d: dict) -> Normalization:
         return cls(
             image_mean=float(d["image_mean"]),
             image_std=float(d["image_std"]),

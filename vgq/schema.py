@@ -58,9 +58,15 @@ GRASP_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
     "psi": ("float32", (), "angle approach axis vs camera principal ray, radians"),
     "omega": ("float32", (), "rotation about the grasp x-axis, radians"),
     "jaw_angle": ("float32", (), "in-image angle of the grasp x-axis from +u towards +v, radians"),
-    "quality": ("float32", (), ("label score of the dataset's label (manifest config.label.kind); a grasp is "
-                                "positive when it exceeds the manifest's label_threshold. Paper label: robust "
-                                "Ferrari-Canny, 0 if the gripper collides")),
+    "quality": (
+        "float32",
+        (),
+        (
+            "label score of the dataset's label (manifest config.label.kind); a grasp is "
+            "positive when it exceeds the manifest's label_threshold. Paper label: robust "
+            "Ferrari-Canny, 0 if the gripper collides"
+        ),
+    ),
     "collision_free": ("bool", (), "gripper approach free of object and table collisions (nominal pose)"),
 }
 
@@ -68,10 +74,19 @@ GRASP_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
 #: return the ones a shard has, and a shard that has one must have it with this dtype and shape.
 GRASP_LABEL_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
     "fc_quality": ("float32", (), "robust Ferrari-Canny at the grasp-line contacts, not gated by collision"),
-    "p_collision_free": ("float32", (), ("fraction of noisy approaches that keep the clearance (robust "
-                                         "collision); NaN where the nominal approach collides")),
-    "pad_quality": ("float32", (), ("Ferrari-Canny at the pad contacts; 0 where the pads find none, NaN where "
-                                    "the nominal approach collides")),
+    "p_collision_free": (
+        "float32",
+        (),
+        (
+            "fraction of noisy approaches that keep the clearance (robust "
+            "collision); NaN where the nominal approach collides"
+        ),
+    ),
+    "pad_quality": (
+        "float32",
+        (),
+        ("Ferrari-Canny at the pad contacts; 0 where the pads find none, NaN where the nominal approach collides"),
+    ),
     "success_rate": ("float32", (), "fraction of noisy physics trials that held; NaN where none ran"),
 }
 
@@ -164,7 +179,9 @@ def write_crop_manifest(
     """
     for name, c in counts.items():
         if name not in SPLITS or not {"n", "positive", "positivity"} <= set(c):
-            raise ValueError(f"crop manifest counts: bad entry {name!r}: {c} (need a split of {SPLITS} with n, positive, positivity)")
+            raise ValueError(
+                f"crop manifest counts: bad entry {name!r}: {c} (need a split of {SPLITS} with n, positive, positivity)"
+            )
     if native_counts is None:
         native_counts = crop_counts(sum(c["n"] for c in counts.values()), sum(c["positive"] for c in counts.values()))
     m = {

@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import trimesh
@@ -46,20 +46,46 @@ FAMILIES: dict[str, Family] = {
         Family("box", "boxes, slabs, dominoes and bars", solids.sample_box, solids.build_box, (0.006, 0.25)),
         Family("cylinder", "cylinders, discs and rods", solids.sample_cylinder, solids.build_cylinder, (0.006, 0.25)),
         Family("cone", "cones and frustums", solids.sample_cone, solids.build_cone, (0.02, 0.15)),
-        Family("ellipsoid", "eggs, pebbles and soap bars", solids.sample_ellipsoid, solids.build_ellipsoid,
-               (0.024, 0.16)),
+        Family(
+            "ellipsoid", "eggs, pebbles and soap bars", solids.sample_ellipsoid, solids.build_ellipsoid, (0.024, 0.16)
+        ),
         Family("torus", "tori and flat rings", solids.sample_torus, solids.build_torus, (0.012, 0.15)),
-        Family("prism", "extruded polygons: n-gons, L, T, U, cross, star", solids.sample_prism, solids.build_prism,
-               (0.008, 0.17)),
-        Family("container", "open cups, bowls and hollow boxes with walls", hollow.sample_container,
-               hollow.build_container, (0.03, 0.18)),
+        Family(
+            "prism",
+            "extruded polygons: n-gons, L, T, U, cross, star",
+            solids.sample_prism,
+            solids.build_prism,
+            (0.008, 0.17),
+        ),
+        Family(
+            "container",
+            "open cups, bowls and hollow boxes with walls",
+            hollow.sample_container,
+            hollow.build_container,
+            (0.03, 0.18),
+        ),
         Family("mug", "cups with a handle", hollow.sample_mug, hollow.build_mug, (0.06, 0.17)),
-        Family("bottle", "bottles and vases (revolved random profiles)", hollow.sample_bottle, hollow.build_bottle,
-               (0.016, 0.28)),
-        Family("composite", "unions of 2-5 boxes, cylinders and spheres", freeform.sample_composite,
-               freeform.build_composite, (0.01, 0.3)),
-        Family("metaball", "smooth organic blobs (metaball level sets)", freeform.sample_metaball,
-               freeform.build_metaball, (0.012, 0.15)),
+        Family(
+            "bottle",
+            "bottles and vases (revolved random profiles)",
+            hollow.sample_bottle,
+            hollow.build_bottle,
+            (0.016, 0.28),
+        ),
+        Family(
+            "composite",
+            "unions of 2-5 boxes, cylinders and spheres",
+            freeform.sample_composite,
+            freeform.build_composite,
+            (0.01, 0.3),
+        ),
+        Family(
+            "metaball",
+            "smooth organic blobs (metaball level sets)",
+            freeform.sample_metaball,
+            freeform.build_metaball,
+            (0.012, 0.15),
+        ),
     )
 }
 
@@ -133,5 +159,18 @@ def family_sources(counts: dict[str, int], seed: int = 0) -> list:
     return out
 
 
-__all__ = ["FAMILIES", "SOURCE_FAMILY", "Family", "FamilyError", "FamilyObject", "build_mesh", "family_names",
-           "family_rng", "family_sources", "get_family", "make_object", "object_name", "sample_params"]
+__all__ = [
+    "FAMILIES",
+    "SOURCE_FAMILY",
+    "Family",
+    "FamilyError",
+    "FamilyObject",
+    "build_mesh",
+    "family_names",
+    "family_rng",
+    "family_sources",
+    "get_family",
+    "make_object",
+    "object_name",
+    "sample_params",
+]

@@ -12,8 +12,19 @@ import manifold3d as m3d
 import numpy as np
 import trimesh
 
-from .geometry import (FamilyError, choice, length, lengths, points, random_rotation, rounded, segments, to_trimesh,
-                       transform, uniform)
+from .geometry import (
+    FamilyError,
+    choice,
+    length,
+    lengths,
+    points,
+    random_rotation,
+    rounded,
+    segments,
+    to_trimesh,
+    transform,
+    uniform,
+)
 
 PRIMITIVES = ("box", "cylinder", "sphere")
 

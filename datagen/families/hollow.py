@@ -14,8 +14,19 @@ import numpy as np
 import trimesh
 from scipy.interpolate import PchipInterpolator
 
-from .geometry import (FamilyError, choice, length, lengths, points, revolve, rounded, segments, to_trimesh,
-                       transform, uniform)
+from .geometry import (
+    FamilyError,
+    choice,
+    length,
+    lengths,
+    points,
+    revolve,
+    rounded,
+    segments,
+    to_trimesh,
+    transform,
+    uniform,
+)
 
 # ----------------------------------------------------------------------------- container
 
@@ -26,15 +37,28 @@ def sample_container(rng: np.random.Generator) -> dict:
     kind = ("cup", "bowl", "box")[int(rng.integers(3))]
     if kind == "cup":
         R = uniform(rng, 0.025, 0.05)
-        return {"kind": kind, "radius_top": R, "radius_bottom": uniform(rng, 0.75 * R, R),
-                "height": uniform(rng, 0.04, 0.14), "wall": uniform(rng, 0.0025, 0.006),
-                "bottom": uniform(rng, 0.003, 0.01)}
+        return {
+            "kind": kind,
+            "radius_top": R,
+            "radius_bottom": uniform(rng, 0.75 * R, R),
+            "height": uniform(rng, 0.04, 0.14),
+            "wall": uniform(rng, 0.0025, 0.006),
+            "bottom": uniform(rng, 0.003, 0.01),
+        }
     if kind == "bowl":
         R = uniform(rng, 0.04, 0.09)
-        return {"kind": kind, "radius_top": R, "radius_foot": uniform(rng, 0.35, 0.6) * R,
-                "height": uniform(rng, 0.03, min(0.08, R)), "wall": uniform(rng, 0.003, 0.007)}
-    return {"kind": kind, "size": [uniform(rng, 0.05, 0.15), uniform(rng, 0.05, 0.15), uniform(rng, 0.03, 0.12)],
-            "wall": uniform(rng, 0.003, 0.008)}
+        return {
+            "kind": kind,
+            "radius_top": R,
+            "radius_foot": uniform(rng, 0.35, 0.6) * R,
+            "height": uniform(rng, 0.03, min(0.08, R)),
+            "wall": uniform(rng, 0.003, 0.007),
+        }
+    return {
+        "kind": kind,
+        "size": [uniform(rng, 0.05, 0.15), uniform(rng, 0.05, 0.15), uniform(rng, 0.03, 0.12)],
+        "wall": uniform(rng, 0.003, 0.008),
+    }
 
 
 def _cup_profile(rt: float, rb: float, h: float, wall: float, bottom: float) -> np.ndarray:
@@ -81,8 +105,14 @@ def sample_mug(rng: np.random.Generator) -> dict:
     """Mugs: a straight cup (6-9 cm across, 7-12 cm tall) with a torus-arc handle."""
     R, h = uniform(rng, 0.03, 0.045), uniform(rng, 0.07, 0.12)
     tube = uniform(rng, 0.004, 0.008)
-    return {"radius": R, "height": h, "wall": uniform(rng, 0.003, 0.006), "bottom": uniform(rng, 0.004, 0.01),
-            "handle_radius": uniform(rng, 0.018, min(0.035, 0.42 * h - tube)), "handle_tube": tube}
+    return {
+        "radius": R,
+        "height": h,
+        "wall": uniform(rng, 0.003, 0.006),
+        "bottom": uniform(rng, 0.004, 0.01),
+        "handle_radius": uniform(rng, 0.018, min(0.035, 0.42 * h - tube)),
+        "handle_tube": tube,
+    }
 
 
 def build_mug(p: dict) -> trimesh.Trimesh:

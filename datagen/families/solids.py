@@ -14,8 +14,19 @@ import manifold3d as m3d
 import numpy as np
 import trimesh
 
-from .geometry import (FamilyError, choice, length, lengths, log_uniform, points, revolve, rounded, segments,
-                       to_trimesh, uniform)
+from .geometry import (
+    FamilyError,
+    choice,
+    length,
+    lengths,
+    log_uniform,
+    points,
+    revolve,
+    rounded,
+    segments,
+    to_trimesh,
+    uniform,
+)
 
 # ----------------------------------------------------------------------------- box
 
@@ -138,13 +149,24 @@ def _outline(shape: str, s: float, w: float, s2: float, n: int, ratio: float) ->
     if shape == "L":
         return np.array([[0, 0], [s, 0], [s, w], [w, w], [w, s2], [0, s2]])
     if shape == "T":
-        return np.array([[-w / 2, 0], [w / 2, 0], [w / 2, s2], [s / 2, s2], [s / 2, s2 + w], [-s / 2, s2 + w],
-                         [-s / 2, s2], [-w / 2, s2]])
+        return np.array(
+            [
+                [-w / 2, 0],
+                [w / 2, 0],
+                [w / 2, s2],
+                [s / 2, s2],
+                [s / 2, s2 + w],
+                [-s / 2, s2 + w],
+                [-s / 2, s2],
+                [-w / 2, s2],
+            ]
+        )
     if shape == "U":
         return np.array([[0, 0], [s, 0], [s, s2], [s - w, s2], [s - w, w], [w, w], [w, s2], [0, s2]])
     h, a = w / 2, s / 2  # cross
-    return np.array([[-h, -a], [h, -a], [h, -h], [a, -h], [a, h], [h, h], [h, a], [-h, a], [-h, h], [-a, h],
-                     [-a, -h], [-h, -h]])
+    return np.array(
+        [[-h, -a], [h, -a], [h, -h], [a, -h], [a, h], [h, h], [h, a], [-h, a], [-h, h], [-a, h], [-a, -h], [-h, -h]]
+    )
 
 
 def sample_prism(rng: np.random.Generator) -> dict:

@@ -32,7 +32,6 @@ def check_target(url: str, allow_remote: bool) -> str:
     return url.rstrip("/")
 
 
-
 async def _server_totals(http) -> dict | None:
     try:
         r = await http.get("/metrics")
@@ -59,8 +58,15 @@ async def _timed(rec: Recorder, endpoint: str, coro, check, ok=lambda status: st
     return r
 
 
-async def client_loop(http, work: Workload, mix: Mix, deadline: float, rec: Recorder, fresh: FreshImages,
-                      bad: list[tuple[str, bytes, dict]] | None = None) -> None:
+async def client_loop(
+    http,
+    work: Workload,
+    mix: Mix,
+    deadline: float,
+    rec: Recorder,
+    fresh: FreshImages,
+    bad: list[tuple[str, bytes, dict]] | None = None,
+) -> None:
     """One client: repeat the mix's cycle until ``deadline`` (perf_counter seconds). ``bad``: the
     malformed requests of ``bad_requests`` (made once per run: the zip bomb alone takes ~0.25 s of
     CPU, which, made at the start of every client loop, held up the other clients' first requests)."""
@@ -97,13 +103,17 @@ async def client_loop(http, work: Workload, mix: Mix, deadline: float, rec: Reco
             if time.perf_counter() >= deadline:
                 return
         for _ in range(mix.score if image_id else 0):
-            r = await _timed(rec, "score", http.post(f"/v1/images/{image_id}/scores", content=gbytes, headers=score_h), scores_ok)
+            r = await _timed(
+                rec, "score", http.post(f"/v1/images/{image_id}/scores", content=gbytes, headers=score_h), scores_ok
+            )
             if r is not None and rec.recording:
                 rec.grasps += k
             if time.perf_counter() >= deadline:
                 return
         for _ in range(mix.once):
-            r = await _timed(rec, "score_once", http.post("/v1/score", content=fresh.next_npz(work.grasps), headers=npz_h), scores_ok)
+            r = await _timed(
+                rec, "score_once", http.post("/v1/score", content=fresh.next_npz(work.grasps), headers=npz_h), scores_ok
+            )
             if r is not None and rec.recording:
                 rec.grasps += k
             if time.perf_counter() >= deadline:
@@ -111,7 +121,9 @@ async def client_loop(http, work: Workload, mix: Mix, deadline: float, rec: Reco
         for _ in range(mix.bad):
             path, body, headers = bad[n_bad % len(bad)]
             n_bad += 1
-            await _timed(rec, "bad", http.post(path, content=body, headers=headers), error_named, ok=lambda st: 400 <= st < 500)
+            await _timed(
+                rec, "bad", http.post(path, content=body, headers=headers), error_named, ok=lambda st: 400 <= st < 500
+            )
             if time.perf_counter() >= deadline:
                 return
 
@@ -218,8 +230,17 @@ class _timeout:
             raise asyncio.TimeoutError from None
 
 
-async def run_load(url: str, clients: int, duration: float, work: Workload, mix: Mix, warmup: float = 1.0,
-                   timeout: float = 10.0, seed: int | None = None, transport: str = "httpx") -> tuple[Recorder, float]:
+async def run_load(
+    url: str,
+    clients: int,
+    duration: float,
+    work: Workload,
+    mix: Mix,
+    warmup: float = 1.0,
+    timeout: float = 10.0,
+    seed: int | None = None,
+    transport: str = "httpx",
+) -> tuple[Recorder, float]:
     """Drive ``url`` with ``clients`` concurrent clients for ``warmup`` (not recorded) then
     ``duration`` seconds. ``transport``: ``httpx`` (one pooled AsyncClient, a connection per
     client) or ``raw`` (RawHTTP, one connection per client). Returns the recorder and the
@@ -247,8 +268,10 @@ async def run_load(url: str, clients: int, duration: float, work: Workload, mix:
             t0 = time.perf_counter()
             end = t0 + duration
             # every request is bounded by ``timeout``: the run ends by end + timeout at the latest
-            await asyncio.wait_for(asyncio.gather(*(client_loop(c, work, mix, end, rec, fresh, bad) for c in conns)),
-                                   duration + timeout + 5)
+            await asyncio.wait_for(
+                asyncio.gather(*(client_loop(c, work, mix, end, rec, fresh, bad) for c in conns)),
+                duration + timeout + 5,
+            )
             wall = time.perf_counter() - t0
             gc.unfreeze()
             after = await _server_totals(http)
@@ -261,4 +284,3 @@ async def run_load(url: str, clients: int, duration: float, work: Workload, mix:
             (s0, n0), (s1, n1) = before.get(ep, (0.0, 0.0)), after.get(ep, (0.0, 0.0))
             rec.server_mean_ms[ep] = (s1 - s0) / (n1 - n0) * 1e3 if n1 > n0 else None
     return rec, wall
-

@@ -36,8 +36,9 @@ class ScoringUser(HttpUser):
         self.fresh = FreshImages(WORK.depth)
 
     def _scores(self, name: str, path: str, body: bytes, content_type: str) -> None:
-        with self.client.post(path, data=body, headers={"content-type": content_type, "accept": OCTET},
-                              name=name, catch_response=True) as r:
+        with self.client.post(
+            path, data=body, headers={"content-type": content_type, "accept": OCTET}, name=name, catch_response=True
+        ) as r:
             if r.status_code != 200:
                 r.failure(f"HTTP {r.status_code}: {r.text[:160]}")
             elif len(r.content) != 4 * K:
@@ -47,8 +48,13 @@ class ScoringUser(HttpUser):
     def cycle(self) -> None:
         image_id = None
         for _ in range(MIX.upload):
-            with self.client.post("/v1/images", data=self.fresh.next_npy(), headers={"content-type": "application/x-npy"},
-                                  name="upload", catch_response=True) as r:
+            with self.client.post(
+                "/v1/images",
+                data=self.fresh.next_npy(),
+                headers={"content-type": "application/x-npy"},
+                name="upload",
+                catch_response=True,
+            ) as r:
                 try:
                     image_id = r.json()["image_id"] if r.status_code == 200 else None
                     if image_id is None:

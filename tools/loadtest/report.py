@@ -26,7 +26,6 @@ class Recorder:
             self.messages[message[:200]] = self.messages.get(message[:200], 0) + 1
 
 
-
 def _children(pid: int) -> list[int]:
     out = []
     try:
@@ -66,7 +65,7 @@ def server_latency_totals(metrics_text: str) -> dict[str, tuple[float, float]]:
         for suffix, i in (("_sum{", 0), ("_count{", 1)):
             head = "vgq_request_seconds" + suffix
             if line.startswith(head):
-                labels, _, value = line[len(head):].rpartition("} ")
+                labels, _, value = line[len(head) :].rpartition("} ")
                 ep = labels.partition('endpoint="')[2].partition('"')[0]
                 out.setdefault(ep, [0.0, 0.0])[i] += float(value)
     return {k: (v[0], v[1]) for k, v in out.items()}
@@ -80,14 +79,28 @@ def summarize(rec: Recorder, wall: float) -> dict:
             continue  # no bad requests in this mix
         lat = np.asarray(rec.latencies[e]) * 1e3
         n = len(lat)
-        eps[e] = {"requests": n, "errors": rec.errors[e], "per_s": n / wall if wall > 0 else 0.0,
-                  **({f"p{q}_ms": float(np.percentile(lat, q)) for q in (50, 90, 99)} if n else
-                     {"p50_ms": None, "p90_ms": None, "p99_ms": None}),
-                  "max_ms": float(lat.max()) if n else None, "server_mean_ms": rec.server_mean_ms.get(e)}
+        eps[e] = {
+            "requests": n,
+            "errors": rec.errors[e],
+            "per_s": n / wall if wall > 0 else 0.0,
+            **(
+                {f"p{q}_ms": float(np.percentile(lat, q)) for q in (50, 90, 99)}
+                if n
+                else {"p50_ms": None, "p90_ms": None, "p99_ms": None}
+            ),
+            "max_ms": float(lat.max()) if n else None,
+            "server_mean_ms": rec.server_mean_ms.get(e),
+        }
     total = sum(v["requests"] for v in eps.values())
-    return {"endpoints": eps, "requests": total, "errors": sum(rec.errors.values()), "error_messages": rec.messages,
-            "wall_s": wall, "requests_per_s": total / wall if wall > 0 else 0.0,
-            "grasps_per_s": rec.grasps / wall if wall > 0 else 0.0}
+    return {
+        "endpoints": eps,
+        "requests": total,
+        "errors": sum(rec.errors.values()),
+        "error_messages": rec.messages,
+        "wall_s": wall,
+        "requests_per_s": total / wall if wall > 0 else 0.0,
+        "grasps_per_s": rec.grasps / wall if wall > 0 else 0.0,
+    }
 
 
 def table(report: dict) -> str:
@@ -95,19 +108,28 @@ def table(report: dict) -> str:
         return "-" if x is None else f"{x:.2f}"
 
     c = report["config"]
-    lines = [f"{c['clients']} client(s) ({c['transport']}), {report['wall_s']:.1f} s, k = {c['k']}, mix {c['mix']}, image: {c['workload']}",
-             "", "| endpoint | requests | errors | req/s | p50 ms | p90 ms | p99 ms | max ms | server mean ms |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        f"{c['clients']} client(s) ({c['transport']}), {report['wall_s']:.1f} s, k = {c['k']}, mix {c['mix']}, image: {c['workload']}",
+        "",
+        "| endpoint | requests | errors | req/s | p50 ms | p90 ms | p99 ms | max ms | server mean ms |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for e, v in report["endpoints"].items():
-        lines.append(f"| {e} | {v['requests']} | {v['errors']} | {v['per_s']:.1f} | {f(v['p50_ms'])} | {f(v['p90_ms'])} | "
-                     f"{f(v['p99_ms'])} | {f(v['max_ms'])} | {f(v['server_mean_ms'])} |")
-    lines += ["", f"total: {report['requests']} requests ({report['requests_per_s']:.0f}/s), "
-                  f"{report['grasps_per_s']:.0f} grasps/s, {report['errors']} errors"]
+        lines.append(
+            f"| {e} | {v['requests']} | {v['errors']} | {v['per_s']:.1f} | {f(v['p50_ms'])} | {f(v['p90_ms'])} | "
+            f"{f(v['p99_ms'])} | {f(v['max_ms'])} | {f(v['server_mean_ms'])} |"
+        )
+    lines += [
+        "",
+        f"total: {report['requests']} requests ({report['requests_per_s']:.0f}/s), "
+        f"{report['grasps_per_s']:.0f} grasps/s, {report['errors']} errors",
+    ]
     for msg, n in list(report["error_messages"].items())[:5]:
         lines.append(f"  error x{n}: {msg}")
     if "server_rss" in report:
         b, a = report["server_rss"]["before"], report["server_rss"]["after"]
-        lines.append(f"server RSS (pids {a['pids']}): {b['rss_bytes'] / 2**20:.1f} MiB before, {a['rss_bytes'] / 2**20:.1f} MiB after "
-                     f"(peak {a['peak_rss_bytes'] / 2**20:.1f} MiB)")
+        lines.append(
+            f"server RSS (pids {a['pids']}): {b['rss_bytes'] / 2**20:.1f} MiB before, {a['rss_bytes'] / 2**20:.1f} MiB after "
+            f"(peak {a['peak_rss_bytes'] / 2**20:.1f} MiB)"
+        )
     return "\n".join(lines)
-

@@ -43,15 +43,18 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_service(workers: int, threads: int, model_dir: str | None, timeout: float = 90.0) -> tuple[subprocess.Popen, str]:
+def start_service(
+    workers: int, threads: int, model_dir: str | None, timeout: float = 90.0
+) -> tuple[subprocess.Popen, str]:
     """A service process on a free loopback port, once /readyz answers 200."""
     import httpx
 
     port = _free_port()
     cmd = [sys.executable, "-m", "service", "--port", str(port), "--workers", str(workers), "--threads", str(threads)]
     cmd += ["--model-dir", model_dir] if model_dir else []
-    proc = subprocess.Popen(cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     url = f"http://127.0.0.1:{port}"
     deadline = time.monotonic() + timeout
     while proc.poll() is None and time.monotonic() < deadline:
@@ -79,8 +82,16 @@ def _ms(x: float | None) -> str:
     return "-" if x is None else f"{x:.2f}"
 
 
-def sweep(clients: list[int], workers: list[int], threads: list[int], duration: float, k: int, mix: Mix,
-          model_dir: str | None = None, log=print) -> list[dict]:
+def sweep(
+    clients: list[int],
+    workers: list[int],
+    threads: list[int],
+    duration: float,
+    k: int,
+    mix: Mix,
+    model_dir: str | None = None,
+    log=print,
+) -> list[dict]:
     """One point per (workers, threads, clients): the load test's summary plus its settings."""
     work = load_workload(k)
     points = []
@@ -94,9 +105,11 @@ def sweep(clients: list[int], workers: list[int], threads: list[int], duration: 
                     s.update(workers=w, threads=t, clients=c, load_average=list(os.getloadavg()))
                     points.append(s)
                     e = s["endpoints"]
-                    log(f"workers {w} threads {t} clients {c}: {s['grasps_per_s']:.0f} grasps/s, score p50/p99 "
+                    log(
+                        f"workers {w} threads {t} clients {c}: {s['grasps_per_s']:.0f} grasps/s, score p50/p99 "
                         f"{_ms(e['score']['p50_ms'])}/{_ms(e['score']['p99_ms'])} ms, one-shot p50 {_ms(e['score_once']['p50_ms'])} ms, "
-                        f"{s['errors']} errors, load {os.getloadavg()[0]:.1f}")
+                        f"{s['errors']} errors, load {os.getloadavg()[0]:.1f}"
+                    )
             finally:
                 stop(proc)
     return points
@@ -104,8 +117,10 @@ def sweep(clients: list[int], workers: list[int], threads: list[int], duration: 
 
 def title(points: list[dict], k: int, mix: str, duration: float) -> str:
     loads = [p["load_average"][0] for p in points]
-    return (f"{os.cpu_count()} cores, k = {k}, mix {mix}, {duration:g} s per point, raw HTTP clients, load average "
-            f"{min(loads):.1f}-{max(loads):.1f}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
+    return (
+        f"{os.cpu_count()} cores, k = {k}, mix {mix}, {duration:g} s per point, raw HTTP clients, load average "
+        f"{min(loads):.1f}-{max(loads):.1f}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}"
+    )
 
 
 def plot(points: list[dict], path: str | Path, title: str) -> None:
@@ -115,7 +130,7 @@ def plot(points: list[dict], path: str | Path, title: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-    for (w, t) in sorted({(p["workers"], p["threads"]) for p in points}):
+    for w, t in sorted({(p["workers"], p["threads"]) for p in points}):
         pts = sorted((p for p in points if (p["workers"], p["threads"]) == (w, t)), key=lambda p: p["clients"])
         x = [p["clients"] for p in pts]
         label = f"{w} worker(s) x {t} thread(s)"
@@ -135,8 +150,9 @@ def plot(points: list[dict], path: str | Path, title: str) -> None:
 
 
 def main(argv=None) -> list[dict]:
-    p = argparse.ArgumentParser(prog="python -m tools.loadtest.sweep", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m tools.loadtest.sweep", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--clients", type=lambda s: _ints(s, "--clients"), default=[1, 2, 4, 8])
     p.add_argument("--workers", type=lambda s: _ints(s, "--workers"), default=[1, 2])
     p.add_argument("--threads", type=lambda s: _ints(s, "--threads"), default=[1, 2])
@@ -153,7 +169,9 @@ def main(argv=None) -> list[dict]:
         mix = Mix.parse(a.mix)
     except ValueError as e:
         p.error(str(e))
-    points = sweep(a.clients, a.workers, a.threads, a.duration, a.k, mix, a.model_dir, log=lambda s: print(s, file=sys.stderr))
+    points = sweep(
+        a.clients, a.workers, a.threads, a.duration, a.k, mix, a.model_dir, log=lambda s: print(s, file=sys.stderr)
+    )
     if a.json:
         Path(a.json).write_text(json.dumps(points, indent=2) + "\n")
     if a.plot:

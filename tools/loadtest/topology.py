@@ -31,7 +31,9 @@ PROXY_CONF = ROOT / "deploy" / "nginx" / "proxy.conf"
 
 def find_binary(name: str) -> str | None:
     """``name`` on PATH or in the sbin folders (where Debian puts nginx)."""
-    return shutil.which(name) or next((p for p in (f"/usr/sbin/{name}", f"/usr/local/sbin/{name}") if os.access(p, os.X_OK)), None)
+    return shutil.which(name) or next(
+        (p for p in (f"/usr/sbin/{name}", f"/usr/local/sbin/{name}") if os.access(p, os.X_OK)), None
+    )
 
 
 def free_port() -> int:
@@ -85,8 +87,25 @@ def redis(stack: ExitStack, binary: str = "redis-server") -> str:
     import redis as redis_py
 
     port = free_port()
-    proc = stack.enter_context(process([binary, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
-                                        "--maxmemory", "256mb", "--maxmemory-policy", "allkeys-lru"]))
+    proc = stack.enter_context(
+        process(
+            [
+                binary,
+                "--port",
+                str(port),
+                "--bind",
+                "127.0.0.1",
+                "--save",
+                "",
+                "--appendonly",
+                "no",
+                "--maxmemory",
+                "256mb",
+                "--maxmemory-policy",
+                "allkeys-lru",
+            ]
+        )
+    )
     url = f"redis://127.0.0.1:{port}/0"
     wait_until(lambda: redis_py.Redis.from_url(url, socket_timeout=0.2).ping(), "redis-server", 10, proc)
     return url
@@ -98,7 +117,15 @@ def replica(stack: ExitStack, model_dir, redis_url: str, *args: str) -> tuple[st
 
     port = free_port()
     env = {**os.environ, "PYTHONPATH": str(ROOT), "VGQ_CACHE_BACKEND": "redis", "VGQ_REDIS_URL": redis_url}
-    cmd = [sys.executable, "-m", "service", "--port", str(port), *(["--model-dir", str(model_dir)] if model_dir else []), *args]
+    cmd = [
+        sys.executable,
+        "-m",
+        "service",
+        "--port",
+        str(port),
+        *(["--model-dir", str(model_dir)] if model_dir else []),
+        *args,
+    ]
     proc = stack.enter_context(process(cmd, cwd=ROOT, env=env))
     url = f"http://127.0.0.1:{port}"
     wait_until(lambda: httpx.get(url + "/readyz", timeout=1).status_code == 200, "service replica", proc=proc)
@@ -109,18 +136,20 @@ def nginx_conf(tmp: Path, port: int, upstreams: list[str]) -> str:
     """nginx.conf: the upstream block of deploy/nginx/nginx.conf with loopback replicas, the
     deployed proxy settings (included), state and logs under ``tmp``."""
     servers = "\n".join(f"        server {u.removeprefix('http://')} max_fails=1 fail_timeout=2s;" for u in upstreams)
-    temp = "\n".join(f"    {name}_temp_path {tmp / name};" for name in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"))
+    temp = "\n".join(
+        f"    {name}_temp_path {tmp / name};" for name in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")
+    )
     # as root, keep the worker root too: it must reach the temp folders under a 0700 tmp dir
     user = "user root root;\n" if os.geteuid() == 0 else ""
     return f"""{user}daemon off;
 worker_processes 1;
-pid {tmp / 'nginx.pid'};
-error_log {tmp / 'error.log'} warn;
+pid {tmp / "nginx.pid"};
+error_log {tmp / "error.log"} warn;
 events {{ worker_connections 1024; }}
 http {{
 {temp}
     log_format upstreams '$request_method $uri $status upstream=$upstream_addr status=$upstream_status';
-    access_log {tmp / 'access.log'} upstreams;
+    access_log {tmp / "access.log"} upstreams;
     upstream vgq {{
         least_conn;
 {servers}
@@ -138,8 +167,14 @@ http {{
 
 
 @contextmanager
-def topology(model_dir, tmp: Path, replicas: int = 2, service_args: tuple[str, ...] = ("--threads", "1"),
-             nginx: str | None = None, redis_server: str | None = None):
+def topology(
+    model_dir,
+    tmp: Path,
+    replicas: int = 2,
+    service_args: tuple[str, ...] = ("--threads", "1"),
+    nginx: str | None = None,
+    redis_server: str | None = None,
+):
     """redis-server + ``replicas`` services + nginx; yields (balancer url, [(replica url, process)], access log path)."""
     import httpx
 
@@ -154,7 +189,9 @@ def topology(model_dir, tmp: Path, replicas: int = 2, service_args: tuple[str, .
         tmp.mkdir(parents=True, exist_ok=True)
         (tmp / "nginx.conf").write_text(nginx_conf(tmp, port, [u for u, _ in reps]))
         # -e: the start-up error log too (before nginx.conf is read it would open /var/log/nginx/error.log)
-        proc = stack.enter_context(process([nginx, "-p", str(tmp), "-e", str(tmp / "error.log"), "-c", str(tmp / "nginx.conf")]))
+        proc = stack.enter_context(
+            process([nginx, "-p", str(tmp), "-e", str(tmp / "error.log"), "-c", str(tmp / "nginx.conf")])
+        )
         lb = f"http://127.0.0.1:{port}"
         wait_until(lambda: httpx.get(lb + "/readyz", timeout=1).status_code == 200, "nginx", timeout=20, proc=proc)
         yield lb, reps, tmp / "access.log"
@@ -167,10 +204,13 @@ def retried(log: Path) -> list[str]:
 
 def main(argv=None) -> dict:
     argv = list(sys.argv[1:] if argv is None else argv)
-    rest = argv[argv.index("--") + 1:] if "--" in argv else []
-    own = argv[:argv.index("--")] if "--" in argv else argv
-    p = argparse.ArgumentParser(prog="python -m tools.loadtest.topology", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    rest = argv[argv.index("--") + 1 :] if "--" in argv else []
+    own = argv[: argv.index("--")] if "--" in argv else argv
+    p = argparse.ArgumentParser(
+        prog="python -m tools.loadtest.topology",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--replicas", type=int, default=2)
     p.add_argument("--model-dir", help="model folder (default: the service's default)")
     p.add_argument("--threads", type=int, default=1, help="onnxruntime threads per replica (default 1)")
@@ -193,8 +233,10 @@ def main(argv=None) -> dict:
         except (FileNotFoundError, RuntimeError) as e:
             print(f"topology: {e}", file=sys.stderr)
             sys.exit(2)
-    print(f"nginx: {posts} POST requests logged, warm-up included (client, measured: {report['requests']} answered + {report['errors']} errors); "
-          f"{n_retried} resent to another replica")
+    print(
+        f"nginx: {posts} POST requests logged, warm-up included (client, measured: {report['requests']} answered + {report['errors']} errors); "
+        f"{n_retried} resent to another replica"
+    )
     report["balancer"] = {"posts_logged": posts, "retried": n_retried}
     return report
 

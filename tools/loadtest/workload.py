@@ -28,7 +28,7 @@ class Mix:
     bad: int = 0
 
     @classmethod
-    def parse(cls, text: str) -> "Mix":
+    def parse(cls, text: str) -> Mix:
         """``"upload=1,score=8,once=1,bad=0"`` (missing keys keep their defaults)."""
         kw = {}
         for part in filter(None, (p.strip() for p in text.split(","))):
@@ -51,8 +51,9 @@ class Workload:
     source: str
 
 
-
-def synthetic_scene(h: int = 300, w: int = 300, table: float = 0.7, box=(120, 180, 130, 170), height: float = 0.05) -> np.ndarray:
+def synthetic_scene(
+    h: int = 300, w: int = 300, table: float = 0.7, box=(120, 180, 130, 170), height: float = 0.05
+) -> np.ndarray:
     """Depth (metres) of a table seen from above with a box on it."""
     d = np.full((h, w), table, np.float32)
     d[box[0] : box[1], box[2] : box[3]] = table - height
@@ -79,7 +80,11 @@ def load_workload(k: int, examples: Path = EXAMPLES) -> Workload:
             depth = np.load(dpath, allow_pickle=False).astype(np.float32)
             g = np.asarray(json.loads(gpath.read_text())["grasps"], np.float32).reshape(-1, 7)
             if depth.ndim == 2 and len(g):
-                return Workload(depth, np.resize(g, (k, 7)), str(dpath.relative_to(ROOT)) if dpath.is_relative_to(ROOT) else str(dpath))
+                return Workload(
+                    depth,
+                    np.resize(g, (k, 7)),
+                    str(dpath.relative_to(ROOT)) if dpath.is_relative_to(ROOT) else str(dpath),
+                )
         except (OSError, ValueError, KeyError) as e:
             print(f"loadtest: cannot use {examples} ({e}); using the synthetic scene", file=sys.stderr)
     return Workload(synthetic_scene(), synthetic_grasps(k), "synthetic table + box")
@@ -127,7 +132,11 @@ def bad_requests(work: Workload) -> list[tuple[str, bytes, dict]]:
         ("/v1/images", b"\x89PNG\r\n\x1a\n" + bytes(range(256)) * 4, {"content-type": "image/png"}),
         ("/v1/score", bomb.getvalue(), {"content-type": "application/x-npz"}),
         (unknown, b'{"grasps": [[1, 2,', {"content-type": "application/json"}),
-        ("/v1/score", _npz_bytes(depth=np.asarray(work.depth, np.float32), grasps=zero_q), {"content-type": "application/x-npz"}),
+        (
+            "/v1/score",
+            _npz_bytes(depth=np.asarray(work.depth, np.float32), grasps=zero_q),
+            {"content-type": "application/x-npz"},
+        ),
         (unknown, np.ascontiguousarray(work.grasps, "<f4").tobytes(), octet),
     ]
 
@@ -142,4 +151,3 @@ def _npz_bytes(**arrays: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     return buf.getvalue()
-
