@@ -1,9 +1,9 @@
 """Command line: ``python -m training {train,evaluate,baseline,ablation,bench} ...``.
 
 Training options are generated from ``TrainConfig`` (``--batch-size``, ``--base-lr``, ...)
-so the dataclass stays the one place where they are defined. Bad input (missing folder,
-wrong format, architecture unsuited to the dataset, bad option value) exits with status 2
-and a message naming the problem. Under ``torchrun`` ``train`` and ``ablation`` run DDP.
+by the shared bridge ``vgq.cli_config``, so the dataclass stays the one place where they
+are defined. Bad input (missing folder, wrong format, architecture unsuited to the
+dataset, bad option value) exits with status 2 and a message naming the problem. Under ``torchrun`` ``train`` and ``ablation`` run DDP.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import MISSING, fields
 
+from vgq.cli_config import add_options, build
 from vgq.pose import POSE_COLUMNS
 
 from .baseline import MODELS, BaselineConfig
@@ -27,35 +27,12 @@ CHOICES = {
 }
 
 
-def _add_dataclass_options(p: argparse.ArgumentParser, cls, skip=(), help_prefix: str = "") -> None:
-    for f in fields(cls):
-        if f.name in skip:
-            continue
-        default = f.default if f.default is not MISSING else None
-        flag = "--" + f.name.replace("_", "-")
-        if isinstance(default, bool):
-            p.add_argument(
-                flag,
-                dest=f.name,
-                default=default,
-                action=argparse.BooleanOptionalAction,
-                help=f"{help_prefix}default {default}",
-            )
-        else:
-            choices = CHOICES.get(f.name)
-            p.add_argument(
-                flag,
-                dest=f.name,
-                type=type(default),
-                default=default,
-                choices=choices,
-                metavar=None if choices else type(default).__name__.upper(),
-                help=f"{help_prefix}default {default}",
-            )
+def _add_dataclass_options(p: argparse.ArgumentParser, cls) -> None:
+    add_options(p, cls, choices=CHOICES)
 
 
 def _config_from(args, cls):
-    return cls(**{f.name: getattr(args, f.name) for f in fields(cls) if hasattr(args, f.name)})
+    return build(cls, args)
 
 
 def build_parser() -> argparse.ArgumentParser:
