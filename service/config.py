@@ -1,11 +1,14 @@
-"""Service configuration: one dataclass, filled from defaults < environment (VGQ_*) < CLI flags."""
+"""Service configuration: one dataclass, filled from defaults < environment (VGQ_*) < CLI flags
+(through the shared bridge ``vgq.cli_config``)."""
 
 from __future__ import annotations
 
 import argparse
 import os
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
+
+from vgq.cli_config import ConfigError, add_options, build
 
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent.parent / "models" / "fast-vgqcnn-default"
 
@@ -90,28 +93,14 @@ class Settings:
         return max(1, (os.cpu_count() or 1) // self.workers)
 
 
-def _convert(typ, raw: str, name: str):
-    try:
-        if typ in (bool, "bool"):
-            if raw.lower() in ("1", "true", "yes", "on"):
-                return True
-            if raw.lower() in ("0", "false", "no", "off", ""):
-                return False
-            raise ValueError(raw)
-        return {"int": int, "float": float, "str": str}.get(typ if isinstance(typ, str) else typ.__name__, str)(raw)
-    except ValueError:
-        raise ValueError(f"setting {name}: cannot parse {raw!r} as {typ}") from None
+ENV_PREFIX = "VGQ_"
 
 
 def from_env(environ=os.environ, **overrides) -> Settings:
-    """Settings from VGQ_<NAME> environment variables, then keyword overrides."""
-    kw = {}
-    for f in fields(Settings):
-        key = f"VGQ_{f.name.upper()}"
-        if key in environ:
-            kw[f.name] = _convert(f.type, environ[key], key)
-    kw.update({k: v for k, v in overrides.items() if v is not None})
-    return Settings(**kw)
+    """Settings from VGQ_<NAME> environment variables, then keyword overrides (``None``: not given).
+
+    Raises ``vgq.cli_config.ConfigError`` (a ``ValueError``) naming the variable or setting."""
+    return build(Settings, overrides, environ=environ, env_prefix=ENV_PREFIX)
 
 
 def parse_args(argv=None) -> Settings:
@@ -119,17 +108,18 @@ def parse_args(argv=None) -> Settings:
     p = argparse.ArgumentParser(
         prog="vgq-serve", description="Serve grasp-quality scores over HTTP (Fast-VGQ-CNN on onnxruntime)."
     )
-    for f in fields(Settings):
-        flag = "--" + f.name.replace("_", "-")
-        if f.type in (bool, "bool"):
-            p.add_argument(flag, dest=f.name, default=None, action=argparse.BooleanOptionalAction)
-        else:
-            typ = {"int": int, "float": float}.get(f.type if isinstance(f.type, str) else f.type.__name__, str)
-            p.add_argument(
-                flag, dest=f.name, type=typ, default=None, help=f"env VGQ_{f.name.upper()} (default {f.default!r})"
-            )
+    add_options(
+        p,
+        Settings,
+        env_prefix=ENV_PREFIX,
+        choices={
+            "head_precision": HEAD_PRECISIONS,
+            "encoder_precision": ENCODER_PRECISIONS,
+            "cache_backend": ("memory", "redis"),
+        },
+    )
     args = p.parse_args(argv)
     try:
         return from_env(**vars(args))
-    except ValueError as e:
+    except ConfigError as e:
         p.error(str(e))

@@ -117,3 +117,29 @@ def test_parse_text_keeps_strings_and_parses_json_for_containers():
     assert parse_text(dict[str, int], '{"mug": 3}', "x") == {"mug": 3}
     with pytest.raises(ConfigError, match="x must be an integer"):
         parse_text(int, "1.5", "x")
+
+
+def test_service_flags_win_over_vgq_environment(monkeypatch, capsys):
+    from service.config import parse_args
+
+    monkeypatch.setenv("VGQ_PORT", "9001")
+    monkeypatch.setenv("VGQ_ACCESS_LOG", "yes")
+    monkeypatch.setenv("VGQ_REQUEST_TIMEOUT_S", "2.5")
+    s = parse_args(["--port", "9002", "--max-grasps", "10"])
+    assert (s.port, s.access_log, s.request_timeout_s, s.max_grasps) == (9002, True, 2.5, 10)
+    assert parse_args(["--no-access-log"]).access_log is False
+    monkeypatch.setenv("VGQ_MAX_GRASPS", "many")
+    with pytest.raises(SystemExit) as e:
+        parse_args([])
+    assert e.value.code == 2 and "VGQ_MAX_GRASPS must be an integer" in capsys.readouterr().err
+
+
+def test_training_flags_reach_the_config():
+    from training.__main__ import _config_from, build_parser
+    from training.baseline import BaselineConfig
+    from training.config import TrainConfig
+
+    a = build_parser().parse_args(["train", "--data", "d", "--out", "o", "--base-lr", "0.01", "--optimizer", "adamw"])
+    assert _config_from(a, TrainConfig) == TrainConfig(base_lr=0.01, optimizer="adamw")
+    a = build_parser().parse_args(["baseline", "--data", "d", "--no-class-balance", "--columns", "vgqcnn"])
+    assert _config_from(a, BaselineConfig) == BaselineConfig(class_balance=False, columns="vgqcnn")
