@@ -4,20 +4,21 @@ It composes the parameter dataclasses of the stages (mesh, antipodal sampler, qu
 metric, camera sampler, gripper geometry, sampling) with the run settings. It loads from
 a plain JSON file (nested objects per section, unknown keys rejected), takes overrides
 of the form ``section.field=value`` (value parsed as JSON, else as a string) and
-validates values with errors that name the bad field. Units: metres and radians.
+validates values with errors that name the bad field. Loading, overrides and type
+coercion go through the shared bridge ``vgq.cli_config``; the checks here are datagen's
+own. Units: metres and radians.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
+from vgq.cli_config import ConfigError, build, from_dict, load_json_object
+from vgq.cli_config import parse_override as parse_override  # datagen's --set KEY=VALUE
 from vgq.schema import IMAGE_FIELDS
 
 from .camera import CameraParams
@@ -29,10 +30,6 @@ from .mesh import MeshParams
 from .physics import PhysicsParams
 from .quality import QualityParams
 from .sampling import SamplingParams
-
-
-class ConfigError(ValueError):
-    """A configuration value or file is invalid; the message names the field or file."""
 
 
 @dataclass(frozen=True)
@@ -63,16 +60,15 @@ class DatagenConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> DatagenConfig:
-        cfg = _build(cls, d, "")
+        cfg = from_dict(cls, d, check=_check_leaf)
         validate(cfg)
         return cfg
 
     def with_overrides(self, overrides: dict) -> DatagenConfig:
         """A copy with ``{"section.field": value}`` overrides applied (and validated)."""
-        d = self.to_dict()
-        for key, value in overrides.items():
-            _set_path(d, key, value)
-        return DatagenConfig.from_dict(d)
+        cfg = build(DatagenConfig, base=self, overrides=overrides, check=_check_leaf)
+        validate(cfg)
+        return cfg
 
     @property
     def label_threshold(self) -> float:
@@ -93,31 +89,11 @@ def recorded_config(d: dict) -> dict:
 def load_config(path: str | Path) -> DatagenConfig:
     """Load a config from a JSON file; missing keys keep their defaults."""
     p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"config file {p} does not exist")
-    try:
-        d = json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ConfigError(f"config file {p} is not valid JSON ({e})") from e
-    if not isinstance(d, dict):
-        raise ConfigError(f"config file {p} must hold a JSON object, got {type(d).__name__}")
+    d = load_json_object(p)
     try:
         return DatagenConfig.from_dict(d)
     except ConfigError as e:
         raise ConfigError(f"config file {p}: {e}") from e
-
-
-def parse_override(text: str) -> tuple[str, object]:
-    """``"camera.d_range=[0.5, 0.9]"`` -> ``("camera.d_range", [0.5, 0.9])``."""
-    if "=" not in text:
-        raise ConfigError(f"override {text!r} must look like section.field=value")
-    key, raw = text.split("=", 1)
-    key = key.strip()
-    try:
-        value = json.loads(raw)
-    except json.JSONDecodeError:
-        value = raw
-    return key, value
 
 
 # ----------------------------------------------------------------------------- building
@@ -131,100 +107,6 @@ def _to_jsonable(x):
     if isinstance(x, float) and not math.isfinite(x):
         return str(x)
     return x
-
-
-def _set_path(d: dict, key: str, value) -> None:
-    parts = key.split(".")
-    cur = d
-    for i, part in enumerate(parts[:-1]):
-        if not isinstance(cur.get(part), dict):
-            raise ConfigError(f"unknown config section {'.'.join(parts[: i + 1])!r}")
-        cur = cur[part]
-    if parts[-1] not in cur:
-        raise ConfigError(f"unknown config field {key!r}")
-    cur[parts[-1]] = value
-
-
-def _is_dataclass_type(tp) -> bool:
-    return isinstance(tp, type) and dataclasses.is_dataclass(tp)
-
-
-def _build(cls, d, prefix: str):
-    """Instantiate dataclass ``cls`` from dict ``d``, recursing into nested dataclasses."""
-    where = prefix.rstrip(".") or "config"
-    if not isinstance(d, dict):
-        raise ConfigError(f"{where} must be a JSON object, got {type(d).__name__}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(d) - names)
-    if unknown:
-        raise ConfigError(f"unknown config field {prefix}{unknown[0]!r} (known: {', '.join(sorted(names))})")
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        if not f.init or f.name not in d:
-            continue
-        kwargs[f.name] = _coerce(hints.get(f.name), d[f.name], f"{prefix}{f.name}")
-        if not _is_dataclass_type(hints.get(f.name)):
-            _check_leaf(f"{prefix}{f.name}", f.name, kwargs[f.name])
-    try:
-        return cls(**kwargs)
-    except ConfigError:
-        raise
-    except (TypeError, ValueError) as e:
-        raise ConfigError(f"{where}: {e}") from e
-
-
-def _coerce(tp, value, name: str):
-    """Convert a JSON value to the annotated type ``tp`` (dataclass, tuple, int, float, ...)."""
-    if tp is None:
-        return value
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        last = None
-        for a in args:
-            if a is type(None):
-                continue
-            try:
-                return _coerce(a, value, name)
-            except ConfigError as e:
-                last = e
-        raise last or ConfigError(f"{name}: bad value {value!r}")
-    if _is_dataclass_type(tp):
-        return _build(tp, value, name + ".")
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{name} must be true or false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not (isinstance(value, int) or (isinstance(value, float) and value.is_integer())):
-            raise ConfigError(f"{name} must be an integer, got {value!r}")
-        return int(value)
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{name} must be a number, got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{name} must be a string, got {value!r}")
-        return value
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise ConfigError(f"{name} must be a JSON object, got {value!r}")
-        kt, vt = args or (None, None)
-        return {_coerce(kt, k, f"{name} key {k!r}"): _coerce(vt, v, f"{name}.{k}") for k, v in value.items()}
-    if origin is tuple or tp is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{name} must be a list, got {value!r}")
-        if args and args[-1] is not Ellipsis:
-            if len(value) != len(args):
-                raise ConfigError(f"{name} must have {len(args)} entries, got {len(value)}")
-            return tuple(_coerce(a, v, f"{name}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
-        inner = args[0] if args else None
-        return tuple(_coerce(inner, v, f"{name}[{i}]") for i, v in enumerate(value))
-    return value
 
 
 # ----------------------------------------------------------------------------- validation

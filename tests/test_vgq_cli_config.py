@@ -143,3 +143,11 @@ def test_training_flags_reach_the_config():
     assert _config_from(a, TrainConfig) == TrainConfig(base_lr=0.01, optimizer="adamw")
     a = build_parser().parse_args(["baseline", "--data", "d", "--no-class-balance", "--columns", "vgqcnn"])
     assert _config_from(a, BaselineConfig) == BaselineConfig(class_balance=False, columns="vgqcnn")
+
+
+def test_a_base_instance_takes_the_place_of_the_defaults(tmp_path):
+    base = Outer(port=1, inner=Inner(d_range=(0.1, 0.2), count=9))
+    f = tmp_path / "c.json"
+    f.write_text(json.dumps({"inner": {"count": 4}}))
+    c = build(Outer, base=base, file=f, overrides={"name": "b"})
+    assert c == Outer(port=1, name="b", inner=Inner(d_range=(0.1, 0.2), count=4))  # sections merge

@@ -267,14 +267,17 @@ def build(
     environ: Mapping[str, str] | None = None,
     env_prefix: str | None = None,
     file: str | Path | None = None,
+    base=None,
     overrides: Mapping[str, object] | None = None,
     check: Check | None = None,
 ):
-    """Dataclass ``cls`` from defaults < ``file`` (JSON object) < environment
+    """Dataclass ``cls`` from defaults (or the instance ``base``) < ``file`` (JSON object) < environment
     (``<env_prefix><PATH>``, dots as underscores, upper case; only with ``env_prefix``)
     < ``overrides`` (``{"section.field": JSON value}``) < ``args`` (parsed flags or a
     mapping of dotted paths; ``None`` values are not given). Raises :class:`ConfigError`."""
-    d: dict = load_json_object(file) if file is not None else {}
+    d: dict = dataclasses.asdict(base) if base is not None else {}
+    if file is not None:
+        _merge(d, load_json_object(file))
     leaves = {path: tp for path, tp, _ in leaf_fields(cls)}
     if env_prefix is not None:
         environ = os.environ if environ is None else environ
@@ -297,6 +300,15 @@ def _text_to_json(tp, raw: str, name: str):
     """Parse text now (so the error names the variable or flag); tuples stay lists for from_dict."""
     v = parse_text(tp, raw, name)
     return list(v) if isinstance(v, tuple) else v
+
+
+def _merge(dst: dict, src: dict) -> None:
+    """Deep-merge JSON object ``src`` into ``dst`` (sections merge, values replace)."""
+    for k, v in src.items():
+        if isinstance(v, dict) and isinstance(dst.get(k), dict):
+            _merge(dst[k], v)
+        else:
+            dst[k] = v
 
 
 def _set_path(d: dict, key: str, value) -> None:
