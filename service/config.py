@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from vgq.cli_config import ConfigError, add_options, build
@@ -14,6 +14,7 @@ DEFAULT_MODEL_DIR = Path(__file__).resolve().parent.parent / "models" / "fast-vg
 
 HEAD_PRECISIONS = ("auto", "fp32", "int8")
 ENCODER_PRECISIONS = ("auto", "fp32", "int8")
+CACHE_BACKENDS = ("memory", "redis")
 
 
 @dataclass
@@ -23,8 +24,20 @@ class Settings:
     port: int = 8000
     workers: int = 1
     threads: int = 0  # onnxruntime intra-op threads per session; 0 = cores / workers
-    head_precision: str = "auto"  # auto (int8 when the model ships a checked int8 head) | fp32 | int8
-    encoder_precision: str = "auto"  # auto (the fastest checked encoder, timed at start-up) | fp32 | int8
+    head_precision: str = field(
+        default="auto",
+        metadata={
+            "choices": HEAD_PRECISIONS,
+            "help": "auto (int8 when the model ships a checked int8 head) | fp32 | int8",
+        },
+    )
+    encoder_precision: str = field(
+        default="auto",
+        metadata={
+            "choices": ENCODER_PRECISIONS,
+            "help": "auto (the fastest checked encoder, timed at start-up) | fp32 | int8",
+        },
+    )
     max_grasps: int = 2048  # grasps per request
     max_body_bytes: int = 32 * 1024 * 1024  # request body limit
     max_buffered_bytes: int = 128 * 1024 * 1024  # request bodies held in memory at once, all requests together
@@ -35,7 +48,7 @@ class Settings:
     max_image_side: int = 4096  # pixels, either dimension of an uploaded depth image
     cache_entries: int = 4096
     cache_bytes: int = 256 * 1024 * 1024  # an image holds its depth (4 B/px) and 4.2 kB per encoded window
-    cache_backend: str = "memory"  # memory | redis
+    cache_backend: str = field(default="memory", metadata={"choices": CACHE_BACKENDS, "help": "memory | redis"})
     redis_url: str = "redis://127.0.0.1:6379/0"
     cache_ttl_s: float = 86400.0  # redis backend: an image unused this long expires (each hit renews it)
     request_timeout_s: float = 10.0
@@ -75,7 +88,7 @@ class Settings:
             raise ValueError(
                 f"setting encoder_precision must be one of {ENCODER_PRECISIONS}, got {self.encoder_precision!r}"
             )
-        if self.cache_backend not in ("memory", "redis"):
+        if self.cache_backend not in CACHE_BACKENDS:
             raise ValueError(f"setting cache_backend must be 'memory' or 'redis', got {self.cache_backend!r}")
         if self.cache_backend == "redis" and not self.redis_url.startswith(("redis://", "rediss://", "unix://")):
             raise ValueError(f"setting redis_url must be a redis://, rediss:// or unix:// URL, got {self.redis_url!r}")
@@ -108,16 +121,7 @@ def parse_args(argv=None) -> Settings:
     p = argparse.ArgumentParser(
         prog="vgq-serve", description="Serve grasp-quality scores over HTTP (Fast-VGQ-CNN on onnxruntime)."
     )
-    add_options(
-        p,
-        Settings,
-        env_prefix=ENV_PREFIX,
-        choices={
-            "head_precision": HEAD_PRECISIONS,
-            "encoder_precision": ENCODER_PRECISIONS,
-            "cache_backend": ("memory", "redis"),
-        },
-    )
+    add_options(p, Settings, env_prefix=ENV_PREFIX)  # choices from the fields' metadata
     args = p.parse_args(argv)
     try:
         return from_env(**vars(args))

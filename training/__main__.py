@@ -13,22 +13,13 @@ import json
 import sys
 
 from vgq.cli_config import add_options, build
-from vgq.pose import POSE_COLUMNS
 
-from .baseline import MODELS, BaselineConfig
-from .config import CLASS_BALANCE, OPTIMIZERS, TrainConfig
-
-CHOICES = {
-    "arch": tuple(POSE_COLUMNS),
-    "class_balance": CLASS_BALANCE,
-    "optimizer": OPTIMIZERS,
-    "model": MODELS,
-    "columns": ("all", *POSE_COLUMNS),
-}
+from .baseline import BaselineConfig
+from .config import TrainConfig
 
 
 def _add_dataclass_options(p: argparse.ArgumentParser, cls) -> None:
-    add_options(p, cls, choices=CHOICES)
+    add_options(p, cls)  # choices from the fields' metadata
 
 
 def _config_from(args, cls):

@@ -7,7 +7,7 @@ geometry), the floor a grasp-quality CNN has to beat.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,8 +28,14 @@ MODELS = ("logreg", "mlp")
 
 @dataclass
 class BaselineConfig:
-    model: str = "logreg"  # logreg | mlp (one hidden layer)
-    columns: str = "all"  # "all" (u, v, z, qw, qx, qy, qz) or an architecture's pose columns
+    model: str = field(default="logreg", metadata={"choices": MODELS, "help": "logreg | mlp (one hidden layer)"})
+    columns: str = field(
+        default="all",
+        metadata={
+            "choices": ("all", *POSE_COLUMNS),
+            "help": "'all' (u, v, z, qw, qx, qy, qz) or an architecture's pose columns",
+        },
+    )
     hidden: int = 64
     epochs: int = 10
     batch_size: int = 4096

@@ -8,7 +8,7 @@ schedule does not depend on the batch size or the number of processes.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 
 from vgq.pose import POSE_COLUMNS
 
@@ -18,10 +18,16 @@ OPTIMIZERS = ("sgd", "adamw")
 
 @dataclass
 class TrainConfig:
-    arch: str = "fast_vgqcnn"
+    arch: str = field(default="fast_vgqcnn", metadata={"choices": tuple(POSE_COLUMNS)})
     samples: int = 10_000_000  # training samples to see in total (paper ablations: 10 M)
     batch_size: int = 64  # global batch (split evenly over DDP processes)
-    optimizer: str = "sgd"  # "sgd" (the paper's, with momentum) | "adamw" (faster start on short CPU budgets)
+    optimizer: str = field(
+        default="sgd",
+        metadata={
+            "choices": OPTIMIZERS,
+            "help": "'sgd' (the paper's, with momentum) | 'adamw' (faster start on short CPU budgets)",
+        },
+    )
     base_lr: float = 0.001
     momentum: float = 0.9
     weight_decay: float = 5e-4  # L2 on all parameters (SGD weight_decay)
@@ -32,7 +38,10 @@ class TrainConfig:
     checkpoint_every_samples: int = 100_000  # last.pt at least this often (and at each validation)
     log_every_steps: int = 50  # train-loss lines in metrics.jsonl (mean over the interval)
     eval_batch_size: int = 1024
-    class_balance: str = "none"  # "loss_weights": cross-entropy weights n / (2 n_class) from train
+    class_balance: str = field(
+        default="none",
+        metadata={"choices": CLASS_BALANCE, "help": "'loss_weights': cross-entropy weights n / (2 n_class) from train"},
+    )
     seed: int = 0
     num_threads: int = 0  # torch intra-op threads per process; 0: torch default
 

@@ -245,6 +245,7 @@ def add_options(
         help_ = f.metadata.get("help", "")
         env = f" env {env_prefix}{path.upper().replace('.', '_')};" if env_prefix else ""
         help_ = f"{help_}{'; ' if help_ else ''}{env.strip()} default {default!r}".strip()
+        help_ = help_.replace("%", "%%")  # argparse formats help with %
         if tp is bool:
             parser.add_argument(_flag(path), dest=path, default=None, action=argparse.BooleanOptionalAction, help=help_)
             continue
