@@ -123,8 +123,8 @@ def test_evaluate_writes_metrics_heatmap_and_curves(data, run):
     arrays = open_crop_dataset(data).split("test").arrays
     with torch.no_grad():
         logits = net(
-            torch.from_numpy(np.asarray(arrays["images"], np.float32)[:, None]),
-            torch.from_numpy(np.asarray(arrays["poses"], np.float32)),
+            torch.from_numpy(np.array(arrays["images"], np.float32)[:, None]),  # a writable copy of the mmap
+            torch.from_numpy(np.array(arrays["poses"], np.float32)),
         )
     pred, y = torch.softmax(logits, 1)[:, 1].numpy() > 0.5, np.asarray(arrays["labels"]) == 1
     o = saved["overall"]
