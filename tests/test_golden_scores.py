@@ -3,7 +3,9 @@ exactly as an independent computation does (window and offsets written out by ha
 examples/golden.py, then the ONNX encoder and head run directly), and as the stored golden
 scores say (examples/golden_scores.json, regenerated only with the model by
 scripts/make_default_model.sh). A wrong sign, a swapped u / v, a shifted window or a changed
-resize in the serving path moves these scores far beyond the 1e-5 allowed."""
+resize in the serving path moves these scores far beyond the 1e-5 allowed.
+Service answers are compared through ``raw_score`` (the network's output); ``p_success`` is
+that score through the card's calibration."""
 
 from __future__ import annotations
 
@@ -74,7 +76,7 @@ def test_service_upload_then_score_equals_golden(fp32_url, stored, depth):
     assert up.json()["image_shape"] == [300, 300]  # every golden grasp lies within kappa of the central window
     r = httpx.post(f"{fp32_url}/v1/images/{up.json()['image_id']}/scores", json={"grasps": stored["grasps"]})
     assert r.status_code == 200, r.text
-    np.testing.assert_allclose(r.json()["p_success"], stored["p_success"], atol=TOL, rtol=0)
+    np.testing.assert_allclose(r.json()["raw_score"], stored["p_success"], atol=TOL, rtol=0)
 
 
 def test_service_one_shot_npz_with_off_centre_window_equals_hand_computation(fp32_url, depth):
@@ -95,7 +97,7 @@ def test_service_one_shot_npz_with_off_centre_window_equals_hand_computation(fp3
         z.writestr("center.npy", _npy(np.array([golden.CENTRE + du, golden.CENTRE + dv])))
     r = httpx.post(f"{fp32_url}/v1/score", content=b.getvalue(), headers={"content-type": "application/x-npz"})
     assert r.status_code == 200, r.text
-    np.testing.assert_allclose(r.json()["p_success"], ref, atol=TOL, rtol=0)
+    np.testing.assert_allclose(r.json()["raw_score"], ref, atol=TOL, rtol=0)
 
 
 def test_default_int8_service_equals_the_int8_head_run_directly(stored, depth):
@@ -103,7 +105,7 @@ def test_default_int8_service_equals_the_int8_head_run_directly(stored, depth):
         up = httpx.post(f"{url}/v1/images", content=_npy(depth), headers={"content-type": "application/x-npy"})
         r = httpx.post(f"{url}/v1/images/{up.json()['image_id']}/scores", json={"grasps": stored["grasps"]})
     assert r.status_code == 200, r.text
-    p8 = np.asarray(r.json()["p_success"])
+    p8 = np.asarray(r.json()["raw_score"])
     np.testing.assert_allclose(
         p8, golden.hand_scores(depth, np.array(stored["grasps"]), head="head_int8.onnx"), atol=TOL, rtol=0
     )

@@ -174,7 +174,7 @@ def score_heldout(url: str, images: np.ndarray, held) -> tuple[np.ndarray, np.nd
             r = c.http.post("/v1/score", content=buf.getvalue(), headers={"content-type": "application/x-npz"})
             c._raise(r)
             body = r.json()
-            p[j] = body["p_success"][0]
+            p[j] = body["raw_score"][0]
             miss[j] = body.get("missing_fraction", np.nan)
     return p, miss
 

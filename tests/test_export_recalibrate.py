@@ -1,0 +1,38 @@
+"""export.recalibrate: Platt scaling of an exported model on native grasps, with the ONNX
+graphs only; it rewrites the card's calibration (readable by the service) and nothing else."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+from datagen_fakes import fake_dataset
+
+from export.recalibrate import main
+from vgq.model_card import ModelCard
+
+DEFAULT = Path(__file__).resolve().parent.parent / "models" / "fast-vgqcnn-default"
+
+
+def test_recalibrate_rewrites_only_the_calibration(tmp_path):
+    fake_dataset(tmp_path / "g", n_objects=8, n_images=2, n_grasps=40)
+    model = tmp_path / "m"
+    shutil.copytree(DEFAULT, model)
+    before = json.loads((model / "model_card.json").read_text())
+    assert main(["--model-dir", str(model), "--grasps", str(tmp_path / "g"), "--per-split", "100"]) == 0
+    after = json.loads((model / "model_card.json").read_text())
+    assert {k: v for k, v in after.items() if k != "calibration"} == {
+        k: v for k, v in before.items() if k != "calibration"
+    }
+    cal = ModelCard.load(model).calibrator()
+    p = np.linspace(0.01, 0.99, 5)
+    assert np.all(np.diff(cal.apply(p)) > 0)  # monotone: the ranking is the network's
+    assert (model / after["calibration"]["reliability_diagram"]).is_file()
+
+
+def test_one_object_is_a_clear_error(tmp_path, capsys):
+    fake_dataset(tmp_path / "g", n_objects=1, n_images=1, n_grasps=20)
+    model = tmp_path / "m"
+    shutil.copytree(DEFAULT, model)
+    assert main(["--model-dir", str(model), "--grasps", str(tmp_path / "g")]) == 2
+    assert "at least 2 objects" in capsys.readouterr().err
