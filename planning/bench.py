@@ -116,9 +116,9 @@ def pose_only_model(model_dir: str):
     return None
 
 
-def run_precision(args) -> dict:
-    from .policy import nms, plan
-
+def _setup(args):
+    """(model, recipe config, planner params, held-out object ids drawn, rng) of a benchmark run:
+    the same seed draws the same objects for every benchmark."""
     model = _model(args.model, args.threads)
     config = _recipe_config(model)
     params = dataclasses.replace(
@@ -131,6 +131,13 @@ def run_precision(args) -> dict:
     ids = heldout_object_ids(args.heldout)
     rng = np.random.default_rng(args.seed)
     picked = rng.choice(ids, size=args.scenes, replace=args.scenes > len(ids))
+    return model, config, params, picked, rng
+
+
+def run_precision(args) -> dict:
+    from .policy import nms, plan
+
+    model, config, params, picked, rng = _setup(args)
     baseline_file = pose_only_model(args.model)
     rows = []
     for i, oid in enumerate(picked):
@@ -213,18 +220,7 @@ def run_trials_bench(args) -> dict:
 
     from .policy import plan
 
-    model = _model(args.model, args.threads)
-    config = _recipe_config(model)
-    params = dataclasses.replace(
-        PlanParams(),
-        cem_iterations=args.cem,
-        windows=args.windows,
-        max_centre_offset=args.centre_offset,
-        min_width=args.min_width,
-    )
-    ids = heldout_object_ids(args.heldout)
-    rng = np.random.default_rng(args.seed)
-    picked = rng.choice(ids, size=args.scenes, replace=args.scenes > len(ids))
+    model, config, params, picked, rng = _setup(args)
     rows = []
     gripper = DatagenGripper(**dataclasses.asdict(config.gripper))
     with GraspSimulator(gripper, PhysicsParams()) as sim:
