@@ -9,13 +9,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import uniform_filter
 
-from vgq.camera import Intrinsics
+from vgq.camera import Intrinsics, valid_depth
 
 
 def valid_mask(depth: np.ndarray) -> np.ndarray:
-    """(H, W) bool: pixels with a reading (finite, > 0)."""
-    d = np.asarray(depth)
-    return np.isfinite(d) & (d > 0)
+    """(H, W) bool: pixels with a reading (:func:`vgq.camera.valid_depth`: finite, > 0, <= 10 m)."""
+    return valid_depth(depth)
 
 
 def backproject(depth: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:

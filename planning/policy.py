@@ -14,7 +14,8 @@ import numpy as np
 from PIL import Image
 
 from vgq.camera import CameraMismatch, Intrinsics, map_pixels, project, resample_depth
-from vgq.crop import crop, grid_window_centers, pose_uv, window_center, window_origin
+from vgq.crop import grid_window_centers, pose_uv, window_center, window_origin
+from vgq.inpaint import crop_filled
 from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT
 from vgq.ood import flag_names, ood_flags
 from vgq.pose import quaternion_from_matrix
@@ -177,12 +178,11 @@ class WindowScorer:
         t = time.perf_counter()
         imgs = []
         for k in new:
-            img, actual = crop(self.depth, k, self.geom)
+            # the service's and the crop stage's input: missing depth filled (vgq.inpaint), then resized
+            img, actual, frac = crop_filled(self.depth, window_origin(np.asarray(k)[None], self.geom)[0], self.geom)
             imgs.append(img)
             self.actual[k] = actual
-            o = np.floor(np.asarray(k) - self.geom.window / 2 + 1).astype(int)
-            win = self.depth[max(o[1], 0) : o[1] + self.geom.window, max(o[0], 0) : o[0] + self.geom.window]
-            self.missing[k] = float(1.0 - valid_mask(win).mean()) if win.size else 1.0
+            self.missing[k] = frac
         x = np.ascontiguousarray(np.stack(imgs)[:, None], dtype=np.float32)
         terms = self.model.encoder.run([ENCODER_OUTPUT], {ENCODER_INPUT: x})[0]
         for k, term in zip(new, terms):

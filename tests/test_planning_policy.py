@@ -152,3 +152,26 @@ def test_cem_adds_collision_free_rotations_and_never_lowers_the_best_score(model
     cem = plan(depth, DEFAULT_INTRINSICS, model, k=1, seed=3, params=dataclasses.replace(FAST, cem_iterations=2))
     assert cem.counts["after_cem"] > cem.counts["collision_free"]
     assert cem.grasps[0].score >= plain.grasps[0].score
+
+
+def test_missing_depth_is_filled_before_the_encoder_as_in_training(two_boxes):
+    """A depth image with holes (0 = no reading, as real cameras send) reaches the encoder
+    filled by vgq.inpaint, the crop stage's and the service's fill: never a 0."""
+    depth, _, _ = two_boxes
+    holed = depth.copy()
+    for v in range(20, holed.shape[0] - 20, 40):  # 10 x 10 px holes all over (dropout blobs)
+        for u in range(20, holed.shape[1] - 20, 40):
+            holed[v : v + 10, u : u + 10] = 0.0
+    m = FastModel(MODEL_DIR, threads=1, head_precision="fp32")
+    seen = []
+    run = m.encoder.run
+
+    class Spy:
+        def run(self, names, feeds):
+            seen.append(next(iter(feeds.values())))
+            return run(names, feeds)
+
+    m.encoder = Spy()
+    res = plan(holed, DEFAULT_INTRINSICS, m, k=3, seed=0, params=FAST)
+    assert len(res.grasps) > 0 and seen
+    assert all(np.all(x > 0) for x in seen)
