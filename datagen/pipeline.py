@@ -52,12 +52,11 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
     """:func:`generate_object` plus a dict of facts about the object for the manifest
     (stable pose probabilities, grasp count, torque scaling used, mesh scale and repairs)."""
     from .camera import sample_cameras
-    from .collision import CollisionChecker, collision_free_probability
+    from .collision import CollisionChecker
     from .grasps import sample_antipodal_grasps
     from .gripper import align_to_table, grasp_frames
     from .labels import label_score
     from .mesh import load_object, stable_poses
-    from .pads import pad_quality
     from .project import project_grasps
     from .quality import resolve_torque_scaling, robust_ferrari_canny
     from .render import render_depth
@@ -98,28 +97,27 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
         checker_c = CollisionChecker(mesh_world, config.gripper, clearance=config.collision.clearance)
         cams = sample_cameras(config.cameras_per_pose, config.camera, rng)
         success = np.full(len(grasps), np.nan)
-        if kind == "physics":  # one approach per grasp and pose, labelled by trials, shared by the cameras
+        if kind == "physics":
+            # one approach per grasp and pose, shared by the cameras: its trials, robust collision and
+            # pad quality are computed once per pose, not once per camera
             pose_grasp = align_to_table(T_wo @ T_object_grasp0, rng)
             pose_free = ~np.asarray(checker.collides(pose_grasp[0]), dtype=bool)
             success = _physics_success(obj.mesh, T_wo, pose_grasp[0], pose_free, config, ss_physics, info)
+            pose_fields = _robust_fields(
+                kind, obj.mesh, T_wo, pose_grasp[0], ~pose_free, checker_c, config, qparams, rng_robust
+            )
         for j in range(len(cams)):
             T_wc = cams.T_world_camera[j]
             if kind == "physics":
                 T_wg, omega, beta = pose_grasp
                 collides = ~pose_free
+                p_cf, pad_q = pose_fields
             else:
                 T_wg, omega, beta = align_to_table(T_wo @ T_object_grasp0, rng)
                 collides = np.asarray(checker.collides(T_wg), dtype=bool)
-            # robust collision and pad quality of the rows whose nominal approach is free (NaN elsewhere:
-            # those rows are negatives under every label); not computed for the paper's label (its cost)
-            p_cf = np.full(len(grasps), np.nan)
-            pad_q = np.full(len(grasps), np.nan)
-            free = np.flatnonzero(~collides) if kind != "paper" else np.zeros(0, np.int64)
-            if len(free):
-                p_cf[free] = collision_free_probability(checker_c, T_wg[free], config.collision, rng_robust)
-                pad_q[free] = pad_quality(
-                    obj.mesh, np.linalg.inv(T_wo) @ T_wg[free], config.gripper, qparams, qparams.torque_scaling
-                )[0]
+                p_cf, pad_q = _robust_fields(
+                    kind, obj.mesh, T_wo, T_wg, collides, checker_c, config, qparams, rng_robust
+                )
             score = label_score(kind, quality, ~collides, p_cf, pad_q, success)
             depth = render_depth(mesh_world, T_wc, intr)
             pr = project_grasps(T_wg, T_wc, intr)
@@ -160,6 +158,26 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
             n_img += 1
     info["label"] = kind
     return _concat(image_parts, IMAGE_FIELDS), _concat(grasp_parts, {**GRASP_FIELDS, **GRASP_LABEL_FIELDS}), info
+
+
+def _robust_fields(
+    kind: str, mesh, T_wo, T_wg, collides, checker_c, config: DatagenConfig, qparams, rng
+) -> tuple[np.ndarray, np.ndarray]:
+    """Robust collision-free probability and pad quality (n,) of the grasps ``T_wg`` (world frame)
+    whose nominal approach is free (NaN elsewhere: those rows are negatives under every label);
+    not computed for the paper's label (its cost)."""
+    from .collision import collision_free_probability
+    from .pads import pad_quality
+
+    p_cf = np.full(len(T_wg), np.nan)
+    pad_q = np.full(len(T_wg), np.nan)
+    free = np.flatnonzero(~collides) if kind != "paper" else np.zeros(0, np.int64)
+    if len(free):
+        p_cf[free] = collision_free_probability(checker_c, T_wg[free], config.collision, rng)
+        pad_q[free] = pad_quality(
+            mesh, np.linalg.inv(T_wo) @ T_wg[free], config.gripper, qparams, qparams.torque_scaling
+        )[0]
+    return p_cf, pad_q
 
 
 def _physics_success(
@@ -316,6 +334,18 @@ def prepare_run(out: str | Path, config: DatagenConfig) -> tuple[dict, list]:
     ), sources
 
 
+def interleaved(todo: list[int], manifest: dict) -> list[int]:
+    """The object ids of ``todo`` in work order: round-robin over the families (in order of first
+    appearance), so a run stopped part-way holds every family in proportion, not only the first."""
+    by_family: dict[str, list[int]] = {}
+    for i in todo:
+        by_family.setdefault(manifest["objects"][i].get("family", ""), []).append(i)
+    n = len(todo)
+    # an object's place is its rank within its family scaled by the family's share of the run
+    key = {i: (rank * n / len(ids), f) for f, ids in enumerate(by_family.values()) for rank, i in enumerate(ids)}
+    return sorted(todo, key=lambda i: key[i])
+
+
 def run_generate(
     out: str | Path,
     config: DatagenConfig,
@@ -344,7 +374,7 @@ def run_generate(
     done_before = len(m["objects"]) - len(todo)
     if done_before:
         log(f"resuming {out}: {done_before} objects already done or skipped, {len(todo)} to go")
-    tasks = [(sources[i], config, i, object_seed(config.seed, sources[i].name)) for i in todo]
+    tasks = [(sources[i], config, i, object_seed(config.seed, sources[i].name)) for i in interleaved(todo, m)]
 
     def on_result(r: dict) -> str:
         oid = r["object_id"]

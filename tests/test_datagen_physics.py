@@ -108,7 +108,11 @@ def test_the_physics_label_labels_each_grasp_once_per_pose_for_all_cameras(tmp_p
     np.testing.assert_array_equal(g["quality"], np.where(g["collision_free"], rate, 0.0).astype(np.float32))
     # every camera sees the same 6-DOF grasp: one omega per grasp id
     for gid in np.unique(g["grasp_id"]):
-        assert np.unique(g["omega"][g["grasp_id"] == gid]).size == 1
+        rows = g["grasp_id"] == gid
+        assert np.unique(g["omega"][rows]).size == 1
+        # and the same robust-collision and pad fields (computed once per pose, not per camera)
+        for key in ("p_collision_free", "pad_quality"):
+            assert np.unique(g[key][rows]).size == 1 or np.all(np.isnan(g[key][rows]))
     assert cfg.label_threshold == 0.5
 
 

@@ -17,7 +17,7 @@ from conftest import skip_or_fail_in_ci
 from datagen import storage
 from datagen.config import ConfigError, DatagenConfig
 from datagen.mesh import mesh_sources
-from datagen.pipeline import generate_object, object_seed, run_generate
+from datagen.pipeline import generate_object, interleaved, object_seed, run_generate
 from vgq.schema import GRASP_FIELDS, IMAGE_FIELDS, check_fields
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -162,3 +162,14 @@ def test_ray_run_writes_the_same_dataset_as_the_local_run(tmp_path):
     for oid in a:
         for k in a[oid]:
             np.testing.assert_array_equal(a[oid][k], b[oid][k], err_msg=f"object {oid} field {k}")
+
+
+def test_pending_objects_run_round_robin_over_families():
+    fams = ["random_urdfs"] * 6 + ["mug"] * 3 + ["box"] * 3
+    m = {"objects": [{"family": f} for f in fams]}
+    order = interleaved(list(range(12)), m)
+    assert sorted(order) == list(range(12))
+    # any prefix of the work order holds the families in proportion (6 : 3 : 3)
+    assert sorted(fams[i] for i in order[:4]) == ["box", "mug", "random_urdfs", "random_urdfs"]
+    # within a family the manifest order is kept
+    assert [i for i in order if fams[i] == "mug"] == [6, 7, 8]
