@@ -188,6 +188,7 @@ def cmd_crops(args) -> int:
         progress=not args.quiet,
         sensor=args.sensor,
         sensor_overrides=dict(parse_override(o) for o in args.sensor_set),
+        splits=tuple(args.splits),
     )
     return 0
 
@@ -400,6 +401,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         help="override one sensor setting, e.g. --sensor-set baseline_m=0.05 --sensor-set blob_rate=4",
+    )
+    c.add_argument(
+        "--splits",
+        nargs="+",
+        choices=("train", "val", "test"),
+        default=["train", "val", "test"],
+        help="splits to crop, the others written empty (default all; e.g. --splits test --sensor clean "
+        "for a clean copy of the test split)",
     )
     c.add_argument("--quiet", action="store_true")
     c.set_defaults(func=cmd_crops)

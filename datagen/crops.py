@@ -114,14 +114,20 @@ def make_crops(
     progress: bool = False,
     sensor: str | sensor_model.SensorModel | dict | None = None,
     sensor_overrides: dict | None = None,
+    splits: tuple[str, ...] = SPLITS,
 ) -> dict:
     """Crop every grasp of the grasp dataset ``src`` into the ``vgq-crops`` dataset ``out``.
 
     The split comes from ``src``'s manifest (``datagen sample``); a dataset without one is
     split object-wise here (80/10/10, by ``seed``). ``sensor``: the depth-sensor model (a
     preset name, a .json file, a dict or a SensorModel; default ``realistic``), with
-    ``sensor_overrides`` (field -> value). Returns the written manifest."""
+    ``sensor_overrides`` (field -> value). ``splits``: the splits to crop (the others are
+    written empty), e.g. ``("test",)`` for a second, differently corrupted copy of the test
+    split. Returns the written manifest."""
     geom = geometry_for(arch, kappa_px)
+    bad = sorted(set(splits) - set(SPLITS))
+    if bad or not splits:
+        raise ValueError(f"splits must be a non-empty subset of {SPLITS}, got {tuple(splits)}")
     sensor_name, sensor = sensor_model.resolve(sensor, sensor_overrides)
     out = Path(out)
     if (out / storage.MANIFEST).exists():
@@ -137,7 +143,11 @@ def make_crops(
     missing = [e["object_id"] for e in ds.shard_entries if e["object_id"] not in split_of]
     if missing:
         raise storage.DatasetError(f"{ds.root / storage.MANIFEST}: objects {missing[:5]} have no split")
-    n = {s: sum(e["num_grasps"] for e in ds.shard_entries if split_of[e["object_id"]] == s) for s in SPLITS}
+    n = {
+        s: sum(e["num_grasps"] for e in ds.shard_entries if split_of[e["object_id"]] == s) if s in splits else 0
+        for s in SPLITS
+    }
+    entries = [e for e in ds.shard_entries if split_of[e["object_id"]] in splits]
     intr_d = m_src.get("intrinsics") or m_src.get("config", {}).get("intrinsics")
     intr = Intrinsics.from_dict(intr_d) if intr_d else DEFAULT_INTRINSICS
     writers = {s: storage.crop_writers(out, s, n[s]) for s in SPLITS}
@@ -146,11 +156,11 @@ def make_crops(
     thr = ds.label_threshold
     try:
         fill = {s: 0 for s in SPLITS}
-        it = ds
+        it = (ds.load(e) for e in entries)
         if progress:
             from tqdm import tqdm
 
-            it = tqdm(ds, total=len(ds), unit="obj", desc=f"crops {arch}")
+            it = tqdm(it, total=len(entries), unit="obj", desc=f"crops {arch}")
         for sh in it:
             s = split_of[sh.object_id]
             w = writers[s]
@@ -192,7 +202,7 @@ def make_crops(
             n[s],
             pos[s],
             missing_fraction_mean=missing_sum[s] / n[s] if n[s] else 0.0,
-            objects=sorted(i for i, v in split_of.items() if v == s),
+            objects=sorted(i for i, v in split_of.items() if v == s and s in splits),
         )
         for s in SPLITS
     }
@@ -210,7 +220,11 @@ def make_crops(
             "config": cfg,
             "sampling": m_src.get("sampling", {}).get("params"),
             "split": split_note,
-            "objects": [{"object_id": o["object_id"], "name": o.get("name")} for o in m_src["objects"]],
+            "objects": [
+                {"object_id": o["object_id"], "name": o.get("name"), "family": o.get("family")}
+                for o in m_src["objects"]
+            ],
+            "splits": list(splits),
         },
         intrinsics=intr_d,
         native_counts=crop_counts(native["grasps"], native["positive"]) if native else None,
@@ -219,7 +233,7 @@ def make_crops(
         inpaint={"method": "nearest valid pixel (OpenCV distance transform, 5x5 mask)", "margin_px": inpaint.MARGIN_PX},
         versions=storage.library_versions(),
     )
-    for s in SPLITS:
+    for s in splits:
         log(
             f"{s}: {n[s]} crops, positivity {100 * counts[s]['positivity']:.1f}%, "
             f"missing pixels {100 * counts[s]['missing_fraction_mean']:.2f}% (sensor {sensor_name})"

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from training.metrics import auc
 from vgq import atomic
 
 from .collision import RobustCollisionParams
@@ -439,24 +440,6 @@ def load_results(out: str | Path) -> list[dict]:
 
 
 # ----------------------------------------------------------------------------- analysis
-
-
-def auc(score: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None) -> float:
-    """Area under the ROC curve of ``score`` for binary ``y`` (ties count half); ``weight``
-    per sample. NaN when only one class is present."""
-    s = np.asarray(score, np.float64)
-    y = np.asarray(y, bool)
-    w = np.ones_like(s) if weight is None else np.asarray(weight, np.float64)
-    wp, wn = w * y, w * ~y
-    if wp.sum() == 0 or wn.sum() == 0:
-        return float("nan")
-    order = np.argsort(s, kind="mergesort")
-    s, wp, wn = s[order], wp[order], wn[order]
-    _, start = np.unique(s, return_index=True)
-    pos = np.add.reduceat(wp, start)
-    neg = np.add.reduceat(wn, start)
-    neg_below = np.cumsum(neg) - neg
-    return float(np.sum(pos * (neg_below + 0.5 * neg)) / (wp.sum() * wn.sum()))
 
 
 def roc_curve(score, y):

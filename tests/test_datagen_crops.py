@@ -92,6 +92,27 @@ def test_crops_split_object_wise(tmp_path):
     assert sorted(seen) == list(range(10))
 
 
+def test_a_test_only_copy_crops_the_test_objects_alone_with_their_family(tmp_path):
+    g = fake_dataset(tmp_path / "g", n_objects=10, n_images=1, n_grasps=5)
+    for o in g["objects"]:
+        o["family"] = "mug" if o["object_id"] % 2 else "box"
+    storage.write_manifest(tmp_path / "g", g)
+    full = make_crops(tmp_path / "g", tmp_path / "c", "vgqcnn", log=lambda s: None, sensor="clean")
+    m = make_crops(tmp_path / "g", tmp_path / "t", "vgqcnn", log=lambda s: None, sensor="clean", splits=("test",))
+    assert m["counts"]["train"]["n"] == 0 and m["counts"]["val"]["n"] == 0
+    assert m["counts"]["test"] == full["counts"]["test"]
+    assert len(storage.open_crops(tmp_path / "t", "train")["images"]) == 0
+    np.testing.assert_array_equal(
+        storage.open_crops(tmp_path / "t", "test")["images"], storage.open_crops(tmp_path / "c", "test")["images"]
+    )
+    # each object's family, for per-family evaluation
+    assert {o["object_id"]: o["family"] for o in m["source"]["objects"]} == {
+        i: "mug" if i % 2 else "box" for i in range(10)
+    }
+    with pytest.raises(ValueError, match="splits"):
+        make_crops(tmp_path / "g", tmp_path / "x", "vgqcnn", log=lambda s: None, splits=("tset",))
+
+
 def test_kappa_only_for_fast_vgqcnn():
     with pytest.raises(ValueError, match="fast_vgqcnn only"):
         geometry_for("vgqcnn", 12)

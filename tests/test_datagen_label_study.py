@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from datagen.label_study import auc, candidate_labels
+from datagen.label_study import candidate_labels
+from training.metrics import auc
 
 
 def test_auc_matches_the_pairwise_definition_with_ties():

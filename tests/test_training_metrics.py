@@ -18,6 +18,18 @@ def test_binary_metrics_hand_made():
     assert m["tnr"] == pytest.approx(1 / 2)
     assert m["balanced_accuracy"] == pytest.approx((2 / 3 + 1 / 2) / 2)
     assert m["accuracy"] == pytest.approx(3 / 5)
+    # AUC: of the 6 (positive, negative) pairs the positive scores higher in 4 (0.2 < 0.7, 0.6 < 0.7)
+    assert m["auc"] == pytest.approx(4 / 6)
+
+
+def test_metrics_by_group_are_the_metrics_of_each_groups_rows():
+    labels = np.array([1, 0, 1, 0, 1, 1])
+    p = np.array([0.9, 0.1, 0.2, 0.8, 0.7, 0.6])
+    fam = np.array(["mug", "mug", "box", "box", "mug", "box"])
+    g = M.metrics_by_group(labels, p, fam)
+    assert list(g) == ["box", "mug"]
+    assert g["mug"]["balanced_accuracy"] == 1.0 and g["mug"]["n"] == 3
+    assert (g["box"]["tp"], g["box"]["fn"], g["box"]["fp"]) == (1, 1, 1)
 
 
 def test_all_negative_predictor_has_half_balanced_accuracy():

@@ -162,3 +162,25 @@ def test_class_balance_weights_from_train_split(data):
     w = _class_weights(sp)
     torch.testing.assert_close(w, torch.tensor([n / (2 * (n - pos)), n / (2 * pos)]))
     assert float(w[0] * (n - pos)) == pytest.approx(float(w[1] * pos))  # both classes weigh the same in total
+
+
+def test_evaluate_reports_each_family_under_its_own_name(data, run, tmp_path):
+    import shutil
+
+    fam_data = tmp_path / "families"
+    shutil.copytree(data, fam_data)
+    m = json.loads((fam_data / "manifest.json").read_text())
+    m["source"] = {"objects": [{"object_id": i, "family": "mug" if i % 2 else "box"} for i in range(30)]}
+    (fam_data / "manifest.json").write_text(json.dumps(m))
+    rec = evaluate(run, fam_data, "test", progress=False, name="test_families")
+    ids = np.asarray(open_crop_dataset(fam_data).split("test").arrays["object_id"])
+    fams = rec["by_family"]
+    assert sorted(fams) == ["box", "mug"]
+    assert fams["mug"]["n"] == int((ids % 2 == 1).sum()) and fams["box"]["n"] == int((ids % 2 == 0).sum())
+    assert sum(f["tp"] for f in fams.values()) == rec["overall"]["tp"]
+    assert (run / "eval" / "metrics_test_families.json").is_file()
+    _, meta = load_trained(run)  # the card's metrics carry it under its name, beside the plain test split
+    assert meta["metrics"]["test_families"]["by_family"]["mug"]["n"] == fams["mug"]["n"]
+    assert "by_family" not in meta["metrics"]["test"]
+    with pytest.raises(ValueError, match="evaluation name"):
+        evaluate(run, fam_data, "test", progress=False, name="../x")

@@ -45,6 +45,12 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--data", required=True, help="crop dataset folder")
     e.add_argument("--split", default="test", choices=("train", "val", "test"))
     e.add_argument("--out", default=None, help="output folder (default RUN/eval)")
+    e.add_argument(
+        "--name",
+        default=None,
+        help="name of the result (metrics_NAME.json; default the split), e.g. test_clean for a clean-sensor "
+        "copy of the test split (`datagen crops --splits test --sensor clean`)",
+    )
     e.add_argument("--threshold", type=float, default=0.5)
     e.add_argument("--batch-size", type=int, default=1024)
     e.add_argument("--no-progress", action="store_true")
@@ -103,8 +109,11 @@ def main(argv: list[str] | None = None) -> int:
                 threshold=args.threshold,
                 batch_size=args.batch_size,
                 progress=progress,
+                name=args.name,
             )
-            print(json.dumps({"split": rec["split"], **rec["overall"]}))
+            print(json.dumps({"split": rec["split"], "name": rec["name"], "sensor": rec["sensor"], **rec["overall"]}))
+            for fam, m in rec["by_family"].items():
+                print(json.dumps({"family": fam, **m}))
         elif args.command == "baseline":
             from .baseline import run_baseline
 

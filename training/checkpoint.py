@@ -163,5 +163,9 @@ def load_trained(path: str | Path) -> tuple[GraspQualityNet, dict]:
                 continue
             same = Path(m.get("checkpoint", "")).resolve() == ckpt_path.resolve()
             if same and m.get("samples_seen") == int(st["samples_seen"]):  # not a stale evaluation
-                meta["metrics"][m.get("split", f.stem[len("metrics_") :])] = m.get("overall", {})
+                key = m.get("name") or m.get("split", f.stem[len("metrics_") :])
+                meta["metrics"][key] = {
+                    **m.get("overall", {}),
+                    **({"by_family": m["by_family"]} if m.get("by_family") else {}),
+                }
     return net, meta

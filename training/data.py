@@ -118,6 +118,13 @@ class CropDataset:
         label["threshold"] = self.label_threshold
         return label
 
+    def object_families(self) -> dict[int, str]:
+        """Object id -> family name, from the manifest's source objects ({} when the dataset
+        records no family, as crop datasets made before families do)."""
+        objs = (self.manifest.get("source") or {}).get("objects") or []
+        fams = {int(o["object_id"]): o["family"] for o in objs if o.get("family")}
+        return fams
+
     def z_range(self) -> list[float] | None:
         """[min, max] TCP depth z (metres) of the train split: the range the model was trained on."""
         tr = self.split("train")

@@ -1,5 +1,5 @@
 """Evaluation of a trained run on a crop-dataset split: overall TPR / TNR / balanced accuracy
-/ accuracy, the same per camera-grid cell (d in 0.05 m, phi in 5 deg steps) as heat maps,
+/ accuracy / AUC, the same per object family (when the dataset records families) and per camera-grid cell (d in 0.05 m, phi in 5 deg steps) as heat maps,
 and the run's training curves."""
 
 from __future__ import annotations
@@ -28,14 +28,20 @@ def evaluate(
     d_step: float = 0.05,
     phi_step_deg: float = 5.0,
     progress: bool = True,
+    name: str | None = None,
 ) -> dict:
     """Evaluate the run folder (best checkpoint) or checkpoint ``run`` on ``split`` of the
     crop dataset ``data_dir``.
 
-    Writes ``metrics_<split>.json``, ``heatmap_<split>.png`` and (for a run folder)
+    Writes ``metrics_<name>.json``, ``heatmap_<name>.png`` (``name`` defaults to the split;
+    e.g. ``test_clean`` for the test split of a clean-sensor copy) and (for a run folder)
     ``curves.png`` into ``out_dir`` (default: the run's ``eval/`` folder, or ``eval/`` beside
-    a bare checkpoint). Returns the metrics record (``overall``, ``grid``, provenance).
+    a bare checkpoint). Returns the metrics record (``overall``, ``by_family``, ``grid``, the
+    dataset's sensor model, provenance).
     """
+    name = name or split
+    if not name.replace("_", "").replace("-", "").isalnum():
+        raise ValueError(f"evaluation name must be letters, digits, '_' or '-', got {name!r}")
     ckpt_path, run_dir = resolve_run(Path(run))
     net, meta = load_trained(ckpt_path)
     data = open_crop_dataset(data_dir)
@@ -52,6 +58,17 @@ def evaluate(
     dt = time.time() - t0
     labels = np.asarray(sp.labels)
     overall = M.nan_to_none({**M.binary_metrics(labels, p, threshold), "loss": loss})
+    families = data.object_families()
+    by_family = (
+        {
+            f: M.nan_to_none(m)
+            for f, m in M.metrics_by_group(
+                labels, p, np.array([families.get(int(i), "") for i in np.asarray(sp.arrays["object_id"])]), threshold
+            ).items()
+        }
+        if families
+        else {}
+    )
     grid = M.grid_metrics(
         labels,
         p,
@@ -66,6 +83,8 @@ def evaluate(
     out_dir = Path(out_dir)
     rec = {
         "split": split,
+        "name": name,
+        "sensor": data.manifest.get("sensor", {"name": "clean"}).get("name"),
         "checkpoint": str(ckpt_path.resolve()),
         "arch": meta["arch"],
         "data": str(data.path.resolve()),
@@ -73,12 +92,13 @@ def evaluate(
         "trained_geometry": g,
         "samples_seen": meta["training"]["samples_seen"],
         "overall": overall,
+        "by_family": by_family,
         "grid": {"d_step_m": d_step, "phi_step_deg": phi_step_deg, **M.grid_to_json(grid)},
         "inference_s": dt,
     }
-    atomic.write_json(out_dir / f"metrics_{split}.json", rec)
-    title = f"{meta['arch']} on {split} split: balanced accuracy {_pct(overall['balanced_accuracy'])}"
-    plot_grid_heatmaps(grid, out_dir / f"heatmap_{split}.png", title=title)
+    atomic.write_json(out_dir / f"metrics_{name}.json", rec)
+    title = f"{meta['arch']} on {split} split ({rec['sensor']} sensor): balanced accuracy {_pct(overall['balanced_accuracy'])}"
+    plot_grid_heatmaps(grid, out_dir / f"heatmap_{name}.png", title=title)
     if run_dir is not None and RunPaths(run_dir).metrics.is_file():
         plot_training_curves(RunPaths(run_dir).metrics, out_dir / "curves.png", title=f"{meta['arch']} training")
     return rec

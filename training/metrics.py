@@ -1,5 +1,5 @@
-"""Classification metrics (pure numpy): TPR, TNR, balanced accuracy, accuracy, overall and
-per cell of the camera grid (distance d in metres, elevation phi in radians)."""
+"""Classification metrics (pure numpy): TPR, TNR, balanced accuracy, accuracy, ROC AUC, overall,
+per family and per cell of the camera grid (distance d in metres, elevation phi in radians)."""
 
 from __future__ import annotations
 
@@ -43,10 +43,38 @@ def from_confusion(c: dict[str, int]) -> dict[str, float]:
 
 
 def binary_metrics(labels: np.ndarray, p_success: np.ndarray, threshold: float = 0.5) -> dict[str, float]:
-    """Metrics of predicting success where ``p_success > threshold``."""
+    """Metrics of predicting success where ``p_success > threshold``, and the ROC AUC of ``p_success``."""
     out = from_confusion(confusion(labels, np.asarray(p_success) > threshold))
     out["threshold"] = threshold
+    out["auc"] = auc(p_success, labels)
     return out
+
+
+def metrics_by_group(
+    labels: np.ndarray, p_success: np.ndarray, groups: np.ndarray, threshold: float = 0.5
+) -> dict[str, dict[str, float]]:
+    """:func:`binary_metrics` of the rows of each value of ``groups`` (e.g. each object family),
+    keyed by that value, in sorted order."""
+    y, p, g = np.asarray(labels), np.asarray(p_success), np.asarray(groups)
+    return {str(k): binary_metrics(y[g == k], p[g == k], threshold) for k in np.unique(g)}
+
+
+def auc(score: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None) -> float:
+    """Area under the ROC curve of ``score`` for binary ``y`` (ties count half); ``weight``
+    per sample. NaN when only one class is present."""
+    s = np.asarray(score, np.float64)
+    y = np.asarray(y, bool)
+    w = np.ones_like(s) if weight is None else np.asarray(weight, np.float64)
+    wp, wn = w * y, w * ~y
+    if wp.sum() == 0 or wn.sum() == 0:
+        return float("nan")
+    order = np.argsort(s, kind="mergesort")
+    s, wp, wn = s[order], wp[order], wn[order]
+    _, start = np.unique(s, return_index=True)
+    pos = np.add.reduceat(wp, start)
+    neg = np.add.reduceat(wn, start)
+    neg_below = np.cumsum(neg) - neg
+    return float(np.sum(pos * (neg_below + 0.5 * neg)) / (wp.sum() * wn.sum()))
 
 
 def bin_edges(values: np.ndarray, step: float) -> np.ndarray:
