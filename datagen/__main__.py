@@ -36,6 +36,8 @@ RECIPES = {
         "sampling": {"uniform_quantile": 0.1},
         "sensor": "realistic",
         "set": {"label.kind": "physics", "max_stable_poses": 6},  # round objects have up to 34 poses
+        # the leave-family-out experiment: these families' objects all go to test (a second sampled set)
+        "leave_out": ["mug", "metaball"],
     },
 }
 RECIPE = RECIPES["v1"]  # the bundled model's recipe until v2 is trained
@@ -257,6 +259,8 @@ def cmd_labelstudy(args) -> int:
 
 
 def cmd_recipe(args) -> int:
+    import shlex
+
     from .parallel import default_workers
 
     recipe = RECIPES[args.version]
@@ -266,21 +270,49 @@ def cmd_recipe(args) -> int:
     sets = " ".join(f"--set {k}={json.dumps(v)}" for k, v in recipe["set"].items())
     samp = " ".join(f"--set sampling.{k}={json.dumps(v)}" for k, v in recipe["sampling"].items())
     fams = f" --families {recipe['families']}" if recipe["families"] else ""
-    steps = [
-        f"python -m datagen generate --out {out / 'grasps'} --objects {objects}{fams} --cameras {recipe['cameras']} "
-        f"--seed {recipe['seed']} --workers {workers} {sets}",
-        f"python -m datagen sample --in {out / 'grasps'} --out {out / 'sampled'} --seed {recipe['seed']} {samp}",
-        f"python -m datagen crops --in {out / 'sampled'} --out {out / 'crops'} --arch {recipe['arch']} "
-        f"--kappa {recipe['kappa']:g} --seed {recipe['seed']} --sensor {recipe['sensor']}",
+    crops = f"--arch {recipe['arch']} --kappa {recipe['kappa']:g} --seed {recipe['seed']}"
+    steps = [  # (command, output folder; None: always runs, it resumes)
+        (
+            f"python -m datagen generate --out {out / 'grasps'} --objects {objects}{fams} "
+            f"--cameras {recipe['cameras']} --seed {recipe['seed']} --workers {workers} {sets}",
+            None,
+        ),
+        (
+            f"python -m datagen sample --in {out / 'grasps'} --out {out / 'sampled'} --seed {recipe['seed']} {samp}",
+            "sampled",
+        ),
+        (
+            f"python -m datagen crops --in {out / 'sampled'} --out {out / 'crops'} {crops} --sensor {recipe['sensor']}",
+            "crops",
+        ),
     ]
-    for s in steps:
+    if recipe["sensor"] != "clean":  # the same test grasps without the sensor model: clean vs corrupted
+        steps.append(
+            (
+                f"python -m datagen crops --in {out / 'sampled'} --out {out / 'crops_clean_test'} {crops} "
+                "--sensor clean --splits test",
+                "crops_clean_test",
+            )
+        )
+    if recipe.get("leave_out"):  # leave-family-out: the same grasps, those families only in test
+        lfo = shlex.quote("sampling.holdout_families=" + json.dumps(recipe["leave_out"], separators=(",", ":")))
+        steps += [
+            (
+                f"python -m datagen sample --in {out / 'grasps'} --out {out / 'sampled_lfo'} --seed {recipe['seed']} "
+                f"{samp} --set {lfo}",
+                "sampled_lfo",
+            ),
+            (
+                f"python -m datagen crops --in {out / 'sampled_lfo'} --out {out / 'crops_lfo'} {crops} "
+                f"--sensor {recipe['sensor']}",
+                "crops_lfo",
+            ),
+        ]
+    for s, _ in steps:
         print(s)
     if args.dry_run:
         return 0
-    import shlex
-
-    outputs = [None, out / "sampled", out / "crops"]  # generate always runs (it resumes)
-    for s, o in zip(steps, outputs):
+    for s, o in ((s, o and out / o) for s, o in steps):
         if o is not None and (o / "manifest.json").is_file():
             if json.loads((o / "manifest.json").read_text()).get("complete", True):
                 print(f"\n{o} exists: skipping `{' '.join(shlex.split(s)[3:5])}`", flush=True)

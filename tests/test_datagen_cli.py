@@ -100,7 +100,21 @@ def test_ray_missing_names_the_extra(tmp_path, capsys, monkeypatch):
 
 
 def test_recipe_dry_run_prints_the_three_stages(tmp_path, capsys):
-    rc, out, _ = run_main(capsys, "recipe", "--out", tmp_path, "--dry-run")
+    rc, out, _ = run_main(capsys, "recipe", "--version", "v1", "--out", tmp_path, "--dry-run")
     assert rc == 0
     lines = out.strip().splitlines()
     assert [ln.split()[3] for ln in lines] == ["generate", "sample", "crops"]
+
+
+def test_v2_recipe_adds_a_clean_test_copy_and_the_leave_family_out_split(tmp_path, capsys):
+    import shlex
+
+    from vgq.cli_config import parse_override
+
+    rc, out, _ = run_main(capsys, "recipe", "--version", "v2", "--out", tmp_path, "--dry-run")
+    assert rc == 0
+    lines = [shlex.split(ln) for ln in out.strip().splitlines()]
+    assert [a[3] for a in lines] == ["generate", "sample", "crops", "crops", "sample", "crops"]
+    assert lines[3][lines[3].index("--sensor") + 1] == "clean" and lines[3][-2:] == ["--splits", "test"]
+    holdout = parse_override(lines[4][-1])
+    assert holdout == ("sampling.holdout_families", ["mug", "metaball"])
