@@ -45,3 +45,12 @@ def test_cli_bad_option_value_exits_2(tmp_path, capsys):
     make_synthetic_crop_dataset(tmp_path / "d", 8, 4, 4)
     rc = main(["train", "--data", str(tmp_path / "d"), "--out", str(tmp_path / "r"), "--batch-size", "0"])
     assert rc == 2 and "batch_size" in capsys.readouterr().err
+
+
+def test_cli_bench_measures_precisions_side_by_side(capsys):
+    import json
+
+    assert main(["bench", "--steps", "2", "--warmup", "0", "--batch-size", "4", "--precision", "fp32", "bf16"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert set(r["precisions"]) == {"fp32", "bf16"} and r["precisions"]["fp32"]["speedup"] == 1.0
+    assert r["precisions"]["bf16"]["samples_per_s"] > 0

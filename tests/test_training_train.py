@@ -184,3 +184,26 @@ def test_evaluate_reports_each_family_under_its_own_name(data, run, tmp_path):
     assert "by_family" not in meta["metrics"]["test"]
     with pytest.raises(ValueError, match="evaluation name"):
         evaluate(run, fam_data, "test", progress=False, name="../x")
+
+
+def test_bf16_training_learns_and_resumes_in_fp32(data, tmp_path):
+    run_dir = tmp_path / "bf16"
+    cfg = TrainConfig(samples=16 * 8, val_every_samples=64, precision="bf16", **FAST)
+    train(cfg, data, run_dir, progress=False)
+    assert json.loads((run_dir / "run.json").read_text())["training"]["precision"] == "bf16"
+    net, _ = load_trained(run_dir / "checkpoints" / "last.pt")
+    assert all(p.dtype == torch.float32 for p in net.parameters())  # autocast: the weights stay fp32
+    _, loss = predict_split(net, open_crop_dataset(data).split("train"))
+    assert loss < 0.8 * math.log(2)
+    # another machine without bf16 continues the same run in fp32
+    train(
+        TrainConfig(samples=16 * 10, val_every_samples=64, precision="fp32", **FAST),
+        data,
+        run_dir,
+        resume=True,
+        progress=False,
+    )
+    info = json.loads((run_dir / "run.json").read_text())["training"]
+    assert info["precision"] == "fp32" and info["samples_seen"] == 160
+    with pytest.raises(ValueError, match="precision"):
+        TrainConfig(precision="fp16")

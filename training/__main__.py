@@ -73,6 +73,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--steps", type=int, default=20)
     s.add_argument("--warmup", type=int, default=3)
     s.add_argument("--threads", type=int, default=0, help="torch threads; 0: torch default")
+    s.add_argument(
+        "--precision",
+        nargs="+",
+        default=["fp32"],
+        choices=("fp32", "bf16"),
+        help="measure these side by side (e.g. --precision fp32 bf16)",
+    )
     s.add_argument("--no-progress", action="store_true")
     return ap
 
@@ -128,7 +135,11 @@ def main(argv: list[str] | None = None) -> int:
             from .bench import measure_train_throughput
 
             print(
-                json.dumps(measure_train_throughput(args.arch, args.batch_size, args.steps, args.warmup, args.threads))
+                json.dumps(
+                    measure_train_throughput(
+                        args.arch, args.batch_size, args.steps, args.warmup, args.threads, tuple(args.precision)
+                    )
+                )
             )
     except (ValueError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -1,5 +1,6 @@
 """Training throughput on this machine: samples/second of full SGD steps (forward, backward,
-update) on random inputs of the network's shape. Data loading is not included."""
+update) on random inputs of the network's shape, for each training precision side by side
+(steps interleaved, so a shared machine's load hits them alike). Data loading is not included."""
 
 from __future__ import annotations
 
@@ -15,11 +16,21 @@ from .networks import GraspQualityNet
 
 
 def measure_train_throughput(
-    arch: str = "fast_vgqcnn", batch_size: int = 64, steps: int = 20, warmup: int = 3, threads: int = 0
+    arch: str = "fast_vgqcnn",
+    batch_size: int = 64,
+    steps: int = 20,
+    warmup: int = 3,
+    threads: int = 0,
+    precisions: tuple[str, ...] = ("fp32",),
 ) -> dict:
-    """Median-free simple timing: ``steps`` timed SGD steps after ``warmup`` untimed ones."""
+    """``steps`` timed SGD steps per precision ('fp32', 'bf16': CPU autocast) after ``warmup``
+    untimed ones, interleaved; the top-level numbers are the first precision's, ``precisions``
+    holds each one's and ``speedup`` its samples/s over the first's."""
     if steps <= 0 or warmup < 0 or batch_size <= 0:
         raise ValueError("steps and batch_size must be > 0, warmup >= 0")
+    bad = [p for p in precisions if p not in ("fp32", "bf16")]
+    if bad or not precisions:
+        raise ValueError(f"precisions must be fp32 and/or bf16, got {list(precisions)}")
     if threads:
         torch.set_num_threads(threads)
     cfg = TrainConfig(arch=arch, batch_size=batch_size)
@@ -29,15 +40,26 @@ def measure_train_throughput(
     x = 0.7 + 0.01 * torch.randn(batch_size, 1, 32, 32)
     p = torch.randn(batch_size, len(net.pose_columns))
     y = torch.randint(0, 2, (batch_size,))
-    times = []
+    times: dict[str, list[float]] = {pr: [] for pr in precisions}
     for i in range(warmup + steps):
-        t = time.perf_counter()
-        opt.zero_grad(set_to_none=True)
-        F.cross_entropy(net(x, p), y).backward()
-        opt.step()
-        if i >= warmup:
-            times.append(time.perf_counter() - t)
-    total = sum(times)
+        for pr in precisions:
+            t = time.perf_counter()
+            opt.zero_grad(set_to_none=True)
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=pr == "bf16"):
+                logits = net(x, p)
+            F.cross_entropy(logits.float(), y).backward()
+            opt.step()
+            if i >= warmup:
+                times[pr].append(time.perf_counter() - t)
+    per = {
+        pr: {"samples_per_s": batch_size * len(ts) / sum(ts), "median_step_s": sorted(ts)[len(ts) // 2]}
+        for pr, ts in times.items()
+    }
+    first = precisions[0]
+    for v in per.values():
+        v["speedup"] = v["samples_per_s"] / per[first]["samples_per_s"]
+    total = sum(times[first])
+    times = times[first]
     return {
         "arch": arch,
         "batch_size": batch_size,
@@ -51,4 +73,5 @@ def measure_train_throughput(
         "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
         "processor": platform.processor() or platform.machine(),
         "torch": torch.__version__,
+        "precisions": per,
     }

@@ -14,6 +14,7 @@ from vgq.pose import POSE_COLUMNS
 
 CLASS_BALANCE = ("none", "loss_weights")
 OPTIMIZERS = ("sgd", "adamw")
+PRECISIONS = ("fp32", "bf16", "auto")
 
 
 @dataclass
@@ -44,6 +45,14 @@ class TrainConfig:
     )
     seed: int = 0
     num_threads: int = 0  # torch intra-op threads per process; 0: torch default
+    precision: str = field(
+        default="fp32",
+        metadata={
+            "choices": PRECISIONS,
+            "help": "training arithmetic: 'fp32' | 'bf16' (autocast; weights, optimizer and evaluation stay "
+            "fp32) | 'auto' (bf16 where the CPU has native bf16 instructions, else fp32)",
+        },
+    )
 
     def __post_init__(self) -> None:
         if self.arch not in POSE_COLUMNS:
@@ -65,6 +74,8 @@ class TrainConfig:
             raise ValueError("need base_lr > 0, 0 < lr_decay <= 1, 0 <= momentum < 1, weight_decay >= 0")
         if self.optimizer not in OPTIMIZERS:
             raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
         if self.class_balance not in CLASS_BALANCE:
             raise ValueError(f"class_balance must be one of {CLASS_BALANCE}, got {self.class_balance!r}")
 

@@ -53,7 +53,24 @@ RESUMABLE_CHANGES = {
     "log_every_steps",
     "eval_batch_size",
     "num_threads",
+    "precision",  # the arithmetic of the steps, chosen per machine; weights and optimizer state are fp32
 }
+
+
+def cpu_has_native_bf16() -> bool:
+    """Whether this CPU has bf16 matrix instructions (AVX-512 BF16 or AMX-BF16), from /proc/cpuinfo."""
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return "avx512_bf16" in flags or "amx_bf16" in flags
+
+
+def resolve_precision(precision: str) -> str:
+    """'fp32' or 'bf16' for a TrainConfig.precision ('auto': bf16 on a CPU with native bf16)."""
+    if precision == "auto":
+        return "bf16" if cpu_has_native_bf16() else "fp32"
+    return precision
 
 
 @dataclass
@@ -296,12 +313,17 @@ def checkpoint_dict(
     }
 
 
-def _sgd_step(model: torch.nn.Module, opt: torch.optim.Optimizer, batch, lr: float, weights) -> float:
-    """One optimizer step at learning rate ``lr`` on ``(images, poses, labels)``; the loss."""
+def _sgd_step(
+    model: torch.nn.Module, opt: torch.optim.Optimizer, batch, lr: float, weights, bf16: bool = False
+) -> float:
+    """One optimizer step at learning rate ``lr`` on ``(images, poses, labels)``; the loss.
+    ``bf16``: forward and backward under CPU bf16 autocast (parameters and optimizer stay fp32)."""
     for g in opt.param_groups:
         g["lr"] = lr
     img, pose, lab = batch
-    loss = F.cross_entropy(model(img, pose), lab, weight=weights)
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        logits = model(img, pose)
+    loss = F.cross_entropy(logits.float(), lab, weight=weights)
     opt.zero_grad(set_to_none=True)
     loss.backward()
     opt.step()
@@ -343,6 +365,7 @@ def train(
     paths = RunPaths(Path(run_dir))
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
+    bf16 = resolve_precision(cfg.precision) == "bf16"
     ckpt = _checkpoint_to_resume(paths, resume, cfg, data)
 
     net, opt, norm, state, last_val, best_val = _start_or_resume(cfg, data, train_split, ckpt, paths)
@@ -354,7 +377,7 @@ def train(
     if d.main:
         paths.root.mkdir(parents=True, exist_ok=True)
         _trim_log(paths.metrics, state.samples_seen if ckpt is not None else -1)  # all lines on a fresh start
-        atomic.write_json(paths.run_json, _run_info(cfg, data, norm, state, finished=False))
+        atomic.write_json(paths.run_json, _run_info(cfg, data, norm, state, finished=False, bf16=bf16))
     d.barrier()
 
     t0, wall0 = time.time(), state.wall_time_s
@@ -391,7 +414,7 @@ def train(
             for bi in range(state.batch_in_epoch, n_batches):
                 lr = cfg.lr_at(state.samples_seen)
                 batch = train_split.batch(order[bi * local_batch : (bi + 1) * local_batch], cfg.arch)
-                loss = _sgd_step(model, opt, batch, lr, weights)
+                loss = _sgd_step(model, opt, batch, lr, weights, bf16)
                 state.advance(cfg.batch_size)
                 loss_acc, loss_n = loss_acc + loss, loss_n + 1
                 ema = loss if ema is None else 0.95 * ema + 0.05 * loss
@@ -440,7 +463,9 @@ def train(
         save(paths.best, last_val, with_optimizer=False)
     state.wall_time_s = wall0 + time.time() - t0
     if d.main:
-        atomic.write_json(paths.run_json, _run_info(cfg, data, norm, state, finished=True, best_val=best_val))
+        atomic.write_json(
+            paths.run_json, _run_info(cfg, data, norm, state, finished=True, best_val=best_val, bf16=bf16)
+        )
     d.barrier()
     return TrainResult(
         paths.root, state.step, state.samples_seen, state.best_val_balanced_accuracy, last_val, state.wall_time_s
@@ -454,6 +479,7 @@ def _run_info(
     state: TrainState,
     finished: bool,
     best_val: dict | None = None,
+    bf16: bool = False,
 ) -> dict:
     return {
         "arch": cfg.arch,
@@ -463,6 +489,11 @@ def _run_info(
         "intrinsics": data.intrinsics.to_dict(),
         "intrinsics_from_manifest": data.intrinsics_from_manifest,
         "normalization": norm.to_dict(),
-        "training": {**M.nan_to_none(state.to_dict()), "finished": finished, "torch": torch.__version__},
+        "training": {
+            **M.nan_to_none(state.to_dict()),
+            "finished": finished,
+            "torch": torch.__version__,
+            "precision": "bf16" if bf16 else "fp32",
+        },
         "best_validation": M.nan_to_none(best_val or {}),
     }
