@@ -40,6 +40,26 @@ def _baselines(files: list[str], data_path) -> dict:
     return out
 
 
+def _leave_family_out(path: str | None) -> dict:
+    """``{"leave_family_out": metrics}`` from a `training evaluate` result of a leave-family-out run
+    (its ``held_out_families`` entry: the families never seen in training, their rows together)."""
+    if path is None:
+        return {}
+    try:
+        r = json.loads(Path(path).read_text())
+        held = r["held_out_families"]
+    except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+        raise ValueError(f"--leave-family-out {path}: not a `training evaluate` result ({e})") from None
+    if not held:
+        raise ValueError(f"--leave-family-out {path}: evaluated on a dataset without held-out families")
+    return {
+        "leave_family_out": {
+            **held,
+            "by_family": {f: r["by_family"][f] for f in held["families"] if f in r.get("by_family", {})},
+        }
+    }
+
+
 def _sample(ds, order: tuple[str, ...], n: int, seed: int, arch: str):
     """(split, crops, poses, labels) as numpy: ``n`` random rows of the first non-empty split in ``order``."""
     from training.data import DatasetError
@@ -107,6 +127,12 @@ def main(argv=None) -> None:
         "the card's metrics as baseline_<model> (repeatable)",
     )
     p.add_argument(
+        "--leave-family-out",
+        metavar="JSON",
+        help="a `python -m training evaluate` result (metrics_test.json) of the leave-family-out run; its "
+        "held-out families' metrics go into the card's metrics as leave_family_out",
+    )
+    p.add_argument(
         "--int8-head",
         action="store_true",
         help="also write head_int8.onnx (fc5 in int8, ~2x faster) if it scores like the fp32 head on "
@@ -166,6 +192,7 @@ def main(argv=None) -> None:
         if a.recipe:
             meta["dataset"]["recipe"] = a.recipe
         meta["metrics"].update(_baselines(a.baseline, ds.path))
+        meta["metrics"].update(_leave_family_out(a.leave_family_out))
         calibration = None
         if not a.no_calibration:
             calibration = calibrate_on_dataset(

@@ -35,7 +35,9 @@ if [ -d "$DATA/crops_lfo" ]; then  # leave-family-out: a second run that never s
   $PY -m training train --data "$DATA/crops_lfo" --out "$RUN-lfo" --samples "${SAMPLES_LFO:-$SAMPLES}" "${TRAIN_OPTS[@]}"
   $PY -m training evaluate --run "$RUN-lfo" --data "$DATA/crops_lfo"
 fi
-$PY -m export --run "$RUN" --data "$DATA/crops" --out "$OUT" \
+LFO=()
+if [ -f "$RUN-lfo/eval/metrics_test.json" ]; then LFO=(--leave-family-out "$RUN-lfo/eval/metrics_test.json"); fi
+$PY -m export --run "$RUN" --data "$DATA/crops" --out "$OUT" "${LFO[@]}" \
   --recipe "python -m datagen recipe --version $VERSION --out $DATA" --baseline "$BASE/baseline_mlp.json" --int8-head
 cp "$RUN/eval/heatmap_test.png" "$RUN/eval/curves.png" "$OUT/"
 # golden end-to-end scores of the new model on the example image (tests/test_golden_scores.py)

@@ -242,6 +242,35 @@ def test_export_cli_records_recipe_and_pose_only_baseline(tmp_path):
     assert card.training["samples_seen"] == 16
 
 
+def test_export_cli_records_the_leave_family_out_result(tmp_path, capsys):
+    import shutil
+
+    from export.__main__ import main
+    from training.evaluate import evaluate
+
+    data, run = _tiny_run(tmp_path)
+    lfo = tmp_path / "lfo"
+    shutil.copytree(data, lfo)
+    m = json.loads((lfo / "manifest.json").read_text())
+    m["source"] = {
+        "objects": [{"object_id": i, "family": "mug" if i % 2 else "box"} for i in range(30)],
+        "sampling": {"holdout_families": ["mug"]},
+    }
+    (lfo / "manifest.json").write_text(json.dumps(m))
+    rec = evaluate(run, lfo, "test", out_dir=tmp_path / "lfo_eval", progress=False)
+    assert rec["held_out_families"]["families"] == ["mug"]
+    assert rec["held_out_families"]["n"] == rec["by_family"]["mug"]["n"]
+    args = ["--run", str(run), "--data", str(data), "--out", str(tmp_path / "m"), "--verify-n", "4"]
+    main([*args, "--leave-family-out", str(tmp_path / "lfo_eval" / "metrics_test.json")])
+    card = ModelCard.load(tmp_path / "m")
+    assert card.metrics["leave_family_out"]["balanced_accuracy"] == rec["held_out_families"]["balanced_accuracy"]
+    assert list(card.metrics["leave_family_out"]["by_family"]) == ["mug"]
+    evaluate(run, data, "test", out_dir=tmp_path / "plain", progress=False)  # no held-out family
+    with pytest.raises(SystemExit) as e:
+        main([*args[:-3], str(tmp_path / "m2"), "--leave-family-out", str(tmp_path / "plain" / "metrics_test.json")])
+    assert e.value.code == 2 and "without held-out families" in capsys.readouterr().err
+
+
 def test_export_cli_refuses_baseline_of_another_dataset(tmp_path, capsys):
     from export.__main__ import main
     from training.baseline import BaselineConfig, run_baseline

@@ -59,13 +59,20 @@ def evaluate(
     labels = np.asarray(sp.labels)
     overall = M.nan_to_none({**M.binary_metrics(labels, p, threshold), "loss": loss})
     families = data.object_families()
+    row_family = np.array([families.get(int(i), "") for i in np.asarray(sp.arrays["object_id"])])
+    holdout = sorted(((data.manifest.get("source") or {}).get("sampling") or {}).get("holdout_families") or [])
+    held_out = (
+        M.nan_to_none(
+            {
+                "families": holdout,
+                **M.binary_metrics(labels[np.isin(row_family, holdout)], p[np.isin(row_family, holdout)], threshold),
+            }
+        )
+        if holdout
+        else None
+    )
     by_family = (
-        {
-            f: M.nan_to_none(m)
-            for f, m in M.metrics_by_group(
-                labels, p, np.array([families.get(int(i), "") for i in np.asarray(sp.arrays["object_id"])]), threshold
-            ).items()
-        }
+        {f: M.nan_to_none(m) for f, m in M.metrics_by_group(labels, p, row_family, threshold).items()}
         if families
         else {}
     )
@@ -93,6 +100,8 @@ def evaluate(
         "samples_seen": meta["training"]["samples_seen"],
         "overall": overall,
         "by_family": by_family,
+        # leave-family-out datasets: the rows of the families never seen in training, together
+        "held_out_families": held_out,
         "grid": {"d_step_m": d_step, "phi_step_deg": phi_step_deg, **M.grid_to_json(grid)},
         "inference_s": dt,
     }
