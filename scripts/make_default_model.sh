@@ -23,6 +23,7 @@ esac
 OUT=${OUT:-models/fast-vgqcnn-default}
 TRAIN_OPTS=(--arch fast_vgqcnn --resume --seed 0 --optimizer adamw --base-lr 0.0002 --decay-every-samples 100000
   --class-balance loss_weights --val-every-samples 25000 --val-max-samples 6000 --checkpoint-every-samples 20000)
+if [ "$VERSION" = v2 ]; then TRAIN_OPTS+=(--precision auto); fi  # bf16 steps where the CPU has bf16 (~1.9x)
 
 $PY -m datagen recipe --version "$VERSION" --out "$DATA"
 $PY -m training train --data "$DATA/crops" --out "$RUN" --samples "$SAMPLES" "${TRAIN_OPTS[@]}"
