@@ -165,7 +165,9 @@ class CachedWindows:
     """The planner's window store (``planning.policy.WindowStore``) on a cached image: its
     encoded windows (fetched from Redis when another replica encoded them) are reused; the
     ones the planner encodes are added, unless more than ``max_missing_fraction`` of them is
-    missing (the score route answers 422 for those rather than score them)."""
+    missing (the score route answers 422 for those rather than score them) or the image was
+    uploaded with one fixed window (``center_u`` / ``center_v``: its grasps are scored in that
+    window only, and its answers describe that window)."""
 
     def __init__(self, svc: Service, key: str, entry: CachedImage):
         self.svc, self.key, self.entry = svc, key, entry
@@ -178,6 +180,8 @@ class CachedWindows:
         return {o: (held[o].term, held[o].missing_fraction) for o in origins if o in held}
 
     def keep(self, new) -> None:
+        if self.entry.fixed_center is not None:
+            return
         cap = self.svc.settings.max_missing_fraction
         add = {
             o: EncodedWindow(np.asarray(term, np.float32).reshape(1, -1).copy(), float(frac))

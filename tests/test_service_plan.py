@@ -250,6 +250,27 @@ def test_windows_a_plan_encodes_are_cached_with_the_image(url, two_boxes):
     assert httpx.get(f"{url}/v1/cache").json()["windows"] == before + d["counts"]["windows"]
 
 
+def test_an_image_uploaded_with_a_fixed_window_is_planned_and_keeps_only_that_window(url, two_boxes):
+    depth = two_boxes[0] + 0.002
+    up = httpx.post(
+        f"{url}/v1/images",
+        content=npy(depth),
+        params={"center_u": 150, "center_v": 150},
+        headers={"content-type": "application/x-npy"},
+    ).json()
+    before = httpx.get(f"{url}/v1/cache").json()["windows"]
+    d = plan_id(url, up["image_id"], {"k": 2, "seed": 1}).json()
+    assert d["grasps"] == post_plan(url, depth, {"k": 2, "seed": 1}).json()["grasps"]
+    assert httpx.get(f"{url}/v1/cache").json()["windows"] == before  # the upload's one window, no more
+    again = httpx.post(
+        f"{url}/v1/images",
+        content=npy(depth),
+        params={"center_u": 150, "center_v": 150},
+        headers={"content-type": "application/x-npy"},
+    ).json()
+    assert again["cached"] and again["missing_fraction"] == up["missing_fraction"]
+
+
 def test_an_unknown_image_id_answers_404(url):
     for r in (
         plan_id(url, "0" * 32, {"k": 2}),
