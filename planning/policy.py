@@ -9,6 +9,7 @@ the contacts do not depend on the pixel grid).
 from __future__ import annotations
 
 import time
+from typing import Protocol
 
 import numpy as np
 from PIL import Image
@@ -151,23 +152,41 @@ def cover_windows(uv: np.ndarray, geom) -> np.ndarray:
     return out
 
 
+class WindowStore(Protocol):
+    """Encoded windows of one image kept beyond one plan (the service's image cache), keyed
+    by the window's integer top-left pixel (u, v) in the image at the model's focal lengths.
+    A term is the encoder's (1024,) float32 output for :func:`vgq.inpaint.crop_filled` of
+    that window; the float is the window's missing-depth fraction."""
+
+    def lookup(self, origins: list[tuple[int, int]]) -> dict[tuple[int, int], tuple[np.ndarray, float]]:
+        """The windows among ``origins`` already encoded."""
+        ...
+
+    def keep(self, new: dict[tuple[int, int], tuple[np.ndarray, float]]) -> None:
+        """Windows this plan just encoded."""
+        ...
+
+
 class WindowScorer:
     """Scores grasp rows on one image: each grasp goes to a window (``windows``: "cover",
     :func:`cover_windows` of the first batch scored, later grasps to the nearest of those
     that holds them; or "grid", :func:`vgq.crop.grid_window_centers`); each window is
     cropped and encoded once (all new windows in one batched encoder call) and cached for
-    later calls (the CEM refinement)."""
+    later calls (the CEM refinement). ``store``: windows encoded before (taken from it, not
+    encoded again; ``reused`` counts them) and kept after (those this scorer encodes)."""
 
-    def __init__(self, model, depth: np.ndarray, windows: str = "cover"):
+    def __init__(self, model, depth: np.ndarray, windows: str = "cover", store: WindowStore | None = None):
         if windows not in ("cover", "grid"):
             raise ValueError(f"windows must be 'cover' or 'grid', got {windows!r}")
         self.windows = windows
         self.model = model
         self.depth = depth
         self.geom = model.geometry
+        self.store = store
         self.terms: dict[tuple[float, float], np.ndarray] = {}
         self.actual: dict[tuple[float, float], np.ndarray] = {}
         self.missing: dict[tuple[float, float], float] = {}
+        self.reused = 0
         self.encode_seconds = 0.0
         self.score_seconds = 0.0
 
@@ -176,17 +195,31 @@ class WindowScorer:
         if not new:
             return
         t = time.perf_counter()
+        origin = {k: tuple(int(x) for x in window_origin(np.asarray(k)[None], self.geom)[0]) for k in new}
+        if self.store is not None:
+            known = self.store.lookup([origin[k] for k in new])
+            for k in new:
+                if origin[k] in known:
+                    term, frac = known[origin[k]]
+                    self.terms[k] = np.asarray(term, np.float32).reshape(-1)
+                    self.actual[k] = window_center(np.asarray(origin[k]), self.geom)
+                    self.missing[k] = float(frac)
+                    self.reused += 1
+            new = [k for k in new if k not in self.terms]
         imgs = []
         for k in new:
             # the service's and the crop stage's input: missing depth filled (vgq.inpaint), then resized
-            img, actual, frac = crop_filled(self.depth, window_origin(np.asarray(k)[None], self.geom)[0], self.geom)
+            img, actual, frac = crop_filled(self.depth, origin[k], self.geom)
             imgs.append(img)
             self.actual[k] = actual
             self.missing[k] = frac
-        x = np.ascontiguousarray(np.stack(imgs)[:, None], dtype=np.float32)
-        terms = self.model.encoder.run([ENCODER_OUTPUT], {ENCODER_INPUT: x})[0]
-        for k, term in zip(new, terms):
-            self.terms[k] = term
+        if new:
+            x = np.ascontiguousarray(np.stack(imgs)[:, None], dtype=np.float32)
+            terms = self.model.encoder.run([ENCODER_OUTPUT], {ENCODER_INPUT: x})[0]
+            for k, term in zip(new, terms):
+                self.terms[k] = term
+            if self.store is not None:
+                self.store.keep({origin[k]: (self.terms[k], self.missing[k]) for k in new})
         self.encode_seconds += time.perf_counter() - t
 
     def _centres(self, uv: np.ndarray) -> np.ndarray:
@@ -298,6 +331,11 @@ def z_training_range(model) -> tuple[float, float]:
 # ----------------------------------------------------------------------------- plan
 
 
+def check_seed(seed) -> None:
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
+        raise PlanningError("seed", f"seed must be a non-negative integer or None, got {seed!r}")
+
+
 def plan(
     depth,
     intrinsics: Intrinsics | None,
@@ -315,25 +353,60 @@ def plan(
     Raises :class:`PlanningError` (field ``depth``, ``intrinsics``, ``k``, ``roi`` or
     ``seed``) for input it cannot plan on. When no grasp is found the result has no grasps
     and a ``reason``."""
-    params = params or PlanParams()
     t0 = time.perf_counter()
     model_intr = model.card.intrinsics
     cam = intrinsics or model_intr
     k = check_k(k)
-    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
-        raise PlanningError("seed", f"seed must be a non-negative integer or None, got {seed!r}")
+    check_seed(seed)
     d = check_depth(depth, cam)
     roi_m = roi_mask(roi, d.shape)
     if roi_m is not None and not (roi_m & valid_mask(d)).any():
         raise PlanningError("roi", "the region of interest has no valid depth")
-    rng = np.random.default_rng(seed)
     try:
         d_model, intr = resample_depth(np.where(np.isfinite(d), d, 0.0).astype(np.float32), cam, model_intr)
     except CameraMismatch as e:
         raise PlanningError("intrinsics", str(e)) from None
-    if roi_m is not None and intr is not cam:
+    return plan_resampled(d_model, intr, cam, model, k, roi_m, seed, params, started=t0)
+
+
+def plan_resampled(
+    depth: np.ndarray,
+    intrinsics: Intrinsics,
+    camera: Intrinsics,
+    model,
+    k: int = 5,
+    roi=None,
+    seed: int | None = 0,
+    params: PlanParams | None = None,
+    windows: WindowStore | None = None,
+    started: float | None = None,
+) -> PlanResult:
+    """:func:`plan` on an image already at the model's focal lengths: ``depth`` (H', W')
+    metres (0 = no reading) with ``intrinsics`` (what :func:`vgq.camera.resample_depth`
+    returns; the service caches uploads so), ``camera`` the caller's camera, in whose
+    pixels ``roi`` is given and the grasps are answered. ``windows``: encoded windows of
+    this image kept between plans (:class:`WindowStore`): those it holds are not encoded
+    again (``counts["windows_reused"]``), the new ones are added. ``started``: the
+    ``perf_counter`` time the request began (``seconds["resample"]`` runs from it)."""
+    params = params or PlanParams()
+    t0 = time.perf_counter() if started is None else started
+    k = check_k(k)
+    check_seed(seed)
+    d_model, intr, cam = np.asarray(depth, dtype=np.float32), intrinsics, camera
+    if d_model.shape != (intr.height, intr.width):
+        raise PlanningError(
+            "intrinsics",
+            f"the image is {d_model.shape[1]}x{d_model.shape[0]} px but the intrinsics say {intr.width}x{intr.height}",
+        )
+    if not valid_mask(d_model).any():
+        raise PlanningError("depth", "the image has no valid depth (every pixel is 0 or non-finite)")
+    roi_m = roi_mask(roi, (cam.height, cam.width))
+    if roi_m is not None and intr != cam:
         img = Image.fromarray(roi_m.astype(np.uint8) * 255).resize((intr.width, intr.height), Image.Resampling.NEAREST)
         roi_m = np.asarray(img) > 127
+    if roi_m is not None and not (roi_m & valid_mask(d_model)).any():
+        raise PlanningError("roi", "the region of interest has no valid depth")
+    rng = np.random.default_rng(seed)
     seconds = {"resample": time.perf_counter() - t0}
 
     t = time.perf_counter()
@@ -360,7 +433,7 @@ def plan(
         )
         return PlanResult((), reason, counts, seconds, version)
 
-    scorer = WindowScorer(model, d_model, params.windows)
+    scorer = WindowScorer(model, d_model, params.windows, windows)
     scores, missing = scorer.score(grasp_rows(cands.frames, intr))
     if params.cem_iterations:
         t = time.perf_counter()
@@ -370,13 +443,15 @@ def plan(
     seconds["encode"] = scorer.encode_seconds
     seconds["score"] = scorer.score_seconds
     counts["windows"] = len(scorer.terms)
+    if windows is not None:
+        counts["windows_reused"] = scorer.reused
 
     t = time.perf_counter()
     keep = nms(cands.frames, scores, k, params.nms_distance, params.nms_angle)
     top = cands[keep]
     rows = grasp_rows(top.frames, intr)
     flags = ood_flags(rows, d_model, z_training_range(model), missing[keep] > params.window_missing_fraction)
-    uv = map_pixels(rows[:, :2], intr, cam) if intr is not cam else rows[:, :2]
+    uv = map_pixels(rows[:, :2], intr, cam) if intr != cam else rows[:, :2]
     grasps = tuple(
         PlannedGrasp(
             u=float(uv[i, 0]),

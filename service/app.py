@@ -6,7 +6,9 @@
 * ``POST /v1/images/{image_id}/scores``: score k grasps anywhere in a cached image; the crop
   windows they need (vgq.crop's grid) are encoded once, lazily, in one batch.
 * ``POST /v1/score``: one-shot, depth + grasps in one request (multipart or .npz).
-* ``POST /v1/plan``: the best k grasps on a depth image (service/plan_routes.py).
+* ``POST /v1/plan``: the best k grasps on a depth image, or on an uploaded image named by a
+  JSON ``{"image_id": ...}``; ``POST /v1/images/{image_id}/plan``: the same on an uploaded
+  image (service/plan_routes.py).
 * ``GET /healthz``, ``/readyz``, ``/v1/model``, ``/v1/cache``, ``/metrics``, ``/docs``, ``/redoc``.
 
 Client errors answer ``{"error": {"status", "message", "details"}}``; so do the HTTP layer's
@@ -36,7 +38,7 @@ from .routes import json_response, router
 from .runtime import FastModel
 from .scoring import Service
 
-GUARDED = ("/v1/images", "/v1/images/{image_id}/scores", "/v1/score", "/v1/plan")
+GUARDED = ("/v1/images", "/v1/images/{image_id}/scores", "/v1/score", "/v1/plan", "/v1/images/{image_id}/plan")
 DESCRIPTION = (
     "Upload a depth image once, with the camera's intrinsics (fx, fy, cx, cy; it is resampled to the model's focal "
     "length and cached), then score batches of 6-DOF grasps (u, v, z, qw, qx, qy, qz) anywhere in it: each grasp's "

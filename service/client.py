@@ -6,6 +6,7 @@
     p = c.score(image_id, grasps)               # (k, 7): u, v, z, qw, qx, qy, qz anywhere in the image -> (k,)
     r = c.score_details(image_id, grasps)       # + raw_score, ood (names per grasp), ood_mask, calibrated
     plan = c.plan(depth, k=5)                   # the best 5 grasps: plan.rows (n, 7), plan.poses (n, 4, 4)
+    plan = c.plan(image_id=image_id, k=5)       # the same on the uploaded image (its camera, its cached windows)
 
 Intrinsics: a tuple (fx, fy, cx, cy), a dict with those keys (any subset) or a
 ``vgq.camera.Intrinsics``; omitted, the service assumes the model's (``last_upload`` says so).
@@ -14,7 +15,6 @@ Intrinsics: a tuple (fx, fy, cx, cy), a dict with those keys (any subset) or a
 from __future__ import annotations
 
 import io
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import httpx
@@ -40,10 +40,11 @@ def intrinsics_params(intrinsics) -> dict:
 
 @dataclass(frozen=True)
 class Plan:
-    """The answer of ``POST /v1/plan``: ``grasps`` best first, each a dict with ``row`` (u, v,
-    z, qw, qx, qy, qz), ``pose`` (4 x 4, camera frame, metres), ``width`` (m), ``contacts``
-    (2 x 3, camera frame, m), ``score``, ``ood_flags`` and ``ood``; ``reason`` says why when
-    there are none; ``intrinsics`` the camera planned with (px); ``answer`` the whole JSON."""
+    """The answer of ``POST /v1/plan`` (or ``/v1/images/{id}/plan``): ``grasps`` best first,
+    each a dict with ``row`` (u, v, z, qw, qx, qy, qz), ``pose`` (4 x 4, camera frame,
+    metres), ``width`` (m), ``contacts`` (2 x 3, camera frame, m), ``score``, ``ood_flags``
+    and ``ood``; ``reason`` says why when there are none; ``intrinsics`` the camera planned
+    with (px); ``answer`` the whole JSON."""
 
     grasps: list[dict]
     reason: str | None
@@ -51,6 +52,7 @@ class Plan:
     model_version: str
     seconds: dict = field(default_factory=dict)
     answer: dict = field(default_factory=dict, repr=False)
+    image_id: str | None = None  # the uploaded image planned on (``plan(image_id=...)``)
 
     @property
     def rows(self) -> np.ndarray:
@@ -185,25 +187,42 @@ class ServiceClient:
         self.last_ood_count = int(r.headers.get("x-ood-count", 0))
         return np.frombuffer(r.content, dtype="<f4").copy()
 
-    def plan(self, depth: np.ndarray, k: int = 5, intrinsics=None, roi=None, seed: int = 0, cem: int = 0) -> Plan:
-        """The best ``k`` grasps on a (H, W) depth image in metres (0 = no reading).
-        ``intrinsics``: the camera's fx, fy, cx, cy in px (a mapping or an object with those
-        attributes, e.g. ``vgq.camera.Intrinsics``; default: the model's); ``roi``: (u0, v0,
-        u1, v1) px where grasps may lie; ``seed``: repeatable sampling; ``cem``: refinement
-        iterations. Raises ServiceError (422 naming the field) for input it cannot plan on."""
+    def plan(
+        self,
+        depth: np.ndarray | None = None,
+        k: int = 5,
+        intrinsics=None,
+        roi=None,
+        seed: int = 0,
+        cem: int = 0,
+        *,
+        image_id: str | None = None,
+    ) -> Plan:
+        """The best ``k`` grasps on a (H, W) depth image in metres (0 = no reading), or on the
+        image ``upload`` answered ``image_id`` for (one of the two; nothing is sent again and
+        windows encoded before are reused). ``intrinsics``: the camera's fx, fy, cx, cy in px
+        (as for ``upload``: a tuple, a mapping or ``vgq.camera.Intrinsics``; default:
+        the model's; with ``image_id`` the upload's, which they may repeat, not change);
+        ``roi``: (u0, v0, u1, v1) px where grasps may lie; ``seed``: repeatable sampling;
+        ``cem``: refinement iterations. Raises ServiceError (422 naming the field) for input
+        it cannot plan on, 404 for an unknown or evicted ``image_id``."""
+        if (depth is None) == (image_id is None):
+            raise ValueError("plan needs a depth image or an image_id (one of the two)")
         params: dict = {"k": k, "seed": seed, "cem": cem}
-        if intrinsics is not None:
-            for name in ("fx", "fy", "cx", "cy"):
-                v = intrinsics[name] if isinstance(intrinsics, Mapping) else getattr(intrinsics, name)
-                params[name] = repr(float(v))
+        params.update({name: repr(v) for name, v in intrinsics_params(intrinsics).items()})
         if roi is not None:
             params["roi"] = ",".join(repr(float(x)) for x in roi)
-        r = self.http.post(
-            "/v1/plan", content=self._npy(depth), params=params, headers={"content-type": "application/x-npy"}
-        )
+        if image_id is not None:
+            r = self.http.post(f"/v1/images/{image_id}/plan", params=params)
+        else:
+            r = self.http.post(
+                "/v1/plan", content=self._npy(depth), params=params, headers={"content-type": "application/x-npy"}
+            )
         self._raise(r)
         d = r.json()
-        return Plan(d["grasps"], d["reason"], d["intrinsics"], d["model_version"], d.get("seconds", {}), d)
+        return Plan(
+            d["grasps"], d["reason"], d["intrinsics"], d["model_version"], d.get("seconds", {}), d, d.get("image_id")
+        )
 
     def model(self) -> dict:
         r = self.http.get("/v1/model")

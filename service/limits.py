@@ -82,6 +82,8 @@ class Reservation:
 def _endpoint(path: str) -> str:
     if path.startswith("/v1/images/") and path.endswith("/scores"):
         return "score"
+    if path.startswith("/v1/images/") and path.endswith("/plan"):
+        return "plan"
     return {
         "/v1/images": "upload",
         "/v1/score": "score_once",

@@ -326,11 +326,20 @@ ONE_SHOT_BODY = {
     },
 }
 
-PLAN_ERRORS = PROTOCOL + (401, 413, 415, 422, 503)
+PLAN_ERRORS = PROTOCOL + (401, 404, 413, 415, 422, 503)  # 404: a JSON body's image id is unknown or evicted
+IMAGE_PLAN_ERRORS = PROTOCOL + (401, 404, 413, 422, 503)
+PLAN_IMAGE_ID_BODY = {
+    "type": "object",
+    "required": ["image_id"],
+    "additionalProperties": False,
+    "properties": {"image_id": {"type": "string", "description": "the id POST /v1/images answered"}},
+}
 PLAN_BODY = {
     "required": True,
-    "description": "Depth image in metres (camera frame z; 0 = no reading), as for POST /v1/images.",
-    "content": UPLOAD_BODY["content"],
+    "description": "Depth image in metres (camera frame z; 0 = no reading), as for POST /v1/images; or JSON "
+    '{"image_id": ...} naming an uploaded image (planned as POST /v1/images/{image_id}/plan: with the '
+    "camera given at upload, its encoded windows reused).",
+    "content": {**UPLOAD_BODY["content"], "application/json": {"schema": PLAN_IMAGE_ID_BODY}},
 }
 _NUMBERS = {"type": "array", "items": {"type": "number"}}
 _PLANNED_GRASP = {
@@ -450,9 +459,38 @@ PLAN_RESPONSE = {
                         "required": ["fx", "fy", "cx", "cy", "width", "height"],
                         "description": "the camera the image was planned with (px)",
                     },
+                    "image_id": {"type": "string", "description": "the image planned on (a JSON body only)"},
+                    "intrinsics_assumed": {
+                        **_CAMERA["intrinsics_assumed"],
+                        "description": "intrinsics not sent at upload (a JSON body only)",
+                    },
                 },
             },
             "example": PLAN_EXAMPLE,
+        }
+    },
+}
+IMAGE_PLAN_RESPONSE = {
+    "description": "As POST /v1/plan, for the uploaded image: `intrinsics` is the camera given (or assumed) at "
+    "upload, `intrinsics_assumed` the values that were not sent, `counts.windows_reused` the crop windows taken "
+    "from the cache rather than encoded.",
+    "content": {
+        "application/json": {
+            "schema": {
+                **PLAN_RESPONSE["content"]["application/json"]["schema"],
+                "required": [*PLAN_RESPONSE["content"]["application/json"]["schema"]["required"], "image_id"],
+                "properties": {
+                    **PLAN_RESPONSE["content"]["application/json"]["schema"]["properties"],
+                    "image_id": {"type": "string"},
+                    "intrinsics_assumed": _CAMERA["intrinsics_assumed"],
+                },
+            },
+            "example": {
+                **PLAN_EXAMPLE,
+                "counts": {**PLAN_EXAMPLE["counts"], "windows_reused": 1},
+                "image_id": "3f2a9c0d4e5b6a7f8091a2b3c4d5e6f7",
+                "intrinsics_assumed": ["fx", "fy", "cx", "cy"],
+            },
         }
     },
 }

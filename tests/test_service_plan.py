@@ -1,7 +1,7 @@
 """POST /v1/plan on the real service (uvicorn subprocess, the bundled model) with scenes
 rendered by datagen: k distinct grasps whose rows are their poses, in every upload format;
 bad input answers 422 naming it; nothing to grasp answers 200 with a reason; the client's
-plan()."""
+plan(); an uploaded image planned by its id answers as its depth planned directly."""
 
 from __future__ import annotations
 
@@ -191,9 +191,161 @@ def test_client_plan(url, two_boxes, table_only):
         assert e.value.status == 422 and "k" in e.value.message
 
 
-def test_an_image_id_is_not_a_depth_image(url):
-    r = httpx.post(f"{url}/v1/plan", json={"image_id": "0" * 32})
-    assert r.status_code == 415 and "image/png" in r.json()["error"]["message"]
+# ---- planning on an uploaded image (POST /v1/images/{image_id}/plan, or a JSON body on /v1/plan)
+
+
+def upload(url, depth, intr: dict | None = None) -> str:
+    r = httpx.post(
+        f"{url}/v1/images", content=npy(depth), params=intr or {}, headers={"content-type": "application/x-npy"}
+    )
+    assert r.status_code == 200, r.text
+    return r.json()["image_id"]
+
+
+def plan_id(url, image_id, params=None, **kw) -> httpx.Response:
+    return httpx.post(f"{url}/v1/images/{image_id}/plan", params=params or {}, timeout=60, **kw)
+
+
+def same_plan(a: dict, b: dict) -> None:
+    assert a["reason"] == b["reason"] and a["intrinsics"] == b["intrinsics"]
+    assert a["grasps"] == b["grasps"]  # every row, pose, contact, width, score and flag, bit for bit
+    assert {k: v for k, v in a["counts"].items() if k != "windows_reused"} == {
+        k: v for k, v in b["counts"].items() if k != "windows_reused"
+    }
+
+
+# the model's camera (nothing sent at upload: all assumed), and a 600 px one the image is resampled from
+CAMERAS = [None, {"fx": 600.0, "fy": 610.0, "cx": 151.0, "cy": 148.0}]
+
+
+@pytest.mark.parametrize("intr", CAMERAS, ids=["model_camera", "resampled"])
+def test_planning_an_uploaded_image_equals_planning_its_depth(url, two_boxes, intr):
+    depth = two_boxes[0]
+    params = {"k": 4, "seed": 7, "roi": "60,60,260,240"}
+    direct = post_plan(url, depth, {**params, **(intr or {})})
+    assert direct.status_code == 200, direct.text
+    image_id = upload(url, depth, intr)
+    first = plan_id(url, image_id, params)
+    assert first.status_code == 200, first.text
+    a = first.json()
+    same_plan(a, direct.json())
+    assert a["image_id"] == image_id and len(a["grasps"]) == 4
+    assert a["intrinsics_assumed"] == ([] if intr else ["fx", "fy", "cx", "cy"])
+    assert a["counts"]["windows_reused"] == 0  # nothing was encoded for this image before
+    # again, by the JSON body of /v1/plan: the windows the first plan encoded are reused
+    again = httpx.post(f"{url}/v1/plan", params=params, json={"image_id": image_id}, timeout=60)
+    assert again.status_code == 200, again.text
+    b = again.json()
+    same_plan(b, direct.json())
+    assert b["counts"]["windows_reused"] == b["counts"]["windows"] >= 1
+    # the camera may be repeated in the query
+    if intr:
+        assert plan_id(url, image_id, {**params, **intr}).json()["grasps"] == a["grasps"]
+
+
+def test_windows_a_plan_encodes_are_cached_with_the_image(url, two_boxes):
+    image_id = upload(url, two_boxes[0] + 0.001)
+    before = httpx.get(f"{url}/v1/cache").json()["windows"]
+    d = plan_id(url, image_id, {"k": 2}).json()
+    assert httpx.get(f"{url}/v1/cache").json()["windows"] == before + d["counts"]["windows"]
+
+
+def test_an_image_uploaded_with_a_fixed_window_is_planned_and_keeps_only_that_window(url, two_boxes):
+    depth = two_boxes[0] + 0.002
+    up = httpx.post(
+        f"{url}/v1/images",
+        content=npy(depth),
+        params={"center_u": 150, "center_v": 150},
+        headers={"content-type": "application/x-npy"},
+    ).json()
+    before = httpx.get(f"{url}/v1/cache").json()["windows"]
+    d = plan_id(url, up["image_id"], {"k": 2, "seed": 1}).json()
+    assert d["grasps"] == post_plan(url, depth, {"k": 2, "seed": 1}).json()["grasps"]
+    assert httpx.get(f"{url}/v1/cache").json()["windows"] == before  # the upload's one window, no more
+    again = httpx.post(
+        f"{url}/v1/images",
+        content=npy(depth),
+        params={"center_u": 150, "center_v": 150},
+        headers={"content-type": "application/x-npy"},
+    ).json()
+    assert again["cached"] and again["missing_fraction"] == up["missing_fraction"]
+
+
+def test_an_unknown_image_id_answers_404(url):
+    for r in (
+        plan_id(url, "0" * 32, {"k": 2}),
+        httpx.post(f"{url}/v1/plan", json={"image_id": "0" * 32}, timeout=60),
+    ):
+        assert r.status_code == 404, r.text
+        msg = r.json()["error"]["message"]
+        assert "unknown or evicted image id" in msg and "upload the image again" in msg
+
+
+@pytest.mark.parametrize(
+    "params, field",
+    [
+        ({"k": 0}, "k"),
+        ({"k": 101}, "k"),
+        ({"seed": -1}, "seed"),
+        ({"cem": 11}, "cem"),
+        ({"roi": "400,400,500,500"}, "roi"),  # outside the image: empty
+        ({"roi": "50,50,10,10"}, "roi"),
+        ({"roi": "1,2,3"}, "roi"),
+        ({"fx": 600.0}, "fx"),  # the upload's camera is the model's (assumed): it may not be changed
+        ({"cy": 10.0}, "cy"),
+    ],
+)
+def test_bad_parameters_on_an_uploaded_image_answer_422_naming_them(url, two_boxes, params, field):
+    image_id = upload(url, two_boxes[0])
+    r = plan_id(url, image_id, params)
+    assert r.status_code == 422, r.text
+    assert field in r.json()["error"]["message"]
+
+
+def test_a_camera_other_than_the_uploads_answers_422_naming_it(url, two_boxes):
+    image_id = upload(url, two_boxes[0], CAMERAS[1])
+    r = plan_id(url, image_id, {"fy": 600.0})
+    assert r.status_code == 422 and r.json()["error"]["details"] == {"field": "fy"}
+    assert "uploaded with fy 610" in r.json()["error"]["message"]
+
+
+@pytest.mark.parametrize(
+    "body, status",
+    [
+        (b'{"image_id": 5}', 422),
+        (b'{"image_id": "x", "k": 3}', 422),  # k goes in the query
+        (b"[1]", 422),
+        (b"{not json", 400),
+    ],
+)
+def test_a_malformed_image_id_body_is_refused(url, body, status):
+    r = httpx.post(f"{url}/v1/plan", content=body, headers={"content-type": "application/json"}, timeout=60)
+    assert r.status_code == status, r.text
+
+
+def test_planning_an_uploaded_image_takes_no_body(url, two_boxes):
+    image_id = upload(url, two_boxes[0])
+    r = plan_id(url, image_id, {"k": 1}, content=npy(two_boxes[0]), headers={"content-type": "application/x-npy"})
+    assert r.status_code == 422 and "no body" in r.json()["error"]["message"]
+
+
+def test_client_plans_an_uploaded_image(url, two_boxes):
+    depth = two_boxes[0]
+    with ServiceClient(url, timeout=60) as c:
+        image_id = c.upload(depth, intrinsics=CAMERAS[1])
+        by_id = c.plan(image_id=image_id, k=3, roi=(60, 60, 260, 240), seed=5)
+        by_depth = c.plan(depth, k=3, intrinsics=CAMERAS[1], roi=(60, 60, 260, 240), seed=5)
+        assert by_id.image_id == image_id and by_depth.image_id is None
+        assert by_id.grasps == by_depth.grasps and len(by_id.grasps) == 3
+        with pytest.raises(ServiceError) as e:
+            c.plan(image_id="f" * 32)
+        assert e.value.status == 404
+        with pytest.raises(ServiceError) as e:
+            c.plan(image_id=image_id, intrinsics={"fx": 525.0})
+        assert e.value.status == 422 and e.value.details == {"field": "fx"}
+        for bad in ({}, {"depth": depth, "image_id": image_id}):
+            with pytest.raises(ValueError, match="one of the two"):
+                c.plan(**bad)
 
 
 def test_plan_needs_the_api_key_when_one_is_set(two_boxes):
@@ -201,5 +353,7 @@ def test_plan_needs_the_api_key_when_one_is_set(two_boxes):
         assert post_plan(u, two_boxes[0], {"k": 1}).status_code == 401
         with ServiceClient(u, api_key="s3cret", timeout=60) as c:
             assert len(c.plan(two_boxes[0], k=1).grasps) == 1
+        assert plan_id(u, "0" * 32).status_code == 401
         spec = httpx.get(f"{u}/openapi.json").json()
         assert spec["paths"]["/v1/plan"]["post"]["security"] == [{"ApiKey": []}]
+        assert spec["paths"]["/v1/images/{image_id}/plan"]["post"]["security"] == [{"ApiKey": []}]

@@ -1,5 +1,5 @@
 """The Redis cache backend against a real redis-server on a loopback port: replicas share
-images (upload on A, score on B), and the service degrades (404, local uploads, metrics,
+images (upload on A, score or plan on B), and the service degrades (404, local uploads, metrics,
 logs) when Redis goes away."""
 
 from __future__ import annotations
@@ -117,6 +117,23 @@ def test_one_shot_on_a_fills_the_cache_of_b(shared):
         up = httpx.post(f"{b}/v1/images", content=cb._npy(depth), headers={"content-type": "application/x-npy"}).json()
         assert up["cached"] is True
         assert np.allclose(cb.score(up["image_id"], g), p, atol=1e-6)
+
+
+def test_image_uploaded_on_a_is_planned_on_b_with_the_windows_a_encoded(shared):
+    pytest.importorskip("trimesh")
+    from tests.planning_scenes import boxes_scene
+
+    _, a, b = shared
+    depth = boxes_scene()[0]
+    with ServiceClient(a, timeout=60) as ca, ServiceClient(b, timeout=60) as cb:
+        iid = ca.upload(depth)
+        on_a = ca.plan(image_id=iid, k=3, seed=3)
+        fetched = httpx.get(f"{b}/v1/cache").json()["windows_fetched"]
+        on_b = cb.plan(image_id=iid, k=3, seed=3)
+    assert on_a.grasps and on_b.grasps == on_a.grasps
+    n = on_b.answer["counts"]["windows"]
+    assert on_a.answer["counts"]["windows_reused"] == 0 and on_b.answer["counts"]["windows_reused"] == n
+    assert httpx.get(f"{b}/v1/cache").json()["windows_fetched"] == fetched + n  # read from Redis, not encoded
 
 
 def test_entries_are_bytes_with_a_ttl(shared):
