@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import re
 
-# an absolute POSIX or Windows path (at least two components): answers name files, never folders of this host
-_ABS_PATH = re.compile(r"(?<![\w.~:/-])(?:[A-Za-z]:[\\/]|/)(?:[^\s'\"/\\:,;]+[\\/])+([^\s'\"/\\:,;]*)")
+# an absolute POSIX or Windows path (at least two components): answers name files, never folders of this host;
+# the service's own routes (/v1/...) are not paths of the host and stay whole
+_ABS_PATH = re.compile(r"(?<![\w.~:/-])(?!/v\d+/)(?:[A-Za-z]:[\\/]|/)(?:[^\s'\"/\\:,;]+[\\/])+([^\s'\"/\\:,;]*)")
 
 
 class ApiError(Exception):

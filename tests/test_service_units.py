@@ -318,6 +318,9 @@ def test_absolute_paths_are_cut_to_their_last_part():
     )
     assert out["win"] == "shard.npz" and out["n"] == 3 and out["list"] == ["c.json"]
     assert out["quantized_nodes"] == ["/head/fc5/Gemm"] and out["url"] == doc["url"]
+    # the service's own routes are not host paths: a message pointing the client at one keeps it whole
+    hint = "unknown or evicted image id 'x'; upload the image again (POST /v1/images)"
+    assert redact_paths(hint) == hint
 
 
 def test_multipart_parts_are_views_into_the_body():
