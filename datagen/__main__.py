@@ -182,6 +182,7 @@ def cmd_sample(args) -> int:
 
 def cmd_crops(args) -> int:
     from .crops import make_crops
+    from .parallel import default_workers
     from .sensor import parse_override
 
     make_crops(
@@ -194,6 +195,7 @@ def cmd_crops(args) -> int:
         sensor=args.sensor,
         sensor_overrides=dict(parse_override(o) for o in args.sensor_set),
         splits=tuple(args.splits),
+        workers=args.workers or default_workers(),
     )
     return 0
 
@@ -444,6 +446,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=["train", "val", "test"],
         help="splits to crop, the others written empty (default all; e.g. --splits test --sensor clean "
         "for a clean copy of the test split)",
+    )
+    c.add_argument(
+        "--workers", type=_positive_int("--workers"), help="processes cropping objects (default: one per CPU core)"
     )
     c.add_argument("--quiet", action="store_true")
     c.set_defaults(func=cmd_crops)

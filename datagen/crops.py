@@ -26,7 +26,7 @@ import numpy as np
 from vgq import crop as vcrop
 from vgq import inpaint
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
-from vgq.schema import SPLITS, crop_counts, write_crop_manifest
+from vgq.schema import CROP_FIELDS, SPLITS, crop_counts, write_crop_manifest
 
 from . import sensor as sensor_model
 from . import storage
@@ -104,6 +104,45 @@ def crop_grasps(
     return images, pose_uv, missing
 
 
+_OPEN: dict[str, storage.GraspDataset] = {}
+
+
+def crop_object(
+    src: str, entry: dict, arch: str, geom: vcrop.CropGeometry, sensor, seed: int, intr: Intrinsics, thr: float
+) -> dict:
+    """The CROP_FIELDS rows (in image order) of one shard ``entry`` of the grasp dataset ``src``,
+    plus ``missing`` (the summed missing fraction of its windows). Seeded by (seed, object id) and
+    the sensor model's per-image seeds, so it is the same in any process and any order."""
+    if src not in _OPEN:  # one manifest read per process, not per object
+        _OPEN[src] = storage.open_dataset(src)
+    sh = _OPEN[src].load(entry)
+    g, im = sh.grasps, sh.images
+    n = len(g["u"])
+    out = {k: np.empty((n, *shape), dtype) for k, (dtype, shape, _) in CROP_FIELDS.items()}
+    rng = np.random.default_rng([seed, sh.object_id])
+    order = np.argsort(g["image_index"], kind="stable")
+    bounds = np.flatnonzero(np.diff(g["image_index"][order])) + 1
+    missing, fill = 0.0, 0
+    for rows in np.split(order, bounds) if len(order) else []:
+        img_i = int(g["image_index"][rows[0]])
+        uv = np.stack([g["u"][rows], g["v"][rows]], axis=1)
+        depth = sensor.apply(im["depth"][img_i], sensor_model.image_rng(seed, sh.object_id, img_i), intr)
+        crops, puv, miss = crop_grasps(depth, uv, g["jaw_angle"][rows], arch, geom, rng)
+        missing += float(miss.sum())
+        dst = slice(fill, fill + len(rows))
+        out["images"][dst] = crops
+        out["poses"][dst] = np.concatenate([puv, g["z"][rows, None], g["q"][rows]], axis=1)
+        out["labels"][dst] = g["quality"][rows] > thr
+        out["quality"][dst] = g["quality"][rows]
+        out["object_id"][dst] = sh.object_id
+        out["camera_d"][dst] = im["camera_d"][img_i]
+        out["camera_phi"][dst] = im["camera_phi"][img_i]
+        out["beta"][dst] = g["beta"][rows]
+        out["psi"][dst] = g["psi"][rows]
+        fill += len(rows)
+    return {"object_id": sh.object_id, "rows": out, "missing": missing}
+
+
 def make_crops(
     src: str | Path,
     out: str | Path,
@@ -115,6 +154,7 @@ def make_crops(
     sensor: str | sensor_model.SensorModel | dict | None = None,
     sensor_overrides: dict | None = None,
     splits: tuple[str, ...] = SPLITS,
+    workers: int = 1,
 ) -> dict:
     """Crop every grasp of the grasp dataset ``src`` into the ``vgq-crops`` dataset ``out``.
 
@@ -123,7 +163,8 @@ def make_crops(
     preset name, a .json file, a dict or a SensorModel; default ``realistic``), with
     ``sensor_overrides`` (field -> value). ``splits``: the splits to crop (the others are
     written empty), e.g. ``("test",)`` for a second, differently corrupted copy of the test
-    split. Returns the written manifest."""
+    split. ``workers``: processes cropping objects in parallel (the result does not depend on
+    it). Returns the written manifest."""
     geom = geometry_for(arch, kappa_px)
     bad = sorted(set(splits) - set(SPLITS))
     if bad or not splits:
@@ -152,44 +193,34 @@ def make_crops(
     intr = Intrinsics.from_dict(intr_d) if intr_d else DEFAULT_INTRINSICS
     writers = {s: storage.crop_writers(out, s, n[s]) for s in SPLITS}
     pos = {s: 0 for s in SPLITS}
+    written = {s: 0 for s in SPLITS}
     missing_sum = {s: 0.0 for s in SPLITS}
+    # each object's rows start where the previous object's (in id order) of its split end
+    start, fill = {}, {s: 0 for s in SPLITS}
+    for e in entries:
+        s = split_of[e["object_id"]]
+        start[e["object_id"]] = fill[s]
+        fill[s] += e["num_grasps"]
     thr = ds.label_threshold
-    try:
-        fill = {s: 0 for s in SPLITS}
-        it = (ds.load(e) for e in entries)
-        if progress:
-            from tqdm import tqdm
 
-            it = tqdm(it, total=len(entries), unit="obj", desc=f"crops {arch}")
-        for sh in it:
-            s = split_of[sh.object_id]
-            w = writers[s]
-            g, im = sh.grasps, sh.images
-            rng = np.random.default_rng([seed, sh.object_id])
-            order = np.argsort(g["image_index"], kind="stable")
-            bounds = np.flatnonzero(np.diff(g["image_index"][order])) + 1
-            for rows in np.split(order, bounds) if len(order) else []:
-                img_i = int(g["image_index"][rows[0]])
-                uv = np.stack([g["u"][rows], g["v"][rows]], axis=1)
-                depth = sensor.apply(im["depth"][img_i], sensor_model.image_rng(seed, sh.object_id, img_i), intr)
-                crops, puv, miss = crop_grasps(depth, uv, g["jaw_angle"][rows], arch, geom, rng)
-                missing_sum[s] += float(miss.sum())
-                dst = slice(fill[s], fill[s] + len(rows))
-                labels = (g["quality"][rows] > thr).astype(np.uint8)
-                w["images"].array[dst] = crops
-                w["poses"].array[dst] = np.concatenate([puv, g["z"][rows, None], g["q"][rows]], axis=1)
-                w["labels"].array[dst] = labels
-                w["quality"].array[dst] = g["quality"][rows]
-                w["object_id"].array[dst] = sh.object_id
-                w["camera_d"].array[dst] = im["camera_d"][img_i]
-                w["camera_phi"].array[dst] = im["camera_phi"][img_i]
-                w["beta"].array[dst] = g["beta"][rows]
-                w["psi"].array[dst] = g["psi"][rows]
-                pos[s] += int(labels.sum())
-                fill[s] += len(rows)
+    def write(r: dict) -> None:
+        s = split_of[r["object_id"]]
+        rows = r["rows"]
+        dst = slice(start[r["object_id"]], start[r["object_id"]] + len(rows["labels"]))
+        for k, a in rows.items():
+            writers[s][k].array[dst] = a
+        pos[s] += int(rows["labels"].sum())
+        written[s] += len(rows["labels"])
+        missing_sum[s] += r["missing"]
+
+    from .parallel import run_tasks
+
+    tasks = [(str(ds.root), e, arch, geom, sensor, seed, intr, thr) for e in entries]
+    try:
+        run_tasks(crop_object, tasks, workers=workers, on_result=write, progress=progress, desc=f"crops {arch}")
         for s in SPLITS:
-            if fill[s] != n[s]:
-                raise storage.DatasetError(f"{src}: split {s} filled {fill[s]} rows, manifest counts {n[s]}")
+            if written[s] != n[s]:
+                raise storage.DatasetError(f"{src}: split {s} filled {written[s]} rows, manifest counts {n[s]}")
             for wr in writers[s].values():
                 wr.close()
     except BaseException:

@@ -120,3 +120,14 @@ def test_kappa_only_for_fast_vgqcnn():
         geometry_for("fast_vgqcnn", 60)
     with pytest.raises(ValueError, match="unknown architecture"):
         geometry_for("resnet")
+
+
+def test_parallel_crops_equal_the_serial_ones(tmp_path):
+    fake_dataset(tmp_path / "g", n_objects=6, n_images=2, n_grasps=8)
+    a = make_crops(tmp_path / "g", tmp_path / "a", "fast_vgqcnn", log=lambda s: None, sensor="realistic")
+    b = make_crops(tmp_path / "g", tmp_path / "b", "fast_vgqcnn", log=lambda s: None, sensor="realistic", workers=2)
+    assert a["counts"] == b["counts"]
+    for s in SPLITS:
+        ca, cb = storage.open_crops(tmp_path / "a", s), storage.open_crops(tmp_path / "b", s)
+        for k in ca:
+            np.testing.assert_array_equal(ca[k], cb[k], err_msg=f"{s}/{k}")
