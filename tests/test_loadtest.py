@@ -40,7 +40,8 @@ def test_loadtest_reports_every_endpoint_with_zero_errors(url, tmp_path):
             str(out),
         ]
     )
-    assert report["config"]["transport"] == "httpx" and set(report["endpoints"]) == {"upload", "score", "score_once"}
+    assert report["config"]["transport"] == "httpx"
+    assert set(report["endpoints"]) == {"upload", "score_first", "score", "score_once"}
     assert all(e["requests"] > 0 and e["errors"] == 0 for e in report["endpoints"].values())
     assert report["errors"] == 0 and report["grasps_per_s"] > 0
     assert report["endpoints"]["score"]["server_mean_ms"] > 0  # read from the service's /metrics
@@ -76,6 +77,74 @@ def test_bad_requests_in_the_mix_all_get_a_named_4xx(url, clients):
     )
     bad = report["endpoints"]["bad"]
     assert bad["requests"] >= 7 and bad["errors"] == 0 and report["errors"] == 0, report["error_messages"]
+
+
+def _windows_encoded(url) -> int:
+    import httpx
+
+    return httpx.get(url + "/v1/cache").json()["windows_encoded"]
+
+
+def test_cached_score_mix_encodes_nothing_while_timed(url):
+    """``upload=0,score=N``: each client's image is uploaded and its windows encoded before the
+    run, so every timed call is a cached score (head only): the service encodes one window per
+    client in all, however many calls the run makes."""
+    before = _windows_encoded(url)
+    report = main(
+        [
+            "--url",
+            url,
+            "--clients",
+            "2",
+            "--duration",
+            "1",
+            "--warmup",
+            "0.2",
+            "--k",
+            "16",
+            "--mix",
+            "upload=0,score=4,once=0",
+        ]
+    )
+    assert set(report["endpoints"]) == {"score"} and report["errors"] == 0
+    assert report["endpoints"]["score"]["requests"] > 10
+    assert _windows_encoded(url) - before == 2  # the two pinned images' windows, nothing while timed
+
+
+def test_first_score_after_an_upload_is_reported_apart(url):
+    """With uploads in the mix, the score call that encodes the new image's windows is the
+    ``score_first`` row (one per upload), the rest are ``score``."""
+    before = _windows_encoded(url)
+    report = main(
+        [
+            "--url",
+            url,
+            "--clients",
+            "1",
+            "--duration",
+            "1",
+            "--warmup",
+            "0",
+            "--k",
+            "16",
+            "--mix",
+            "upload=1,score=3,once=0",
+        ]
+    )
+    e = report["endpoints"]
+    assert set(e) == {"upload", "score_first", "score"} and report["errors"] == 0
+    assert e["score_first"]["requests"] in (e["upload"]["requests"], e["upload"]["requests"] - 1)
+    # the example's grasps need one window: each score_first call encoded it, no score call did
+    assert _windows_encoded(url) - before == e["score_first"]["requests"]
+    assert e["score"]["requests"] >= e["score_first"]["requests"]
+
+
+def test_mix_endpoints_name_what_each_mix_sends():
+    assert Mix.parse("upload=1,score=8,once=1").endpoints() == ("upload", "score_first", "score", "score_once")
+    assert Mix.parse("upload=1,score=1,once=0").endpoints() == ("upload", "score_first")
+    assert Mix.parse("upload=0,score=8,once=0").endpoints() == ("score",) and Mix.parse("upload=0,once=0").pinned
+    with pytest.raises(ValueError, match="nothing to do"):
+        Mix.parse("upload=0,score=0,once=0")
 
 
 def test_loadtest_refuses_a_non_loopback_host():
