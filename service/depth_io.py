@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import io
 import math
+import re
 import struct
 import warnings
 import zipfile
@@ -43,10 +44,34 @@ def _check_size(h: int, w: int, min_side: int, max_side: int) -> None:
 NPY_HEADER_MAX = 16 + 10000  # numpy's own bound on a .npy header (max_header_size)
 
 
+#: the version 1.0 header numpy writes for a float array, e.g. b"{'descr': '<f4', 'fortran_order':
+#: False, 'shape': (300, 300), }" padded with spaces and a newline
+_NPY_V1_FLOAT = re.compile(
+    rb"\{'descr': '([<>]f[48])', 'fortran_order': (True|False), 'shape': \(((?:\d{1,18}, )*\d{1,18},?|)\), \} *\n"
+)
+
+
+def _numpy_written_header(body) -> tuple[tuple[int, ...], bool, np.dtype, int] | None:
+    """(shape, fortran order, dtype, data offset) of a float .npy whose version 1.0 header is
+    exactly as numpy writes it, without numpy's general parser (``ast.literal_eval``); None for
+    any other header."""
+    if len(body) < 10 or bytes(body[:8]) != b"\x93NUMPY\x01\x00":
+        return None
+    end = 10 + int.from_bytes(body[8:10], "little")
+    m = _NPY_V1_FLOAT.fullmatch(bytes(body[10:end])) if len(body) >= end else None
+    if m is None:
+        return None
+    shape = tuple(int(d) for d in m[3].split(b",") if d.strip())
+    return shape, m[2] == b"True", np.dtype(m[1].decode()), end
+
+
 def npy_header(body: bytes, what: str) -> tuple[tuple[int, ...], bool, np.dtype, int]:
     """(shape, fortran order, dtype, data offset) of a .npy, read and checked without pickle and
     before anything is allocated: every dimension a non-negative integer, a float32 / float64 dtype.
     Raises ApiError 422 naming ``what``."""
+    fast = _numpy_written_header(body)
+    if fast is not None:
+        return fast  # float32 / float64, every dimension a non-negative integer, by its pattern
     f = io.BytesIO(bytes(body[:NPY_HEADER_MAX]))  # the header only: no copy of the data
     try:
         version = np.lib.format.read_magic(f)

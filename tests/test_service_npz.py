@@ -1,5 +1,6 @@
-"""service.depth_io.read_npz's reader for archives of uncompressed members (np.savez): the same
-members as zipfile reads, and every archive it is unsure of left to zipfile (same errors)."""
+"""service.depth_io's readers of what numpy writes, .npz archives of uncompressed members
+(np.savez) and version 1.0 .npy headers: the same result as zipfile / numpy, and whatever
+they are unsure of left to zipfile / numpy (same errors)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from service.depth_io import read_npz, stored_members
+from service.depth_io import _numpy_written_header, npy_header, read_npz, stored_members
 from service.errors import ApiError
 from service.oneshot import parse_npz
 
@@ -71,3 +72,45 @@ def test_one_shot_depth_is_aligned_float32_equal_to_the_upload():
     shot = parse_npz(_savez(depth=depth, grasps=np.ones((3, 7))), 1 << 20, 4096, 2048)
     assert shot.depth.dtype == np.float32 and shot.depth.flags.c_contiguous and shot.depth.flags.aligned
     assert np.array_equal(shot.depth, depth) and shot.grasps.dtype == np.float64
+
+
+@pytest.mark.parametrize(
+    "a",
+    [
+        np.zeros((300, 200), np.float32),
+        np.zeros((5, 7)),
+        np.zeros(2),
+        np.zeros((3, 4), order="F"),
+        np.zeros((), np.float32),
+        np.zeros((2, 3), ">f4"),
+        np.zeros((0, 7)),
+    ],
+    ids=["f4", "f8", "1d", "fortran", "scalar", "big-endian", "empty"],
+)
+def test_numpy_written_headers_read_as_numpy_reads_them(a):
+    buf = io.BytesIO()
+    np.save(buf, a)
+    body = buf.getvalue()
+    f = io.BytesIO(body)
+    np.lib.format.read_magic(f)
+    shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+    assert _numpy_written_header(body) == (shape, fortran, dtype, f.tell()) == npy_header(body, "x")
+
+
+@pytest.mark.parametrize(
+    "header, message",
+    [
+        (b"{'descr': '<f4', 'fortran_order': False, 'shape': (-1, 3), }", "non-negative integers"),
+        (b"{'descr': '<i4', 'fortran_order': False, 'shape': (2, 3), }", "expected float32 or float64"),
+        (b"{'shape': (2, 3), 'fortran_order': False, 'descr': '<f4'}", None),  # valid, not as numpy writes it
+    ],
+)
+def test_other_headers_go_through_numpys_parser(header, message):
+    header += b" " * (-(len(header) + 11) % 64) + b"\n"
+    body = b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header + bytes(24)
+    assert _numpy_written_header(body) is None
+    if message is None:
+        assert npy_header(body, "x")[:3] == ((2, 3), False, np.dtype("<f4"))
+    else:
+        with pytest.raises(ApiError, match=message):
+            npy_header(body, "x")
