@@ -260,3 +260,28 @@ def test_sweep_measures_each_setting_and_plots(model_dir, tmp_path):
     assert [(p["workers"], p["threads"], p["clients"]) for p in points] == [(1, 1, 1), (1, 1, 2)]
     assert all(p["errors"] == 0 and p["endpoints"]["score_once"]["requests"] > 0 for p in points)
     assert png.read_bytes()[:4] == b"\x89PNG" and json.loads((tmp_path / "s.json").read_text())[1]["clients"] == 2
+
+
+def test_overhead_benchmark_measures_every_row_against_a_real_service(model_dir):
+    """tools.loadtest.overhead: in-process model and route steps, and a real service over HTTP,
+    in one interleaved run; every row measured, the ratios computed from them."""
+    from tools.loadtest.overhead import main as overhead_main
+    from tools.loadtest.overhead import process_cpu_seconds
+
+    assert process_cpu_seconds(os.getpid()) > 0
+    rep = overhead_main(["--model-dir", str(model_dir), "--k", "16", "--rounds", "2", "--calls", "3"])
+    rows = {
+        "model encoder + head",
+        "model head",
+        "steps one-shot",
+        "steps cached score",
+        "this: HTTP one-shot",
+        "this: HTTP cached score",
+    }
+    assert set(rep["median_ms"]) == rows and all(v > 0 for v in rep["median_ms"].values())
+    assert all(v > 0 for v in rep["cpu_mean_ms"].values())
+    assert rep["service_model_mean_ms"]["this"]["head"] > 0  # read from the service's /metrics
+    r = rep["services"]["this"]
+    assert (
+        r["one_shot_over_model"] == rep["median_ms"]["this: HTTP one-shot"] / rep["median_ms"]["model encoder + head"]
+    )

@@ -126,6 +126,22 @@ def process_cpu_seconds(pid: int) -> float:
     return total / 1e9
 
 
+def model_seconds(port: int) -> dict[str, tuple[float, float]]:
+    """(sum of seconds, count) of the service's own encoder and head timings (its /metrics)."""
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+        s.sendall(b"GET /metrics HTTP/1.1\r\nhost: x\r\nconnection: close\r\n\r\n")
+        text = b"".join(iter(lambda: s.recv(65536), b"")).decode("utf-8", "replace")
+    out = {}
+    for name in ("encoder", "head"):
+        vals = {}
+        for line in text.splitlines():
+            for part in ("sum", "count"):
+                if line.startswith(f"vgq_{name}_seconds_{part} "):
+                    vals[part] = float(line.split()[-1])
+        out[name] = (vals.get("sum", 0.0), vals.get("count", 0.0))
+    return out
+
+
 def _clock(task: Task) -> tuple[float, float]:
     """(wall seconds, CPU seconds) of one call of ``task``."""
     arg = task.prepare() if task.prepare else None
@@ -217,6 +233,7 @@ def report(times: dict[str, np.ndarray], services: list[str]) -> dict:
     out = {
         "median_ms": ms,
         "p90_ms": {n: float(np.percentile(t[:, 0], 90) * 1e3) for n, t in times.items()},
+        "mean_ms": {n: float(np.mean(t[:, 0]) * 1e3) for n, t in times.items()},
         "cpu_mean_ms": cpu,
     }
 
@@ -239,11 +256,14 @@ def table(rep: dict, config: dict) -> str:
         f"{config['calls']} calls per row; load average {config['load_before']} -> {config['load_after']}; "
         f"{config['date']}",
         "",
-        "| row | median ms | p90 ms | CPU ms / call (mean; HTTP: the service process) |",
-        "|---|---:|---:|---:|",
+        "| row | median ms | p90 ms | mean ms | CPU ms / call (mean; HTTP: the service process) |",
+        "|---|---:|---:|---:|---:|",
     ]
     for name, m in rep["median_ms"].items():
-        lines.append(f"| {name} | {m:.2f} | {rep['p90_ms'][name]:.2f} | {rep['cpu_mean_ms'][name]:.2f} |")
+        lines.append(
+            f"| {name} | {m:.2f} | {rep['p90_ms'][name]:.2f} | {rep['mean_ms'][name]:.2f} | "
+            f"{rep['cpu_mean_ms'][name]:.2f} |"
+        )
 
     def line(name: str, r: dict, what: str) -> str:
         return (
@@ -252,6 +272,12 @@ def table(rep: dict, config: dict) -> str:
             f"{r['cached_minus_head_ms']:+.2f} ms wall p50 ({r['cpu_cached_minus_head_ms']:+.2f} ms CPU)"
         )
 
+    for name, m in rep.get("service_model_mean_ms", {}).items():
+        lines.append(
+            f"| {name}: the service's own encoder / head time (its /metrics) | | | "
+            + " / ".join("-" if m[p] is None else f"{m[p]:.2f}" for p in ("encoder", "head"))
+            + " | |"
+        )
     lines += ["", line("in process", rep["steps"], "steps")]
     lines += [line(name, r, "HTTP") for name, r in rep["services"].items()]
     lines.append("targets (issue 14): HTTP one-shot <= 1.5x, HTTP cached score <= +0.5 ms")
@@ -289,18 +315,29 @@ def main(argv=None) -> dict:
     if len({n for n, _ in services}) != len(services):
         p.error("--service names must differ")
     load_before = round(os.getloadavg()[0], 2)
-    procs, conns = [], []
+    procs, conns, ports = [], [], []
     try:
         tasks = in_process_calls(a.model_dir, a.threads, a.k)
         work = load_workload(a.k)
         for i, (name, root) in enumerate(services):
             proc, port = start_service(root, str(Path(a.model_dir).resolve()), a.threads)
             procs.append(proc)
+            ports.append(port)
             calls, http = http_calls(port, FreshImages(work.depth, seed=10 + i), work.grasps)
             conns.append(http)
             cpu = functools.partial(process_cpu_seconds, proc.pid)
             tasks.update({f"{name}: {row}": dataclasses.replace(t, cpu=cpu) for row, t in calls.items()})
+        before = [model_seconds(port) for port in ports]
         times = measure(tasks, a.rounds, a.calls)
+        served = {}
+        for (name, _), port, b in zip(services, ports, before):
+            after = model_seconds(port)
+            served[name] = {
+                part: ((after[part][0] - b[part][0]) / (after[part][1] - b[part][1]) * 1e3)
+                if after[part][1] > b[part][1]
+                else None
+                for part in ("encoder", "head")
+            }
     finally:
         for c in conns:
             c.close()
@@ -321,7 +358,7 @@ def main(argv=None) -> dict:
         "load_after": round(os.getloadavg()[0], 2),
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
     }
-    rep = {**report(times, [n for n, _ in services]), "config": config}
+    rep = {**report(times, [n for n, _ in services]), "service_model_mean_ms": served, "config": config}
     print(table(rep, config))
     if a.json:
         Path(a.json).write_text(json.dumps(rep, indent=2) + "\n")
