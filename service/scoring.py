@@ -268,10 +268,14 @@ class Service:
         encoded = self._encode(dict.fromkeys(new), entry, where) if new else {}
         if encoded:
             self.cache.add_windows(key, entry, encoded)
-        raw = np.empty(len(rows), np.float32)
-        for o, ix in where.items():
-            raw[ix] = self.model.score(entry.windows[o].term, rows[ix])
+        if len(where) == 1:  # one window: its rows as they are, no gather and scatter
+            raw = np.asarray(self.model.score(entry.windows[next(iter(where))].term, rows), np.float32).reshape(-1)
             self.metrics.head.observe(self.model.score_seconds)
+        else:
+            raw = np.empty(len(rows), np.float32)
+            for o, ix in where.items():
+                raw[ix] = self.model.score(entry.windows[o].term, rows[ix])
+                self.metrics.head.observe(self.model.score_seconds)
         self.metrics.grasps.observe(len(raw))
         p = self.calibration.apply(raw) if self.calibration is not None else raw.astype(np.float64)
         return Scores(p, raw, mask, len(where), len(encoded), float(max(frac.values())))
