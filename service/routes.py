@@ -62,8 +62,11 @@ async def authorized(request: Request) -> Service:
 Authorized = Annotated[Service, Depends(authorized)]
 
 
-def _scores_response(accept: str | None, svc: Service, payload: dict, s: Scores) -> Response:
-    """JSON (``p_success``, ``raw_score``, ``ood``, ``ood_mask`` per grasp) or, with ``Accept:
+def _scores_response(
+    accept: str | None, svc: Service, image_id: str, cached: bool | None, entry, s: Scores
+) -> Response:
+    """JSON (``image_id``, ``cached`` when given, ``model_version``, the camera, then
+    ``p_success``, ``raw_score``, ``ood``, ``ood_mask`` per grasp) or, with ``Accept:
     application/octet-stream``, little-endian float32 ``p_success`` (k,) with the rest in headers:
     ``x-calibrated``, ``x-ood-count`` (grasps with a flag; their flags need the JSON answer)."""
     if accepts(accept, OCTET):
@@ -71,17 +74,20 @@ def _scores_response(accept: str | None, svc: Service, payload: dict, s: Scores)
             s.p_success.astype("<f4").tobytes(),
             media_type=OCTET,
             headers={
-                "x-image-id": payload["image_id"],
+                "x-image-id": image_id,
                 "x-calibrated": str(svc.calibration is not None).lower(),
                 "x-ood-count": str(int(np.count_nonzero(s.ood_mask))),
                 "x-windows-encoded": str(s.windows_encoded),
             },
         )
-    payload.update(svc.scores_info(s))
+    payload = {"image_id": image_id} if cached is None else {"image_id": image_id, "cached": cached}
+    payload.update(model_version=svc.model.version, **svc.camera_info(entry), **svc.scores_info(s))
     return json_response(payload)
 
 
 def _strict(request: Request) -> bool:
+    if not request.scope.get("query_string"):
+        return False  # no query: nothing to parse
     return parse_flag("strict", request.query_params.get("strict"))
 
 
@@ -309,9 +315,7 @@ def score_cached(svc: Service, image_id: str, body, content_type: str | None, ac
     else:
         raise ApiError(415, f"unsupported grasp content type {ct!r}; use {JSON} or {OCTET}")
     result = svc.score(image_id, entry, grasps, strict)
-    return _scores_response(
-        accept, svc, {"image_id": image_id, "model_version": svc.model.version, **svc.camera_info(entry)}, result
-    )
+    return _scores_response(accept, svc, image_id, None, entry, result)
 
 
 def score_one_shot(svc: Service, body, header: str, accept: str | None, strict: bool):
@@ -334,9 +338,4 @@ def score_one_shot(svc: Service, body, header: str, accept: str | None, strict: 
         placed = svc.place(entry, shot.grasps)  # a bad batch costs no inference and fills no cache
         svc.put(key, entry)
     result = svc.score(key, entry, shot.grasps, strict, placed)
-    return _scores_response(
-        accept,
-        svc,
-        {"image_id": key, "cached": cached, "model_version": svc.model.version, **svc.camera_info(entry)},
-        result,
-    )
+    return _scores_response(accept, svc, key, cached, entry, result)
