@@ -3,7 +3,9 @@
 one-shot bodies parsed by ``service.oneshot``, numbers by ``service.numbers``.
 
 The scoring path avoids pydantic: bodies are parsed with orjson / numpy and responses are
-written as bytes."""
+written as bytes. Its two routes are served by ``ScoringFastPath`` (a pure ASGI middleware, no
+router or dependency resolution) through the same steps (``score_cached`` / ``score_one_shot``);
+the routes below stay for the OpenAPI document and any request the fast path passes on."""
 
 from __future__ import annotations
 
