@@ -34,7 +34,7 @@ from .config import Settings
 from .errors import ApiError
 from .limits import LimitsMiddleware
 from .plan_routes import router as plan_router
-from .routes import json_response, router
+from .routes import ScoringFastPath, json_response, router
 from .runtime import FastModel
 from .scoring import Service
 
@@ -120,6 +120,7 @@ def create_app(
         title="VGQ-CNN grasp quality service", version="0.1.0", description=DESCRIPTION, lifespan=lifespan
     )
     app.state.service = svc
+    app.add_middleware(ScoringFastPath, fastapi_app=app)  # inside the limits (added after: outermost)
     app.add_middleware(
         LimitsMiddleware,
         metrics=svc.metrics,

@@ -17,9 +17,12 @@ from __future__ import annotations
 
 import io
 import math
+import re
 import struct
 import warnings
 import zipfile
+import zlib
+from dataclasses import dataclass
 
 import numpy as np
 from PIL import Image
@@ -41,10 +44,34 @@ def _check_size(h: int, w: int, min_side: int, max_side: int) -> None:
 NPY_HEADER_MAX = 16 + 10000  # numpy's own bound on a .npy header (max_header_size)
 
 
+#: the version 1.0 header numpy writes for a float array, e.g. b"{'descr': '<f4', 'fortran_order':
+#: False, 'shape': (300, 300), }" padded with spaces and a newline
+_NPY_V1_FLOAT = re.compile(
+    rb"\{'descr': '([<>]f[48])', 'fortran_order': (True|False), 'shape': \(((?:\d{1,18}, )*\d{1,18},?|)\), \} *\n"
+)
+
+
+def _numpy_written_header(body) -> tuple[tuple[int, ...], bool, np.dtype, int] | None:
+    """(shape, fortran order, dtype, data offset) of a float .npy whose version 1.0 header is
+    exactly as numpy writes it, without numpy's general parser (``ast.literal_eval``); None for
+    any other header."""
+    if len(body) < 10 or bytes(body[:8]) != b"\x93NUMPY\x01\x00":
+        return None
+    end = 10 + int.from_bytes(body[8:10], "little")
+    m = _NPY_V1_FLOAT.fullmatch(bytes(body[10:end])) if len(body) >= end else None
+    if m is None:
+        return None
+    shape = tuple(int(d) for d in m[3].split(b",") if d.strip())
+    return shape, m[2] == b"True", np.dtype(m[1].decode()), end
+
+
 def npy_header(body: bytes, what: str) -> tuple[tuple[int, ...], bool, np.dtype, int]:
     """(shape, fortran order, dtype, data offset) of a .npy, read and checked without pickle and
     before anything is allocated: every dimension a non-negative integer, a float32 / float64 dtype.
     Raises ApiError 422 naming ``what``."""
+    fast = _numpy_written_header(body)
+    if fast is not None:
+        return fast  # float32 / float64, every dimension a non-negative integer, by its pattern
     f = io.BytesIO(bytes(body[:NPY_HEADER_MAX]))  # the header only: no copy of the data
     try:
         version = np.lib.format.read_magic(f)
@@ -141,6 +168,9 @@ def _decode_raw(body: bytes, width: int | None, height: int | None, min_side: in
 
 def validate_depth(a: np.ndarray) -> np.ndarray:
     """Reject non-finite or negative depth (422); return ``a``."""
+    lo, hi = (float(a.min()), float(a.max())) if a.size else (0.0, 0.0)  # NaN and inf show in min / max
+    if math.isfinite(lo) and math.isfinite(hi) and lo >= 0 and hi > 0:
+        return a  # the usual case: two passes, no temporary masks
     if not np.isfinite(a).all():
         n = int((~np.isfinite(a)).sum())
         raise ApiError(422, f"depth image has {n} non-finite pixels (NaN or inf); use 0 for missing readings")
@@ -202,12 +232,20 @@ def read_npz(
 
     Zip bombs are refused before anything is decompressed: at most ``max_members`` members,
     and their declared uncompressed sizes must add up to at most ``max_total_bytes`` (413).
-    A member whose data does not match its declared size fails its CRC check (422)."""
-    try:
-        zf = zipfile.ZipFile(BufferReader(body))
-        infos = zf.infolist()
-    except Exception as e:
-        raise ApiError(422, f"body is not a valid .npz archive: {e}") from None
+    A member whose data does not match its declared size fails its CRC check (422).
+
+    An archive of uncompressed members (``np.savez``) whose every field is plain is read
+    without zipfile, its members returned as views of ``body`` (each CRC still checked); any
+    other archive, and any doubt, goes through zipfile, which words the errors."""
+    stored = stored_members(body, max_members)
+    if stored is not None:
+        infos, zf = stored, None
+    else:
+        try:
+            zf = zipfile.ZipFile(BufferReader(body))
+            infos = zf.infolist()
+        except Exception as e:
+            raise ApiError(422, f"body is not a valid .npz archive: {e}") from None
     if len(infos) > max_members:
         raise ApiError(422, f".npz archive has {len(infos)} members; at most {max_members}")
     wanted = [i for i in infos if names is None or _npz_name(i) in names]
@@ -223,11 +261,87 @@ def read_npz(
     out = {}
     for info in wanted:
         name = _npz_name(info)
+        if zf is None:
+            out[name] = info.data
+            continue
         try:
             out[name] = zf.read(info)
         except Exception as e:
             raise ApiError(422, f".npz member {name!r} cannot be read (corrupt archive): {e}") from None
     return out
+
+
+@dataclass(frozen=True)
+class StoredMember:
+    """An uncompressed zip member (the fields of zipfile.ZipInfo that read_npz uses)."""
+
+    filename: str
+    file_size: int
+    data: memoryview
+
+
+_EOCD = struct.Struct("<4s4H2LH")  # end of central directory record (22 bytes)
+_CENTRAL = struct.Struct("<4s6H3L5H2L")  # central directory file header (46 bytes)
+_LOCAL = struct.Struct("<4s5H3L2H")  # local file header (30 bytes)
+
+
+def stored_members(body, max_members: int) -> list[StoredMember] | None:
+    """The members of a plain zip of uncompressed members (no comment, no zip64 directory, no
+    encryption, local and central headers agreeing, every CRC-32 right), as views of ``body``;
+    None for anything else (zipfile then reads the archive and words its errors)."""
+    try:
+        view = memoryview(body).cast("B")
+    except (TypeError, ValueError):
+        return None
+    n = len(view)
+    if n < _EOCD.size:
+        return None
+    sig, disk, cd_disk, count, total, cd_size, cd_offset, comment = _EOCD.unpack_from(view, n - _EOCD.size)
+    if sig != b"PK\x05\x06" or disk or cd_disk or count != total or comment or total > max_members:
+        return None
+    if cd_offset + cd_size != n - _EOCD.size:  # nothing between the directory and its end record
+        return None
+    out, pos, end = [], cd_offset, 0
+    for _ in range(total):
+        if pos + _CENTRAL.size > cd_offset + cd_size:
+            return None
+        f = _CENTRAL.unpack_from(view, pos)
+        sig, flags, method, crc, csize, usize = f[0], f[3], f[4], f[7], f[8], f[9]
+        name_len, extra_len, comment_len, offset = f[10], f[11], f[12], f[16]
+        if (
+            sig != b"PK\x01\x02"
+            or f[2] & 0xFF > 63  # zipfile's MAX_EXTRACT_VERSION
+            or flags & 0x1  # encrypted
+            or method != 0  # compressed
+            or csize != usize
+            or extra_len  # zip64 sizes, or anything zipfile would decode
+            or 0xFFFFFFFF in (csize, offset)
+            or offset < end  # members in order, none overlapping
+        ):
+            return None
+        name = bytes(view[pos + _CENTRAL.size : pos + _CENTRAL.size + name_len])
+        pos += _CENTRAL.size + name_len + extra_len + comment_len
+        if offset + _LOCAL.size > cd_offset:
+            return None
+        lf = _LOCAL.unpack_from(view, offset)
+        start = offset + _LOCAL.size + lf[9] + lf[10]
+        if (
+            lf[0] != b"PK\x03\x04"
+            or lf[3] != 0
+            or bytes(view[offset + _LOCAL.size : offset + _LOCAL.size + lf[9]]) != name
+        ):
+            return None
+        if start + csize > cd_offset or zlib.crc32(view[start : start + csize]) != crc:
+            return None
+        try:
+            filename = name.decode("utf-8" if flags & 0x800 else "cp437")
+        except UnicodeDecodeError:
+            return None
+        if "\x00" in filename:  # zipfile cuts the name there
+            return None
+        out.append(StoredMember(filename, usize, view[start : start + csize]))
+        end = start + csize
+    return out if pos == cd_offset + cd_size else None
 
 
 class BufferReader(io.RawIOBase):

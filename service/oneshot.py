@@ -190,7 +190,7 @@ def parse_npz(body, max_total_bytes: int, max_side: int, max_grasps: int) -> One
     depth = parse_npy(members["depth"], "depth", max_side * max_side)
     if depth.ndim != 2 or not (32 <= depth.shape[0] <= max_side and 32 <= depth.shape[1] <= max_side):
         raise ApiError(422, f"depth has shape {depth.shape}; expected (H, W) with sides in [32, {max_side}]")
-    depth = validate_depth(np.ascontiguousarray(depth, dtype=np.float32))
+    depth = validate_depth(np.require(depth, np.float32, "CA"))  # a view of the body when aligned, else a copy
     grasps = parse_npy(members["grasps"], "grasps", max_grasps * GRASP_WIDTH + GRASP_WIDTH)
     if grasps.ndim != 2 or grasps.shape[1] != GRASP_WIDTH:
         raise ApiError(422, f"grasps has shape {grasps.shape}; expected (k, 7)")

@@ -65,7 +65,26 @@ class Scores:
     missing_fraction: float  # largest share of missing depth among those windows
 
     def ood(self) -> list[list[str]]:
-        return [flag_names(m) for m in self.ood_mask]
+        return [list(FLAG_NAMES[m]) for m in self.ood_mask.tolist()]
+
+
+#: flag names of every uint8 mask (one look-up per grasp in a JSON answer)
+FLAG_NAMES = tuple(tuple(flag_names(m)) for m in range(256))
+
+
+def window_groups(origins: np.ndarray) -> tuple[dict, np.ndarray]:
+    """Grasps by crop window: ``{origin (u, v): indices of its grasps, ascending}`` in sorted
+    origin order, and the (k,) position of each grasp's window in that order. ``origins``
+    (k, 2) int64, k >= 1. All in one window (the usual case) skips the sort."""
+    first = origins[0]
+    if (origins == first).all():
+        k = len(origins)
+        return {(int(first[0]), int(first[1])): np.arange(k)}, np.zeros(k, np.intp)
+    uniq, inverse = np.unique(origins, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    order = np.argsort(inverse, kind="stable")
+    groups = np.split(order, np.cumsum(np.bincount(inverse, minlength=len(uniq)))[:-1])
+    return {(int(o[0]), int(o[1])): ix for o, ix in zip(uniq, groups)}, inverse
 
 
 class Service:
@@ -215,13 +234,13 @@ class Service:
         self.metrics.windows_encoded.inc(len(origins))
         return {o: EncodedWindow(terms[i : i + 1].copy(), m) for i, (o, m) in enumerate(zip(origins, missing))}
 
-    def score(self, key: str, entry: CachedImage, grasps: np.ndarray, strict: bool = False) -> Scores:
-        rows, origins, uv = self.place(entry, grasps)
-        uniq, inverse = np.unique(origins, axis=0, return_inverse=True)
-        inverse = inverse.reshape(-1)
-        order = np.argsort(inverse, kind="stable")
-        groups = np.split(order, np.cumsum(np.bincount(inverse, minlength=len(uniq)))[:-1])
-        where = {(int(o[0]), int(o[1])): ix for o, ix in zip(uniq, groups)}  # window origin -> grasp indices
+    def score(
+        self, key: str, entry: CachedImage, grasps: np.ndarray, strict: bool = False, placed: tuple | None = None
+    ) -> Scores:
+        """Score (k, 7) client grasps against ``entry`` (cached as ``key``). ``placed``: what
+        ``place(entry, grasps)`` returned, when the caller placed them already."""
+        rows, origins, uv = placed if placed is not None else self.place(entry, grasps)
+        where, inverse = window_groups(origins)
         new = [o for o in where if o not in entry.windows]
         if new:
             self.cache.fetch_windows(key, entry, new)
@@ -249,10 +268,14 @@ class Service:
         encoded = self._encode(dict.fromkeys(new), entry, where) if new else {}
         if encoded:
             self.cache.add_windows(key, entry, encoded)
-        raw = np.empty(len(rows), np.float32)
-        for o, ix in where.items():
-            raw[ix] = self.model.score(entry.windows[o].term, rows[ix])
+        if len(where) == 1:  # one window: its rows as they are, no gather and scatter
+            raw = np.asarray(self.model.score(entry.windows[next(iter(where))].term, rows), np.float32).reshape(-1)
             self.metrics.head.observe(self.model.score_seconds)
+        else:
+            raw = np.empty(len(rows), np.float32)
+            for o, ix in where.items():
+                raw[ix] = self.model.score(entry.windows[o].term, rows[ix])
+                self.metrics.head.observe(self.model.score_seconds)
         self.metrics.grasps.observe(len(raw))
         p = self.calibration.apply(raw) if self.calibration is not None else raw.astype(np.float64)
         return Scores(p, raw, mask, len(where), len(encoded), float(max(frac.values())))

@@ -40,7 +40,8 @@ def test_loadtest_reports_every_endpoint_with_zero_errors(url, tmp_path):
             str(out),
         ]
     )
-    assert report["config"]["transport"] == "httpx" and set(report["endpoints"]) == {"upload", "score", "score_once"}
+    assert report["config"]["transport"] == "httpx"
+    assert set(report["endpoints"]) == {"upload", "score_first", "score", "score_once"}
     assert all(e["requests"] > 0 and e["errors"] == 0 for e in report["endpoints"].values())
     assert report["errors"] == 0 and report["grasps_per_s"] > 0
     assert report["endpoints"]["score"]["server_mean_ms"] > 0  # read from the service's /metrics
@@ -76,6 +77,74 @@ def test_bad_requests_in_the_mix_all_get_a_named_4xx(url, clients):
     )
     bad = report["endpoints"]["bad"]
     assert bad["requests"] >= 7 and bad["errors"] == 0 and report["errors"] == 0, report["error_messages"]
+
+
+def _windows_encoded(url) -> int:
+    import httpx
+
+    return httpx.get(url + "/v1/cache").json()["windows_encoded"]
+
+
+def test_cached_score_mix_encodes_nothing_while_timed(url):
+    """``upload=0,score=N``: each client's image is uploaded and its windows encoded before the
+    run, so every timed call is a cached score (head only): the service encodes one window per
+    client in all, however many calls the run makes."""
+    before = _windows_encoded(url)
+    report = main(
+        [
+            "--url",
+            url,
+            "--clients",
+            "2",
+            "--duration",
+            "1",
+            "--warmup",
+            "0.2",
+            "--k",
+            "16",
+            "--mix",
+            "upload=0,score=4,once=0",
+        ]
+    )
+    assert set(report["endpoints"]) == {"score"} and report["errors"] == 0
+    assert report["endpoints"]["score"]["requests"] > 10
+    assert _windows_encoded(url) - before == 2  # the two pinned images' windows, nothing while timed
+
+
+def test_first_score_after_an_upload_is_reported_apart(url):
+    """With uploads in the mix, the score call that encodes the new image's windows is the
+    ``score_first`` row (one per upload), the rest are ``score``."""
+    before = _windows_encoded(url)
+    report = main(
+        [
+            "--url",
+            url,
+            "--clients",
+            "1",
+            "--duration",
+            "1",
+            "--warmup",
+            "0",
+            "--k",
+            "16",
+            "--mix",
+            "upload=1,score=3,once=0",
+        ]
+    )
+    e = report["endpoints"]
+    assert set(e) == {"upload", "score_first", "score"} and report["errors"] == 0
+    assert e["score_first"]["requests"] in (e["upload"]["requests"], e["upload"]["requests"] - 1)
+    # the example's grasps need one window: each score_first call encoded it, no score call did
+    assert _windows_encoded(url) - before == e["score_first"]["requests"]
+    assert e["score"]["requests"] >= e["score_first"]["requests"]
+
+
+def test_mix_endpoints_name_what_each_mix_sends():
+    assert Mix.parse("upload=1,score=8,once=1").endpoints() == ("upload", "score_first", "score", "score_once")
+    assert Mix.parse("upload=1,score=1,once=0").endpoints() == ("upload", "score_first")
+    assert Mix.parse("upload=0,score=8,once=0").endpoints() == ("score",) and Mix.parse("upload=0,once=0").pinned
+    with pytest.raises(ValueError, match="nothing to do"):
+        Mix.parse("upload=0,score=0,once=0")
 
 
 def test_loadtest_refuses_a_non_loopback_host():
@@ -191,3 +260,28 @@ def test_sweep_measures_each_setting_and_plots(model_dir, tmp_path):
     assert [(p["workers"], p["threads"], p["clients"]) for p in points] == [(1, 1, 1), (1, 1, 2)]
     assert all(p["errors"] == 0 and p["endpoints"]["score_once"]["requests"] > 0 for p in points)
     assert png.read_bytes()[:4] == b"\x89PNG" and json.loads((tmp_path / "s.json").read_text())[1]["clients"] == 2
+
+
+def test_overhead_benchmark_measures_every_row_against_a_real_service(model_dir):
+    """tools.loadtest.overhead: in-process model and route steps, and a real service over HTTP,
+    in one interleaved run; every row measured, the ratios computed from them."""
+    from tools.loadtest.overhead import main as overhead_main
+    from tools.loadtest.overhead import process_cpu_seconds
+
+    assert process_cpu_seconds(os.getpid()) > 0
+    rep = overhead_main(["--model-dir", str(model_dir), "--k", "16", "--rounds", "2", "--calls", "3"])
+    rows = {
+        "model encoder + head",
+        "model head",
+        "steps one-shot",
+        "steps cached score",
+        "this: HTTP one-shot",
+        "this: HTTP cached score",
+    }
+    assert set(rep["median_ms"]) == rows and all(v > 0 for v in rep["median_ms"].values())
+    assert all(v > 0 for v in rep["cpu_mean_ms"].values())
+    assert rep["service_model_mean_ms"]["this"]["head"] > 0  # read from the service's /metrics
+    r = rep["services"]["this"]
+    assert (
+        r["one_shot_over_model"] == rep["median_ms"]["this: HTTP one-shot"] / rep["median_ms"]["model encoder + head"]
+    )

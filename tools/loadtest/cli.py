@@ -29,7 +29,10 @@ def main(argv=None) -> dict:
     p.add_argument("--warmup", type=float, default=1.0, help="seconds of unrecorded load first (default 1)")
     p.add_argument("--k", type=int, default=128, help="grasps per score call (default 128)")
     p.add_argument(
-        "--mix", default="upload=1,score=8,once=1", help="requests per client cycle (default upload=1,score=8,once=1)"
+        "--mix",
+        default="upload=1,score=8,once=1",
+        help="requests per client cycle (default upload=1,score=8,once=1); upload=0,score=N,once=0: cached score "
+        "calls only, against one image per client uploaded and scored once before the run",
     )
     p.add_argument("--timeout", type=float, default=10.0, help="per-request timeout, seconds (default 10)")
     p.add_argument("--server-pid", type=int, help="record this process's (and its children's) RSS before and after")
@@ -68,7 +71,7 @@ def main(argv=None) -> dict:
     except Exception as e:  # httpx connection errors on /readyz
         print(f"loadtest: cannot reach {url}: {type(e).__name__}: {e}", file=sys.stderr)
         sys.exit(1)
-    report = summarize(rec, wall)
+    report = summarize(rec, wall, mix.endpoints())
     report["config"] = {
         "url": url,
         "clients": a.clients,

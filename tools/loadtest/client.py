@@ -12,7 +12,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from .report import ENDPOINTS, Recorder, server_latency_totals
+from .report import ENDPOINTS, SERVER_ENDPOINT, Recorder, server_latency_totals
 from .workload import OCTET, FreshImages, Mix, Workload, bad_requests
 
 
@@ -58,6 +58,39 @@ async def _timed(rec: Recorder, endpoint: str, coro, check, ok=lambda status: st
     return r
 
 
+NPY_H = {"content-type": "application/x-npy"}
+SCORE_H = {"content-type": OCTET, "accept": OCTET}
+
+
+def _upload_ok(r):
+    try:
+        return None if r.json().get("image_id") else "no image_id in answer"
+    except ValueError:
+        return "answer is not JSON"
+
+
+def _scores_ok(k: int):
+    def check(r):
+        return None if len(r.content) == 4 * k else f"answer of {len(r.content)} bytes, expected {4 * k}"
+
+    return check
+
+
+async def pin_image(http, work: Workload, fresh: FreshImages) -> str:
+    """For a cached-score-only mix (``upload=0``): upload a fresh image and score the workload's
+    grasps against it once, so its crop windows are encoded before anything is timed. Returns
+    its id; RuntimeError when the service refuses either call."""
+    gbytes = np.ascontiguousarray(work.grasps, "<f4").tobytes()
+    r = await http.post("/v1/images", content=fresh.next_npy(), headers=NPY_H)
+    if r.status_code != 200 or _upload_ok(r):
+        raise RuntimeError(f"setting up the pinned image: upload answered {r.status_code}: {r.text[:160]}")
+    image_id = r.json()["image_id"]
+    r = await http.post(f"/v1/images/{image_id}/scores", content=gbytes, headers=SCORE_H)
+    if r.status_code != 200 or _scores_ok(len(work.grasps))(r):
+        raise RuntimeError(f"setting up the pinned image: score answered {r.status_code}: {r.text[:160]}")
+    return image_id
+
+
 async def client_loop(
     http,
     work: Workload,
@@ -66,24 +99,18 @@ async def client_loop(
     rec: Recorder,
     fresh: FreshImages,
     bad: list[tuple[str, bytes, dict]] | None = None,
+    pinned: str | None = None,
 ) -> None:
     """One client: repeat the mix's cycle until ``deadline`` (perf_counter seconds). ``bad``: the
     malformed requests of ``bad_requests`` (made once per run: the zip bomb alone takes ~0.25 s of
-    CPU, which, made at the start of every client loop, held up the other clients' first requests)."""
+    CPU, which, made at the start of every client loop, held up the other clients' first requests).
+    ``pinned``: the image of a cached-score-only mix (``pin_image``); score calls go to it."""
     k = len(work.grasps)
     gbytes = np.ascontiguousarray(work.grasps, "<f4").tobytes()
-    npy_h = {"content-type": "application/x-npy"}
-    score_h = {"content-type": OCTET, "accept": OCTET}
     npz_h = {"content-type": "application/x-npz", "accept": OCTET}
-
-    def scores_ok(r):
-        return None if len(r.content) == 4 * k else f"answer of {len(r.content)} bytes, expected {4 * k}"
-
-    def upload_ok(r):
-        try:
-            return None if r.json().get("image_id") else "no image_id in answer"
-        except ValueError:
-            return "answer is not JSON"
+    scores_ok, upload_ok = _scores_ok(k), _upload_ok
+    if mix.pinned and pinned is None:
+        raise ValueError("a mix with upload=0 and score calls needs a pinned image (pin_image)")
 
     def error_named(r):
         try:
@@ -96,15 +123,16 @@ async def client_loop(
     n_bad = 0
 
     while time.perf_counter() < deadline:
-        image_id = None
+        image_id, first = pinned, not mix.pinned  # after an upload, the first score call encodes the windows
         for _ in range(mix.upload):
-            r = await _timed(rec, "upload", http.post("/v1/images", content=fresh.next_npy(), headers=npy_h), upload_ok)
+            r = await _timed(rec, "upload", http.post("/v1/images", content=fresh.next_npy(), headers=NPY_H), upload_ok)
             image_id = r.json()["image_id"] if r is not None else image_id
             if time.perf_counter() >= deadline:
                 return
         for _ in range(mix.score if image_id else 0):
+            endpoint, first = ("score_first" if first else "score"), False
             r = await _timed(
-                rec, "score", http.post(f"/v1/images/{image_id}/scores", content=gbytes, headers=score_h), scores_ok
+                rec, endpoint, http.post(f"/v1/images/{image_id}/scores", content=gbytes, headers=SCORE_H), scores_ok
             )
             if r is not None and rec.recording:
                 rec.grasps += k
@@ -243,8 +271,9 @@ async def run_load(
 ) -> tuple[Recorder, float]:
     """Drive ``url`` with ``clients`` concurrent clients for ``warmup`` (not recorded) then
     ``duration`` seconds. ``transport``: ``httpx`` (one pooled AsyncClient, a connection per
-    client) or ``raw`` (RawHTTP, one connection per client). Returns the recorder and the
-    measured wall time (s)."""
+    client) or ``raw`` (RawHTTP, one connection per client). A cached-score-only mix
+    (``upload=0``) first pins an image per client (``pin_image``, not timed). Returns the
+    recorder and the measured wall time (s)."""
     import httpx
 
     limits = httpx.Limits(max_connections=clients + 1, max_keepalive_connections=clients + 1)
@@ -257,10 +286,13 @@ async def run_load(
             r = await http.get("/readyz")
             if r.status_code != 200:
                 raise RuntimeError(f"{url}/readyz answered {r.status_code}: {r.text[:200]}")
+            pinned = [await pin_image(c, work, fresh) for c in conns] if mix.pinned else [None] * len(conns)
             if warmup > 0:
                 rec.recording = False
                 end = time.perf_counter() + warmup
-                await asyncio.gather(*(client_loop(c, work, mix, end, rec, fresh, bad) for c in conns))
+                await asyncio.gather(
+                    *(client_loop(c, work, mix, end, rec, fresh, bad, p) for c, p in zip(conns, pinned))
+                )
                 rec.recording = True
             gc.collect()
             before = await _server_totals(http)
@@ -269,7 +301,7 @@ async def run_load(
             end = t0 + duration
             # every request is bounded by ``timeout``: the run ends by end + timeout at the latest
             await asyncio.wait_for(
-                asyncio.gather(*(client_loop(c, work, mix, end, rec, fresh, bad) for c in conns)),
+                asyncio.gather(*(client_loop(c, work, mix, end, rec, fresh, bad, p) for c, p in zip(conns, pinned))),
                 duration + timeout + 5,
             )
             wall = time.perf_counter() - t0
@@ -281,6 +313,7 @@ async def run_load(
                     await c.aclose()
     if before is not None and after is not None:
         for ep in ENDPOINTS:
-            (s0, n0), (s1, n1) = before.get(ep, (0.0, 0.0)), after.get(ep, (0.0, 0.0))
+            label = SERVER_ENDPOINT[ep]
+            (s0, n0), (s1, n1) = before.get(label, (0.0, 0.0)), after.get(label, (0.0, 0.0))
             rec.server_mean_ms[ep] = (s1 - s0) / (n1 - n0) * 1e3 if n1 > n0 else None
     return rec, wall

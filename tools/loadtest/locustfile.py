@@ -5,8 +5,10 @@
         --headless --users 8 --spawn-rate 8 --run-time 30s
 
 Each user repeats the cycle of ``python -m tools.loadtest`` (same workload module): upload a
-fresh depth image, score K grasps against it SCORES times, one one-shot call with a fresh
-image. Settings from the environment: VGQ_LOADTEST_K (grasps per call, default 128),
+fresh depth image, score K grasps against it SCORES times (the first, ``score_first``, encodes
+its windows; the others, ``score``, find them cached), one one-shot call with a fresh image.
+With ``upload=0`` each user uploads and scores one image at its start, untimed by the mix
+(``pin``), and then sends only cached score calls. Settings from the environment: VGQ_LOADTEST_K (grasps per call, default 128),
 VGQ_LOADTEST_MIX (default ``upload=1,score=8,once=1``). Answers are checked as in the load
 test (image id present, 4 bytes per grasp); a wrong answer is a Locust failure.
 """
@@ -34,6 +36,28 @@ class ScoringUser(HttpUser):
 
     def on_start(self) -> None:
         self.fresh = FreshImages(WORK.depth)
+        self.pinned = None
+        if MIX.pinned:  # cached-score-only mix: one image, its windows encoded before the cycles
+            self.pinned = self._upload("pin")
+            if self.pinned:
+                self._scores("pin", f"/v1/images/{self.pinned}/scores", GRASP_BYTES, OCTET)
+
+    def _upload(self, name: str) -> str | None:
+        with self.client.post(
+            "/v1/images",
+            data=self.fresh.next_npy(),
+            headers={"content-type": "application/x-npy"},
+            name=name,
+            catch_response=True,
+        ) as r:
+            try:
+                image_id = r.json()["image_id"] if r.status_code == 200 else None
+                if image_id is None:
+                    r.failure(f"HTTP {r.status_code}: {r.text[:160]}")
+                return image_id
+            except (ValueError, KeyError):
+                r.failure("answer without an image_id")
+                return None
 
     def _scores(self, name: str, path: str, body: bytes, content_type: str) -> None:
         with self.client.post(
@@ -46,22 +70,11 @@ class ScoringUser(HttpUser):
 
     @task
     def cycle(self) -> None:
-        image_id = None
+        image_id = self.pinned
         for _ in range(MIX.upload):
-            with self.client.post(
-                "/v1/images",
-                data=self.fresh.next_npy(),
-                headers={"content-type": "application/x-npy"},
-                name="upload",
-                catch_response=True,
-            ) as r:
-                try:
-                    image_id = r.json()["image_id"] if r.status_code == 200 else None
-                    if image_id is None:
-                        r.failure(f"HTTP {r.status_code}: {r.text[:160]}")
-                except (ValueError, KeyError):
-                    r.failure("answer without an image_id")
-        for _ in range(MIX.score if image_id else 0):
-            self._scores("score", f"/v1/images/{image_id}/scores", GRASP_BYTES, OCTET)
+            image_id = self._upload("upload") or image_id
+        for i in range(MIX.score if image_id else 0):
+            name = "score_first" if i == 0 and not MIX.pinned else "score"
+            self._scores(name, f"/v1/images/{image_id}/scores", GRASP_BYTES, OCTET)
         for _ in range(MIX.once):
             self._scores("score_once", "/v1/score", self.fresh.next_npz(WORK.grasps), "application/x-npz")

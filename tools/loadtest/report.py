@@ -8,7 +8,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-ENDPOINTS = ("upload", "score", "score_once", "bad")
+#: report rows: ``score_first`` is the first score call after an upload (it encodes the image's
+#: windows), ``score`` the cached ones (windows encoded: head only)
+ENDPOINTS = ("upload", "score_first", "score", "score_once", "bad")
+#: the service's /metrics endpoint label of each row (it does not tell first and cached score calls apart)
+SERVER_ENDPOINT = {
+    "upload": "upload",
+    "score_first": "score",
+    "score": "score",
+    "score_once": "score_once",
+    "bad": "bad",
+}
 
 
 @dataclass
@@ -72,11 +82,12 @@ def server_latency_totals(metrics_text: str) -> dict[str, tuple[float, float]]:
 
 
 # ---- report ---------------------------------------------------------------------------------
-def summarize(rec: Recorder, wall: float) -> dict:
+def summarize(rec: Recorder, wall: float, endpoints: tuple[str, ...] | None = None) -> dict:
+    """Per row of ``endpoints`` (default: every row with a request or an error) and in all."""
     eps = {}
     for e in ENDPOINTS:
-        if e == "bad" and not (rec.latencies[e] or rec.errors[e]):
-            continue  # no bad requests in this mix
+        if (e not in endpoints) if endpoints is not None else not (rec.latencies[e] or rec.errors[e]):
+            continue
         lat = np.asarray(rec.latencies[e]) * 1e3
         n = len(lat)
         eps[e] = {
@@ -124,6 +135,11 @@ def table(report: dict) -> str:
         f"total: {report['requests']} requests ({report['requests_per_s']:.0f}/s), "
         f"{report['grasps_per_s']:.0f} grasps/s, {report['errors']} errors",
     ]
+    if {"score_first", "score"} <= set(report["endpoints"]):
+        lines.append(
+            "score_first: the first score call after an upload (encodes the image's windows); score: cached "
+            "windows (head only); the server mean of both is over all score calls"
+        )
     for msg, n in list(report["error_messages"].items())[:5]:
         lines.append(f"  error x{n}: {msg}")
     if "server_rss" in report:

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 from .client import run_load
-from .report import summarize
+from .report import ENDPOINTS, summarize
 from .workload import ROOT, Mix, load_workload
 
 
@@ -101,7 +101,7 @@ def sweep(
             try:
                 for c in clients:
                     rec, wall = asyncio.run(run_load(url, c, duration, work, mix, warmup=1.0, transport="raw"))
-                    s = summarize(rec, wall)
+                    s = summarize(rec, wall, tuple(e for e in ENDPOINTS if e != "bad" or mix.bad))  # rows for the plot
                     s.update(workers=w, threads=t, clients=c, load_average=list(os.getloadavg()))
                     points.append(s)
                     e = s["endpoints"]

@@ -20,7 +20,13 @@ OCTET = "application/octet-stream"
 @dataclass(frozen=True)
 class Mix:
     """Requests per client cycle: uploads of a fresh image, score calls per upload, one-shots,
-    and bad requests (malformed on purpose; each must get a 4xx naming the problem)."""
+    and bad requests (malformed on purpose; each must get a 4xx naming the problem).
+
+    The first score call after an upload encodes the image's crop windows (lazily: encoder +
+    head) and is reported as ``score_first``; the others find them encoded (head only) and are
+    reported as ``score``. ``upload=0`` with ``score=N``: a cached-score-only mix; each client
+    uploads one image and scores it once before the run (not timed), then every cycle is N
+    cached score calls against it."""
 
     upload: int = 1
     score: int = 8
@@ -37,11 +43,25 @@ class Mix:
                 raise ValueError(f"bad --mix entry {part!r}; expected upload=N, score=N, once=N, bad=N (N >= 0)")
             kw[name] = int(value)
         mix = cls(**kw)
-        if mix.score and not mix.upload:
-            raise ValueError("--mix: score calls need an upload (upload >= 1)")
-        if not (mix.upload or mix.once or mix.bad):
-            raise ValueError("--mix: nothing to do (upload, once and bad are all 0)")
+        if not (mix.upload or mix.score or mix.once or mix.bad):
+            raise ValueError("--mix: nothing to do (upload, score, once and bad are all 0)")
         return mix
+
+    @property
+    def pinned(self) -> bool:
+        """Score calls against one image per client, uploaded and warmed before the run."""
+        return self.score > 0 and self.upload == 0
+
+    def endpoints(self) -> tuple[str, ...]:
+        """The report's rows this mix sends, in report order."""
+        sent = {
+            "upload": self.upload > 0,
+            "score_first": self.score > 0 and self.upload > 0,
+            "score": self.score > (1 if self.upload else 0),
+            "score_once": self.once > 0,
+            "bad": self.bad > 0,
+        }
+        return tuple(e for e, on in sent.items() if on)
 
 
 @dataclass
