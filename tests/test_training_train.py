@@ -172,12 +172,16 @@ def test_evaluate_reports_each_family_under_its_own_name(data, run, tmp_path):
     m = json.loads((fam_data / "manifest.json").read_text())
     m["source"] = {"objects": [{"object_id": i, "family": "mug" if i % 2 else "box"} for i in range(30)]}
     (fam_data / "manifest.json").write_text(json.dumps(m))
+    evaluate(run, data, "test", progress=False)  # the plain test split, no families
     rec = evaluate(run, fam_data, "test", progress=False, name="test_families")
     ids = np.asarray(open_crop_dataset(fam_data).split("test").arrays["object_id"])
     fams = rec["by_family"]
     assert sorted(fams) == ["box", "mug"]
     assert fams["mug"]["n"] == int((ids % 2 == 1).sum()) and fams["box"]["n"] == int((ids % 2 == 0).sum())
     assert sum(f["tp"] for f in fams.values()) == rec["overall"]["tp"]
+    y = np.asarray(open_crop_dataset(fam_data).split("test").arrays["labels"])
+    assert fams["mug"]["objects"] == np.unique(ids[ids % 2 == 1]).size
+    assert fams["mug"]["objects_with_positive"] == np.unique(ids[(ids % 2 == 1) & (y == 1)]).size
     assert (run / "eval" / "metrics_test_families.json").is_file()
     _, meta = load_trained(run)  # the card's metrics carry it under its name, beside the plain test split
     assert meta["metrics"]["test_families"]["by_family"]["mug"]["n"] == fams["mug"]["n"]

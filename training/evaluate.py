@@ -76,6 +76,11 @@ def evaluate(
         if families
         else {}
     )
+    oid = np.asarray(sp.arrays["object_id"])
+    for f, m in by_family.items():  # how many objects a family's numbers rest on, and how many can be grasped
+        ids = oid[row_family == f]
+        m["objects"] = int(np.unique(ids).size)
+        m["objects_with_positive"] = int(np.unique(ids[labels[row_family == f] == 1]).size)
     grid = M.grid_metrics(
         labels,
         p,
