@@ -383,6 +383,31 @@ def cmd_objects(args) -> int:
     return 0
 
 
+def cmd_stats(args) -> int:
+    from . import storage
+
+    m = storage.read_manifest(args.inp, storage.GRASP_FORMAT)
+    fams = storage.family_counts(m)
+    if args.json:
+        print(json.dumps({"counts": m["counts"], "families": fams}, indent=2))
+        return 0
+    c = m["counts"]
+    print(
+        f"{args.inp}: {c['objects_done']} of {c['objects']} objects done ({c['objects_skipped']} skipped), "
+        f"{c['grasps']} grasps, positivity {100 * c['positivity_rate']:.2f}%"
+        + ("" if m.get("complete") else " (generation not complete: rerun `datagen generate` to resume)")
+    )
+    print(
+        f"{'family':<14}{'done':>6}{'skip':>6}{'todo':>6}{'grasps':>11}{'coll.-free':>11}{'positive':>10}{'no pos.':>9}"
+    )
+    for name, f in fams.items():
+        print(
+            f"{name or '-':<14}{f['done']:>6}{f['skipped']:>6}{f['pending']:>6}{f['grasps']:>11}"
+            f"{100 * f['collision_free'] / max(f['grasps'], 1):>10.1f}%{100 * f['positivity']:>9.2f}%{f['no_positive']:>9}"
+        )
+    return 0
+
+
 def cmd_config(args) -> int:
     cfg = _build_config(args)
     print(json.dumps(cfg.to_dict(), indent=2, sort_keys=True))
@@ -507,6 +532,11 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--list", action="store_true", help="list the families and exit")
     o.add_argument("--no-sheet", action="store_true", help="skip the contact-sheet PNGs")
     o.set_defaults(func=cmd_objects)
+
+    st = sub.add_parser("stats", help="per-family counts of a grasp dataset (also while it is generated)")
+    st.add_argument("--in", dest="inp", required=True, help="grasp dataset folder (vgq-grasps)")
+    st.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    st.set_defaults(func=cmd_stats)
 
     k = sub.add_parser("config", help="print the (default or given) config as JSON")
     _add_config_args(k)

@@ -191,6 +191,31 @@ def update_counts(m: dict) -> None:
     }
 
 
+def family_counts(m: dict) -> dict[str, dict]:
+    """Per object family of a grasp-dataset manifest ``m`` (``random_urdfs`` etc.; "" where none is
+    recorded): objects done / skipped / pending, grasps, positive and collision-free rows,
+    positivity, and how many done objects have no positive grasp at all (none of their grasps
+    succeeds: too wide, too flat or too slippery for the gripper)."""
+    out: dict[str, dict] = {}
+    for o in m["objects"]:
+        f = out.setdefault(
+            o.get("family") or "",
+            {"done": 0, "skipped": 0, "pending": 0, "grasps": 0, "positive": 0, "collision_free": 0, "no_positive": 0},
+        )
+        st = o.get("status", "pending")
+        f[st if st in ("done", "skipped") else "pending"] += 1
+    fam = {int(o["object_id"]): o.get("family") or "" for o in m["objects"]}
+    for s in m["shards"]:
+        f = out[fam[int(s["object_id"])]]
+        f["grasps"] += s["num_grasps"]
+        f["positive"] += s["num_positive"]
+        f["collision_free"] += s["num_collision_free"]
+        f["no_positive"] += s["num_positive"] == 0
+    for f in out.values():
+        f["positivity"] = f["positive"] / f["grasps"] if f["grasps"] else 0.0
+    return dict(sorted(out.items()))
+
+
 def record_shard(m: dict, entry: dict, **object_info) -> None:
     """Add/replace a shard entry and mark its object done (in place; keeps id order)."""
     oid = entry["object_id"]

@@ -118,3 +118,25 @@ def test_v2_recipe_adds_a_clean_test_copy_and_the_leave_family_out_split(tmp_pat
     assert lines[3][lines[3].index("--sensor") + 1] == "clean" and lines[3][-2:] == ["--splits", "test"]
     holdout = parse_override(lines[4][-1])
     assert holdout == ("sampling.holdout_families", ["mug", "metaball"])
+
+
+def test_stats_counts_each_family_and_its_objects_without_a_positive(tmp_path, capsys):
+    from datagen_fakes import fake_dataset
+
+    from datagen import storage
+
+    m = fake_dataset(tmp_path / "g", n_objects=4, n_images=1, n_grasps=10)
+    for o in m["objects"]:
+        o["family"] = "mug" if o["object_id"] < 2 else "box"
+    m["shards"][3]["num_positive"] = 0  # one box none of whose grasps succeeds
+    storage.write_manifest(tmp_path / "g", m)
+    rc, out, _ = run_main(capsys, "stats", "--in", tmp_path / "g", "--json")
+    assert rc == 0
+    fams = json.loads(out)["families"]
+    assert list(fams) == ["box", "mug"] and fams["mug"]["done"] == 2 and fams["box"]["no_positive"] == 1
+    assert fams["mug"]["grasps"] == sum(s["num_grasps"] for s in m["shards"][:2])
+    assert fams["box"]["positive"] == m["shards"][2]["num_positive"]
+    rc, out, _ = run_main(capsys, "stats", "--in", tmp_path / "g")
+    assert rc == 0 and out.splitlines()[2].split()[0] == "box"
+    rc, _, err = run_main(capsys, "stats", "--in", tmp_path / "nothing")
+    assert rc == 2 and "nothing" in err
