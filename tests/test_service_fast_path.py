@@ -4,12 +4,16 @@ exactly as the router's routes do (status, body, headers), errors included."""
 from __future__ import annotations
 
 import io
+import warnings
 
 import numpy as np
 import pytest
 from conftest import table_scene
 from servers import grasps_at
-from starlette.testclient import TestClient
+
+with warnings.catch_warnings():  # starlette now asks for the httpx2 package; httpx still does the job here
+    warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient`")
+    from starlette.testclient import TestClient
 
 from service.app import create_app
 from service.config import Settings
