@@ -80,9 +80,14 @@ class DatagenConfig:
 
 def recorded_config(d: dict) -> dict:
     """A config dict recorded in a dataset manifest, upgraded for settings added since: a
-    dataset without a ``label`` section predates the label setting and has the paper's label."""
-    if isinstance(d, dict) and "label" not in d:
-        return {**d, "label": {"kind": "paper"}}
+    dataset without a ``label`` section predates the label setting and has the paper's label;
+    one whose ``physics`` lacks ``pad_contact_radius`` ran its trials with rigid point contacts (0)."""
+    if not isinstance(d, dict):
+        return d
+    if "label" not in d:
+        d = {**d, "label": {"kind": "paper"}}
+    if isinstance(d.get("physics"), dict) and "pad_contact_radius" not in d["physics"]:
+        d = {**d, "physics": {**d["physics"], "pad_contact_radius": 0.0}}
     return d
 
 

@@ -125,3 +125,36 @@ def test_a_dataset_recorded_before_the_label_setting_resumes_with_the_papers_lab
     cfg = DatagenConfig.from_dict(recorded_config(old))
     assert cfg.label.kind == "paper" and cfg.label_threshold == 0.002
     assert recorded_config(DatagenConfig().to_dict())["label"]["kind"] == "physics"
+
+
+def test_soft_finger_pads_hold_a_tapered_object_that_point_contacts_let_swing_out():
+    import dataclasses
+
+    import manifold3d
+
+    from datagen.config import DatagenConfig
+    from datagen.physics import GraspSimulator
+
+    # an upright frustum tapering 5 deg (statics: holds from mu = 0.09), gripped from above 5 cm up
+    m = manifold3d.Manifold.cylinder(0.074, 0.012, 0.012 - 0.074 * np.tan(np.radians(5.0)), 48).to_mesh()
+    mesh = trimesh.Trimesh(m.vert_properties[:, :3], m.tri_verts)
+    T_grasp = np.eye(4)
+    T_grasp[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]  # jaw axis x, approach down
+    T_grasp[:3, 3] = [0, 0, 0.05]
+    cfg = DatagenConfig()
+    held = {}
+    for r in (0.0, cfg.physics.pad_contact_radius):
+        with GraspSimulator(cfg.gripper, dataclasses.replace(cfg.physics, pad_contact_radius=r)) as sim:
+            sim.set_object(mesh, np.eye(4))
+            held[r] = sim.trial(T_grasp, 0.5)[0]
+    assert cfg.physics.pad_contact_radius > 0
+    assert held == {0.0: "dropped", cfg.physics.pad_contact_radius: "held"}
+
+
+def test_a_dataset_recorded_before_soft_fingers_resumes_with_point_contacts():
+    from datagen.config import DatagenConfig, recorded_config
+
+    old = DatagenConfig().to_dict()
+    old["physics"].pop("pad_contact_radius")
+    assert DatagenConfig.from_dict(recorded_config(old)).physics.pad_contact_radius == 0.0
+    assert recorded_config(DatagenConfig().to_dict())["physics"]["pad_contact_radius"] == 0.003
