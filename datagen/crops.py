@@ -104,7 +104,7 @@ def crop_grasps(
     return images, pose_uv, missing
 
 
-_OPEN: dict[str, storage.GraspDataset] = {}
+_OPEN: dict[str, storage.GraspDataset] = {}  # per process: folder -> opened dataset (workers read it once)
 
 
 def crop_object(
@@ -215,6 +215,7 @@ def make_crops(
 
     from .parallel import run_tasks
 
+    _OPEN[str(ds.root)] = ds  # this run's manifest, not one cached from an earlier run on the same folder
     tasks = [(str(ds.root), e, arch, geom, sensor, seed, intr, thr) for e in entries]
     try:
         run_tasks(crop_object, tasks, workers=workers, on_result=write, progress=progress, desc=f"crops {arch}")
