@@ -32,14 +32,17 @@ if [ -d "$DATA/crops_clean_test" ]; then  # the same test grasps without the sen
   $PY -m training evaluate --run "$RUN" --data "$DATA/crops_clean_test" --name test_clean
 fi
 $PY -m training baseline --data "$DATA/crops" --model mlp --out "$BASE"
-if [ -d "$DATA/crops_lfo" ]; then  # leave-family-out: a second run that never sees the held-out families
-  $PY -m training train --data "$DATA/crops_lfo" --out "$RUN-lfo" --samples "${SAMPLES_LFO:-$SAMPLES}" "${TRAIN_OPTS[@]}"
+export_model() {
+  $PY -m export --run "$RUN" --data "$DATA/crops" --out "$OUT" "$@" \
+    --recipe "python -m datagen recipe --version $VERSION --out $DATA" --baseline "$BASE/baseline_mlp.json" --int8-head
+}
+export_model
+if [ -d "$DATA/crops_lfo" ]; then  # leave-family-out: a second, shorter run that never sees the held-out families
+  $PY -m training train --data "$DATA/crops_lfo" --out "$RUN-lfo" --samples "${SAMPLES_LFO:-$((SAMPLES / 2))}" \
+    "${TRAIN_OPTS[@]}"
   $PY -m training evaluate --run "$RUN-lfo" --data "$DATA/crops_lfo"
+  export_model --leave-family-out "$RUN-lfo/eval/metrics_test.json"  # the same model, its card with the LFO result
 fi
-LFO=()
-if [ -f "$RUN-lfo/eval/metrics_test.json" ]; then LFO=(--leave-family-out "$RUN-lfo/eval/metrics_test.json"); fi
-$PY -m export --run "$RUN" --data "$DATA/crops" --out "$OUT" "${LFO[@]}" \
-  --recipe "python -m datagen recipe --version $VERSION --out $DATA" --baseline "$BASE/baseline_mlp.json" --int8-head
 cp "$RUN/eval/heatmap_test.png" "$RUN/eval/curves.png" "$OUT/"
 # golden end-to-end scores of the new model on the example image (tests/test_golden_scores.py)
 if [ "$OUT" = models/fast-vgqcnn-default ]; then $PY examples/golden.py --model-dir "$OUT"; fi
