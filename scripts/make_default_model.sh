@@ -13,36 +13,41 @@
 # v2's dataset ~3 h (1,040 objects, 8 physics trials per grasp and pose), training the same per sample.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-PY=${PYTHON:-.venv/bin/python}
-VERSION=${VERSION:-v1}
-case "$VERSION" in
-  v1) SAMPLES=${SAMPLES:-900000}; DATA=${DATA:-data/recipe}; RUN=${RUN:-runs/fast}; BASE=${BASE:-runs/baseline} ;;
-  v2) SAMPLES=${SAMPLES:-2000000}; DATA=${DATA:-data/v2}; RUN=${RUN:-runs/fast-v2}; BASE=${BASE:-runs/baseline-v2} ;;
-  *) echo "make_default_model.sh: VERSION must be v1 or v2, got $VERSION" >&2; exit 2 ;;
-esac
-OUT=${OUT:-models/fast-vgqcnn-default}
-TRAIN_OPTS=(--arch fast_vgqcnn --resume --seed 0 --optimizer adamw --base-lr 0.0002 --decay-every-samples 100000
-  --class-balance loss_weights --val-every-samples 25000 --val-max-samples 6000 --checkpoint-every-samples 20000)
-if [ "$VERSION" = v2 ]; then TRAIN_OPTS+=(--precision auto); fi  # bf16 steps where the CPU has bf16 (~1.9x)
+# the whole script is read before it runs (a function), so editing this file cannot break a running build
+main() {
+  PY=${PYTHON:-.venv/bin/python}
+  VERSION=${VERSION:-v1}
+  case "$VERSION" in
+    v1) SAMPLES=${SAMPLES:-900000}; DATA=${DATA:-data/recipe}; RUN=${RUN:-runs/fast}; BASE=${BASE:-runs/baseline} ;;
+    v2) SAMPLES=${SAMPLES:-2000000}; DATA=${DATA:-data/v2}; RUN=${RUN:-runs/fast-v2}; BASE=${BASE:-runs/baseline-v2} ;;
+    *) echo "make_default_model.sh: VERSION must be v1 or v2, got $VERSION" >&2; exit 2 ;;
+  esac
+  OUT=${OUT:-models/fast-vgqcnn-default}
+  TRAIN_OPTS=(--arch fast_vgqcnn --resume --seed 0 --optimizer adamw --base-lr 0.0002 --decay-every-samples 100000
+    --class-balance loss_weights --val-every-samples 25000 --val-max-samples 6000 --checkpoint-every-samples 20000)
+  if [ "$VERSION" = v2 ]; then TRAIN_OPTS+=(--precision auto); fi  # bf16 steps where the CPU has bf16 (~1.9x)
 
-$PY -m datagen recipe --version "$VERSION" --out "$DATA"
-$PY -m training train --data "$DATA/crops" --out "$RUN" --samples "$SAMPLES" "${TRAIN_OPTS[@]}"
-$PY -m training evaluate --run "$RUN" --data "$DATA/crops"
-if [ -d "$DATA/crops_clean_test" ]; then  # the same test grasps without the sensor model
-  $PY -m training evaluate --run "$RUN" --data "$DATA/crops_clean_test" --name test_clean
-fi
-$PY -m training baseline --data "$DATA/crops" --model mlp --out "$BASE"
-export_model() {
-  $PY -m export --run "$RUN" --data "$DATA/crops" --out "$OUT" "$@" \
-    --recipe "python -m datagen recipe --version $VERSION --out $DATA" --baseline "$BASE/baseline_mlp.json" --int8-head
+  $PY -m datagen recipe --version "$VERSION" --out "$DATA"
+  $PY -m training train --data "$DATA/crops" --out "$RUN" --samples "$SAMPLES" "${TRAIN_OPTS[@]}"
+  $PY -m training evaluate --run "$RUN" --data "$DATA/crops"
+  if [ -d "$DATA/crops_clean_test" ]; then  # the same test grasps without the sensor model
+    $PY -m training evaluate --run "$RUN" --data "$DATA/crops_clean_test" --name test_clean
+  fi
+  $PY -m training baseline --data "$DATA/crops" --model mlp --out "$BASE"
+  export_model() {
+    $PY -m export --run "$RUN" --data "$DATA/crops" --out "$OUT" "$@" \
+      --recipe "python -m datagen recipe --version $VERSION --out $DATA" --baseline "$BASE/baseline_mlp.json" --int8-head
+  }
+  export_model
+  if [ -d "$DATA/crops_lfo" ]; then  # leave-family-out: a second, shorter run that never sees the held-out families
+    $PY -m training train --data "$DATA/crops_lfo" --out "$RUN-lfo" --samples "${SAMPLES_LFO:-$((SAMPLES / 2))}" \
+      "${TRAIN_OPTS[@]}"
+    $PY -m training evaluate --run "$RUN-lfo" --data "$DATA/crops_lfo"
+    export_model --leave-family-out "$RUN-lfo/eval/metrics_test.json"  # the same model, its card with the LFO result
+  fi
+  cp "$RUN/eval/heatmap_test.png" "$RUN/eval/curves.png" "$OUT/"
+  # golden end-to-end scores of the new model on the example image (tests/test_golden_scores.py)
+  if [ "$OUT" = models/fast-vgqcnn-default ]; then $PY examples/golden.py --model-dir "$OUT"; fi
 }
-export_model
-if [ -d "$DATA/crops_lfo" ]; then  # leave-family-out: a second, shorter run that never sees the held-out families
-  $PY -m training train --data "$DATA/crops_lfo" --out "$RUN-lfo" --samples "${SAMPLES_LFO:-$((SAMPLES / 2))}" \
-    "${TRAIN_OPTS[@]}"
-  $PY -m training evaluate --run "$RUN-lfo" --data "$DATA/crops_lfo"
-  export_model --leave-family-out "$RUN-lfo/eval/metrics_test.json"  # the same model, its card with the LFO result
-fi
-cp "$RUN/eval/heatmap_test.png" "$RUN/eval/curves.png" "$OUT/"
-# golden end-to-end scores of the new model on the example image (tests/test_golden_scores.py)
-if [ "$OUT" = models/fast-vgqcnn-default ]; then $PY examples/golden.py --model-dir "$OUT"; fi
+main "$@"
+exit
