@@ -299,7 +299,7 @@ def cmd_recipe(args) -> int:
                 "crops_clean_test",
             )
         )
-    if recipe.get("leave_out"):  # leave-family-out: the same grasps, those families only in test
+    if recipe.get("leave_out") and not args.no_leave_out:  # leave-family-out: those families only in test
         lfo = shlex.quote("sampling.holdout_families=" + json.dumps(recipe["leave_out"], separators=(",", ":")))
         steps += [
             (
@@ -522,6 +522,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--objects", type=_positive_int("--objects"), help="random_urdfs objects (default: the recipe's)")
     r.add_argument("--workers", type=_positive_int("--workers"))
     r.add_argument("--dry-run", action="store_true", help="only print the commands")
+    r.add_argument(
+        "--no-leave-out",
+        action="store_true",
+        help="skip the leave-family-out split (build it later by rerunning without this flag)",
+    )
     r.set_defaults(func=cmd_recipe)
 
     o = sub.add_parser("objects", help="write example meshes of the object families and contact sheets")

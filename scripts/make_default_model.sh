@@ -27,7 +27,7 @@ main() {
     --class-balance loss_weights --val-every-samples 25000 --val-max-samples 6000 --checkpoint-every-samples 20000)
   if [ "$VERSION" = v2 ]; then TRAIN_OPTS+=(--precision auto); fi  # bf16 steps where the CPU has bf16 (~1.9x)
 
-  $PY -m datagen recipe --version "$VERSION" --out "$DATA"
+  $PY -m datagen recipe --version "$VERSION" --out "$DATA" --no-leave-out  # the leave-family-out split comes later
   $PY -m training train --data "$DATA/crops" --out "$RUN" --samples "$SAMPLES" "${TRAIN_OPTS[@]}"
   $PY -m training evaluate --run "$RUN" --data "$DATA/crops"
   if [ -d "$DATA/crops_clean_test" ]; then  # the same test grasps without the sensor model
@@ -39,6 +39,7 @@ main() {
       --recipe "python -m datagen recipe --version $VERSION --out $DATA" --baseline "$BASE/baseline_mlp.json" --int8-head
   }
   export_model
+  $PY -m datagen recipe --version "$VERSION" --out "$DATA"  # the rest of the recipe: the leave-family-out split
   if [ -d "$DATA/crops_lfo" ]; then  # leave-family-out: a second, shorter run that never sees the held-out families
     $PY -m training train --data "$DATA/crops_lfo" --out "$RUN-lfo" --samples "${SAMPLES_LFO:-$((SAMPLES / 2))}" \
       "${TRAIN_OPTS[@]}"

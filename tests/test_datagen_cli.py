@@ -118,6 +118,13 @@ def test_v2_recipe_adds_a_clean_test_copy_and_the_leave_family_out_split(tmp_pat
     assert lines[3][lines[3].index("--sensor") + 1] == "clean" and lines[3][-2:] == ["--splits", "test"]
     holdout = parse_override(lines[4][-1])
     assert holdout == ("sampling.holdout_families", ["mug", "metaball"])
+    rc, out, _ = run_main(capsys, "recipe", "--version", "v2", "--out", tmp_path, "--dry-run", "--no-leave-out")
+    assert rc == 0 and [shlex.split(ln)[3] for ln in out.strip().splitlines()] == [
+        "generate",
+        "sample",
+        "crops",
+        "crops",
+    ]
 
 
 def test_stats_counts_each_family_and_its_objects_without_a_positive(tmp_path, capsys):
