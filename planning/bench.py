@@ -8,9 +8,11 @@ model's recipe (the ``object_id``s of examples/heldout_test_crops.npz index data
 default mesh list), each on a stable pose drawn by probability under a camera drawn from
 the recipe's ranges, rendered by datagen. The planner sees only the depth image. Every
 candidate it scored is judged by the oracle: robust Ferrari-Canny on the true mesh
-(datagen.quality, the recipe's parameters) > the label threshold, and no collision of the
-swept gripper with the true mesh or the table (datagen.collision) at the known camera
-pose. Reported: precision@1 and @5 of the plan (top-k after NMS), of a random
+(datagen.quality, the recipe's parameters) > its threshold, or with ``--oracle physics``
+(the default for a model trained on the physics label) the recipe's noisy pybullet trials
+(datagen.physics) succeeding more often than the label's threshold, for the top 5 and a
+random sample of the candidates; and no collision of the swept gripper with the true mesh or
+the table (datagen.collision) at the known camera pose. Reported: precision@1 and @5 of the plan (top-k after NMS), of a random
 collision-free candidate of the same sampler (its expectation: the positive share of the
 candidates), and of the pose-only baseline's ranking when its model file exists.
 
@@ -44,10 +46,10 @@ def _model(model_dir: str, threads: int, head_precision: str = "auto"):
 
 
 def _recipe_config(model):
-    from datagen.config import DatagenConfig
+    from datagen.config import DatagenConfig, recorded_config
 
-    try:
-        return DatagenConfig.from_dict(model.card.dataset["source"]["config"])
+    try:  # upgraded like a dataset manifest's: a recipe recorded before the label setting had the paper's
+        return DatagenConfig.from_dict(recorded_config(model.card.dataset["source"]["config"]))
     except Exception:  # an older card without the full config: the defaults are the recipe's
         return DatagenConfig()
 
@@ -86,25 +88,58 @@ def make_scene(object_id: int, config, rng: np.random.Generator) -> BenchScene:
     )
 
 
-def judge(scene: BenchScene, frames_cam: np.ndarray, config, rng: np.random.Generator) -> dict:
-    """Oracle verdicts for grasp frames (n, 4, 4) in the camera frame: ``quality`` robust
-    Ferrari-Canny on the true mesh, ``collides`` (swept gripper vs true mesh and table),
-    ``positive`` = quality > label threshold and no collision."""
-    from datagen.collision import CollisionChecker
-    from datagen.grasps import AntipodalGrasps
-    from datagen.quality import robust_ferrari_canny
+ORACLES = ("fc", "physics")
 
+
+def default_oracle(config) -> str:
+    """The oracle matching the label the model learnt: physics trials for the physics label,
+    robust Ferrari-Canny otherwise."""
+    return "physics" if config.label.kind == "physics" else "fc"
+
+
+def judge(scene: BenchScene, frames_cam: np.ndarray, config, rng: np.random.Generator, oracle: str = "fc") -> dict:
+    """Oracle verdicts for grasp frames (n, 4, 4) in the camera frame: ``collides`` (swept
+    gripper vs true mesh and table) and ``quality``: with ``oracle`` "fc" the robust
+    Ferrari-Canny on the true mesh (positive above the recipe's Ferrari-Canny threshold), with
+    "physics" the success rate of the recipe's number of noisy pybullet trials of the grasp on
+    the object in its pose (positive above the label's success threshold). ``positive`` also
+    needs no collision; colliding grasps get quality 0 under the physics oracle (no trials)."""
+    from datagen.collision import CollisionChecker
+
+    if oracle not in ORACLES:
+        raise ValueError(f"oracle must be one of {ORACLES}, got {oracle!r}")
     n = len(frames_cam)
     if n == 0:
         z = np.zeros(0)
         return {"quality": z, "collides": z.astype(bool), "positive": z.astype(bool)}
     T_wg = scene.T_world_camera @ frames_cam
+    collides = np.asarray(CollisionChecker(scene.mesh_world, config.gripper).collides(T_wg), bool)
+    if oracle == "physics":
+        from datagen.physics import GraspSimulator, run_trials
+
+        quality = np.zeros(n)
+        free = np.flatnonzero(~collides)
+        if len(free):
+            with GraspSimulator(config.gripper, config.physics) as sim:
+                sim.set_object(scene.mesh_object, scene.T_world_object)
+                quality[free] = run_trials(sim, T_wg[free], config.label.trials, rng).success_rate
+        return {
+            "quality": quality,
+            "collides": collides,
+            "positive": (quality > config.label.success_threshold) & ~collides,
+        }
+    from datagen.grasps import AntipodalGrasps
+    from datagen.quality import robust_ferrari_canny
+
     T_og = np.linalg.inv(scene.T_world_object) @ T_wg
     grasps = AntipodalGrasps(T_og[:, :3, 3], T_og[:, :3, 0], np.zeros((n, 2, 3)), np.zeros((n, 2, 3)), np.zeros(n))
     qp = dataclasses.replace(config.quality, torque_scaling=scene.torque_scaling)
     quality = robust_ferrari_canny(scene.mesh_object, grasps, qp, rng)
-    collides = CollisionChecker(scene.mesh_world, config.gripper).collides(T_wg)
-    return {"quality": quality, "collides": collides, "positive": (quality > config.label_threshold) & ~collides}
+    return {
+        "quality": quality,
+        "collides": collides,
+        "positive": (quality > config.quality.label_threshold) & ~collides,
+    }
 
 
 def pose_only_model(model_dir: str):
@@ -138,6 +173,7 @@ def run_precision(args) -> dict:
     from .policy import nms, plan
 
     model, config, params, picked, rng = _setup(args)
+    oracle = args.oracle or default_oracle(config)
     baseline_file = pose_only_model(args.model)
     rows = []
     for i, oid in enumerate(picked):
@@ -145,25 +181,30 @@ def run_precision(args) -> dict:
         scene = make_scene(int(oid), config, rng)
         res = plan(scene.depth, config.intrinsics, model, k=5, seed=int(args.seed) + i, params=params)
         cand = res.candidates or {"frames": np.zeros((0, 4, 4)), "scores": np.zeros(0)}
-        verdict = judge(scene, cand["frames"], config, np.random.default_rng(1000 + i))
-        pos = verdict["positive"]
-        top = (
-            nms(cand["frames"], cand["scores"], 5, params.nms_distance, params.nms_angle)
-            if len(pos)
-            else np.zeros(0, int)
-        )
+        n = len(cand["frames"])
+        top = nms(cand["frames"], cand["scores"], 5, params.nms_distance, params.nms_angle) if n else np.zeros(0, int)
+        jrng = np.random.default_rng(1000 + i)
+        # the physics oracle costs trials: it judges the top 5 and a random sample of the candidates
+        sample = jrng.choice(n, size=min(n, args.random_sample), replace=False) if oracle == "physics" else np.arange(n)
+        judged = np.union1d(top, sample).astype(int)
+        v = judge(scene, cand["frames"][judged], config, jrng, oracle)
+        pos = np.zeros(n, bool)
+        pos[judged] = v["positive"]
+        verdict = {k: np.full(n, np.nan) for k in ("quality", "collides")}
+        for k in verdict:
+            verdict[k][judged] = v[k]
         row = {
             "object_id": int(oid),
-            "candidates": int(len(pos)),
+            "candidates": int(n),
             "reason": res.reason,
             "top1": bool(pos[top[0]]) if len(top) else False,
             "top5": float(pos[top].mean()) if len(top) else 0.0,
             "n_top": int(len(top)),
-            "random": float(pos.mean()) if len(pos) else 0.0,
+            "random": float(pos[sample].mean()) if len(sample) else 0.0,
             "top1_score": float(cand["scores"][top[0]]) if len(top) else None,
             "top1_quality": float(verdict["quality"][top[0]]) if len(top) else None,
             "top1_collides": bool(verdict["collides"][top[0]]) if len(top) else None,
-            "oracle_best_exists": bool(pos.any()),
+            "oracle_best_exists": bool(pos.any()),  # among the judged candidates
             "plan_ms": 1e3 * res.seconds.get("total", 0.0),
             "seconds": time.perf_counter() - t,
         }
@@ -183,6 +224,7 @@ def run_precision(args) -> dict:
         "precision_at_5": float(np.mean([r["top5"] for r in rows])) if rows else 0.0,
         "random_candidate_precision": float(np.mean([r["random"] for r in rows])) if rows else 0.0,
         "scenes_with_a_positive_candidate": int(sum(r["oracle_best_exists"] for r in rows)),
+        "oracle": oracle,
         "pose_only_baseline": str(baseline_file) if baseline_file else "not available: no model file is bundled",
         "params": {
             "cem_iterations": args.cem,
@@ -424,10 +466,25 @@ def main(argv=None) -> int:
         help="max distance (m) of the jaw line from the estimated centre of mass; <= 0: off",
     )
     ap.add_argument("--min-width", type=float, default=PlanParams().min_width, help="min contact distance (m)")
+    ap.add_argument(
+        "--oracle",
+        choices=ORACLES,
+        default=None,
+        help="precision: judge by robust Ferrari-Canny (fc) or by pybullet trials (physics); default: the one "
+        "matching the label of the model's recipe",
+    )
+    ap.add_argument(
+        "--random-sample",
+        type=int,
+        default=16,
+        help="precision with the physics oracle: random candidates judged per scene for the random baseline",
+    )
     ap.add_argument("--json", help="write the results here")
     args = ap.parse_args(argv)
     if args.centre_offset is not None and args.centre_offset <= 0:
         args.centre_offset = None
+    if args.random_sample < 1:
+        ap.error("--random-sample must be >= 1")
     if args.scenes is None:
         args.scenes = {"timing": 4, "precision": 20, "trials": 10, "ranker": 20}[args.what]
     run = {"timing": run_timing, "precision": run_precision, "trials": run_trials_bench, "ranker": run_ranker}[

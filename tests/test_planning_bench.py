@@ -1,0 +1,60 @@
+"""planning.bench: the oracle matches the label of the model's recipe and judges grasps by it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from datagen.config import DatagenConfig
+from planning.bench import BenchScene, _recipe_config, default_oracle, judge
+
+
+class _Card:
+    def __init__(self, config: dict):
+        self.dataset = {"source": {"config": config}}
+
+
+class _Model:
+    def __init__(self, config: dict):
+        self.card = _Card(config)
+
+
+def test_a_recipe_recorded_before_the_label_setting_is_judged_by_ferrari_canny():
+    old = DatagenConfig().to_dict()
+    old.pop("label")  # the bundled v1 card's recipe: the paper's label
+    cfg = _recipe_config(_Model(old))
+    assert cfg.label.kind == "paper" and default_oracle(cfg) == "fc"
+    assert default_oracle(_recipe_config(_Model(DatagenConfig().to_dict()))) == "physics"
+
+
+def _box_scene() -> BenchScene:
+    box = trimesh.creation.box(extents=[0.03, 0.04, 0.06])  # centre of mass at the origin
+    T_wo = np.eye(4)
+    T_wo[2, 3] = 0.03  # standing on the table
+    T_wc = np.eye(4)  # camera 0.6 m above, looking down (camera z = world -z)
+    T_wc[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    T_wc[2, 3] = 0.6
+    world = box.copy()
+    world.apply_transform(T_wo)
+    return BenchScene(0, box, world, T_wo, T_wc, np.zeros((4, 4)), 1.0 / 0.02)
+
+
+def _grasp_cam(scene: BenchScene, z_world: float) -> np.ndarray:
+    """Top-down grasp across the 3 cm side at height ``z_world``, in the camera frame."""
+    T_wg = np.eye(4)
+    T_wg[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]  # jaw axis x, approach down
+    T_wg[:3, 3] = [0.0, 0.0, z_world]
+    return np.linalg.inv(scene.T_world_camera) @ T_wg
+
+
+def test_the_physics_oracle_runs_trials_and_skips_colliding_grasps():
+    scene = _box_scene()
+    cfg = DatagenConfig().with_overrides({"label.trials": 2})
+    frames = np.stack([_grasp_cam(scene, 0.045), _grasp_cam(scene, 0.0)])  # held; fingers through the table
+    v = judge(scene, frames, cfg, np.random.default_rng(0), oracle="physics")
+    assert v["collides"].tolist() == [False, True]
+    assert v["quality"][1] == 0.0 and v["quality"][0] > cfg.label.success_threshold
+    assert v["positive"].tolist() == [True, False]
+    with pytest.raises(ValueError, match="oracle"):
+        judge(scene, frames, cfg, np.random.default_rng(0), oracle="psychic")
