@@ -4,9 +4,10 @@
 300 x 300 rendered scene (256 candidates, encoder included), with the stages' medians.
 
 ``python -m planning.bench precision``: scenes of held-out test objects of the bundled
-model's recipe (the ``object_id``s of examples/heldout_test_crops.npz index datagen's
-default mesh list), each on a stable pose drawn by probability under a camera drawn from
-the recipe's ranges, rendered by datagen. The planner sees only the depth image. Every
+model's recipe (the ``object_id``s of examples/heldout_test_crops.npz, or of a crop
+dataset's test split given as ``--heldout DIR``, index the recipe's objects), each on a
+stable pose drawn by probability under a camera drawn from the recipe's ranges, rendered by
+datagen. The planner sees only the depth image. Every
 candidate it scored is judged by the oracle: robust Ferrari-Canny on the true mesh
 (datagen.quality, the recipe's parameters) > its threshold, or with ``--oracle physics``
 (the default for a model trained on the physics label) the recipe's noisy pybullet trials
@@ -55,7 +56,18 @@ def _recipe_config(model):
 
 
 def heldout_object_ids(path: str = HELDOUT) -> list[int]:
-    return sorted(int(i) for i in np.unique(np.load(path)["object_id"]))
+    """Test object ids: those of a held-out crop file (.npz with ``object_id``), or the test split
+    of a crop dataset folder (e.g. data/v2/crops, whose ids index the recipe's objects, families
+    included)."""
+    p = Path(path)
+    if p.is_dir():
+        from vgq.schema import CROP_FORMAT, read_manifest
+
+        ids = read_manifest(p, CROP_FORMAT)["counts"]["test"].get("objects") or []
+        if not ids:
+            raise ValueError(f"{p}: its manifest lists no test objects")
+        return sorted(int(i) for i in ids)
+    return sorted(int(i) for i in np.unique(np.load(p)["object_id"]))
 
 
 @dataclasses.dataclass
@@ -72,11 +84,12 @@ class BenchScene:
 def make_scene(object_id: int, config, rng: np.random.Generator) -> BenchScene:
     """One held-out object on a stable pose (drawn by probability), seen by a recipe camera."""
     from datagen.camera import sample_cameras
-    from datagen.mesh import load_object, mesh_sources, stable_poses
+    from datagen.mesh import load_object, stable_poses
+    from datagen.pipeline import run_sources
     from datagen.quality import resolve_torque_scaling
     from datagen.render import render_depth
 
-    obj = load_object(mesh_sources(config.source)[object_id], config.mesh)
+    obj = load_object(run_sources(config)[object_id], config.mesh)  # the recipe's objects, families included
     T_poses, probs = stable_poses(obj, config.stable_pose_min_probability, config.max_stable_poses)
     T_wo = T_poses[rng.choice(len(probs), p=probs / probs.sum())]
     mesh_world = obj.mesh.copy()

@@ -58,3 +58,17 @@ def test_the_physics_oracle_runs_trials_and_skips_colliding_grasps():
     assert v["positive"].tolist() == [True, False]
     with pytest.raises(ValueError, match="oracle"):
         judge(scene, frames, cfg, np.random.default_rng(0), oracle="psychic")
+
+
+def test_held_out_objects_come_from_a_crop_file_or_a_crop_datasets_test_split(tmp_path):
+    import json
+
+    from planning.bench import heldout_object_ids
+
+    np.savez(tmp_path / "crops.npz", object_id=np.array([7, 3, 7, 12]))
+    assert heldout_object_ids(str(tmp_path / "crops.npz")) == [3, 7, 12]
+    d = tmp_path / "crops"
+    d.mkdir()
+    m = {"format": "vgq-crops", "format_version": 1, "counts": {"test": {"n": 5, "objects": [640, 12, 601]}}}
+    (d / "manifest.json").write_text(json.dumps(m))
+    assert heldout_object_ids(str(d)) == [12, 601, 640]
