@@ -58,29 +58,7 @@ def evaluate(
     dt = time.time() - t0
     labels = np.asarray(sp.labels)
     overall = M.nan_to_none({**M.binary_metrics(labels, p, threshold), "loss": loss})
-    families = data.object_families()
-    row_family = np.array([families.get(int(i), "") for i in np.asarray(sp.arrays["object_id"])])
-    holdout = sorted(((data.manifest.get("source") or {}).get("sampling") or {}).get("holdout_families") or [])
-    held_out = (
-        M.nan_to_none(
-            {
-                "families": holdout,
-                **M.binary_metrics(labels[np.isin(row_family, holdout)], p[np.isin(row_family, holdout)], threshold),
-            }
-        )
-        if holdout
-        else None
-    )
-    by_family = (
-        {f: M.nan_to_none(m) for f, m in M.metrics_by_group(labels, p, row_family, threshold).items()}
-        if families
-        else {}
-    )
-    oid = np.asarray(sp.arrays["object_id"])
-    for f, m in by_family.items():  # how many objects a family's numbers rest on, and how many can be grasped
-        ids = oid[row_family == f]
-        m["objects"] = int(np.unique(ids).size)
-        m["objects_with_positive"] = int(np.unique(ids[labels[row_family == f] == 1]).size)
+    by_family, held_out = _family_metrics(data, np.asarray(sp.arrays["object_id"]), labels, p, threshold)
     grid = M.grid_metrics(
         labels,
         p,
@@ -116,6 +94,26 @@ def evaluate(
     if run_dir is not None and RunPaths(run_dir).metrics.is_file():
         plot_training_curves(RunPaths(run_dir).metrics, out_dir / "curves.png", title=f"{meta['arch']} training")
     return rec
+
+
+def _family_metrics(data, object_id: np.ndarray, labels: np.ndarray, p: np.ndarray, threshold: float):
+    """(metrics per object family, with how many test objects each rests on and how many of them
+    have a positive grasp; the rows of the dataset's held-out families together, or None).
+    ({}, None) for a dataset that records no families."""
+    families = data.object_families()
+    if not families:
+        return {}, None
+    row_family = np.array([families.get(int(i), "") for i in object_id])
+    by_family = {f: M.nan_to_none(m) for f, m in M.metrics_by_group(labels, p, row_family, threshold).items()}
+    for f, m in by_family.items():
+        rows = row_family == f
+        m["objects"] = int(np.unique(object_id[rows]).size)
+        m["objects_with_positive"] = int(np.unique(object_id[rows & (labels == 1)]).size)
+    holdout = sorted(((data.manifest.get("source") or {}).get("sampling") or {}).get("holdout_families") or [])
+    if not holdout:
+        return by_family, None
+    rows = np.isin(row_family, holdout)
+    return by_family, M.nan_to_none({"families": holdout, **M.binary_metrics(labels[rows], p[rows], threshold)})
 
 
 def _pct(x) -> str:
