@@ -50,30 +50,27 @@ class CliError(Exception):
     """A usage problem detected after argument parsing (exit code 2)."""
 
 
-def _positive_int(name):
+def _int_at_least(name: str, low: int):
+    """argparse type: an integer >= ``low``; the error names the option."""
+
     def parse(s):
         try:
             v = int(s)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{name} must be an integer, got {s!r}") from None
-        if v < 1:
-            raise argparse.ArgumentTypeError(f"{name} must be >= 1, got {v}")
+        if v < low:
+            raise argparse.ArgumentTypeError(f"{name} must be >= {low}, got {v}")
         return v
 
     return parse
+
+
+def _positive_int(name):
+    return _int_at_least(name, 1)
 
 
 def _count(name):
-    def parse(s):
-        try:
-            v = int(s)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be an integer, got {s!r}") from None
-        if v < 0:
-            raise argparse.ArgumentTypeError(f"{name} must be >= 0, got {v}")
-        return v
-
-    return parse
+    return _int_at_least(name, 0)
 
 
 def parse_family_counts(text: str) -> dict[str, int]:
@@ -95,16 +92,6 @@ def parse_family_counts(text: str) -> dict[str, int]:
     if not out:
         raise CliError("--families is empty; give FAMILY=COUNT entries, e.g. mug=5,box=5 or all=5")
     return out
-
-
-def _nonneg_int(s):
-    try:
-        v = int(s)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"seed must be an integer, got {s!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"seed must be >= 0, got {v}")
-    return v
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
@@ -430,7 +417,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--cameras", type=_positive_int("--cameras"), help="camera poses per stable pose (default 10)")
     g.add_argument("--workers", type=_positive_int("--workers"), help="worker processes (default: CPU cores)")
     g.add_argument("--ray", action="store_true", help="run the per-object tasks on Ray (pip install vgq-cnn[ray])")
-    g.add_argument("--seed", type=_nonneg_int, help="run seed (default 0)")
+    g.add_argument("--seed", type=_count("--seed"), help="run seed (default 0)")
     g.add_argument("--resume", action="store_true", help="continue the run in --out with its recorded config")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_config_args(g)
@@ -439,7 +426,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("sample", help="psi filter, positivity equalisation, uniform undersampling, object-wise split")
     s.add_argument("--in", dest="inp", required=True, help="grasp dataset folder")
     s.add_argument("--out", required=True, help="output folder (sampled vgq-grasps dataset + plots/)")
-    s.add_argument("--seed", type=_nonneg_int, help="sampling and split seed (default: sampling.seed)")
+    s.add_argument("--seed", type=_count("--seed"), help="sampling and split seed (default: sampling.seed)")
     s.add_argument("--no-plots", action="store_true")
     _add_config_args(s)
     s.set_defaults(func=cmd_sample)
@@ -450,7 +437,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--arch", required=True, choices=("fast_vgqcnn", "vgqcnn", "gqcnn"))
     c.add_argument("--kappa", type=float, help="Fast-VGQ-CNN offset range, source px (default 36)")
     c.add_argument(
-        "--seed", type=_nonneg_int, default=0, help="window offsets and the sensor model's noise (default 0)"
+        "--seed", type=_count("--seed"), default=0, help="window offsets and the sensor model's noise (default 0)"
     )
     c.add_argument(
         "--sensor",
@@ -483,7 +470,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--cameras", type=_positive_int("--cameras"), default=10)
     b.add_argument("--workers", type=_positive_int("--workers"), default=1)
     b.add_argument("--source")
-    b.add_argument("--seed", type=_nonneg_int)
+    b.add_argument("--seed", type=_count("--seed"))
     b.add_argument("--json", action="store_true", help="also print the result as JSON")
     b.add_argument("--physics", action="store_true", help="measure physics grasp trials per second instead")
     b.add_argument("--grasps", type=_positive_int("--grasps"), default=16, help="--physics: grasps per object")
@@ -496,14 +483,16 @@ def build_parser() -> argparse.ArgumentParser:
     ls.add_argument("--grasps", type=_positive_int("--grasps"), default=24, help="grasps per object")
     ls.add_argument("--label-trials", type=_positive_int("--label-trials"), default=5)
     ls.add_argument("--eval-trials", type=_positive_int("--eval-trials"), default=5)
-    ls.add_argument("--per-family", type=_nonneg_int, default=2, help="held-out objects per everyday family")
-    ls.add_argument("--random-urdfs", type=_nonneg_int, default=8, help="held-out random_urdfs objects (past #600)")
+    ls.add_argument("--per-family", type=_count("--per-family"), default=2, help="held-out objects per everyday family")
+    ls.add_argument(
+        "--random-urdfs", type=_count("--random-urdfs"), default=8, help="held-out random_urdfs objects (past #600)"
+    )
     ls.add_argument("--workers", type=_positive_int("--workers"), default=1)
-    ls.add_argument("--seed", type=_nonneg_int, default=17)
+    ls.add_argument("--seed", type=_count("--seed"), default=17)
     ls.add_argument("--summary-only", action="store_true", help="only summarise the cached results")
     ls.add_argument(
         "--more-label-trials",
-        type=_nonneg_int,
+        type=_count("--more-label-trials"),
         default=0,
         help="add this many label trials per grasp to the cached objects (AUC vs label trials)",
     )
@@ -533,7 +522,7 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--family", help="family name, comma-separated names, or all")
     o.add_argument("--count", type=_positive_int("--count"), default=5, help="objects per family (default 5)")
     o.add_argument("--out", help="output folder")
-    o.add_argument("--seed", type=_nonneg_int, default=0, help="run seed (default 0)")
+    o.add_argument("--seed", type=_count("--seed"), default=0, help="run seed (default 0)")
     o.add_argument("--list", action="store_true", help="list the families and exit")
     o.add_argument("--no-sheet", action="store_true", help="skip the contact-sheet PNGs")
     o.set_defaults(func=cmd_objects)
