@@ -40,6 +40,26 @@ def _baselines(files: list[str], data_path) -> dict:
     return out
 
 
+def _copy_baseline_models(files: list[str], out: str) -> None:
+    """Copy each baseline result's model file (``baseline_<model>.npz`` beside its json,
+    :mod:`vgq.pose_only`) into the model folder, where planning's benchmark ranks grasps
+    with it; a result without one (made before the file existed) is skipped with a log line."""
+    from vgq.pose_only import PoseOnlyError, PoseOnlyModel
+
+    for f in files:
+        npz = Path(f).with_suffix(".npz")
+        if not npz.exists():
+            logging.info(
+                "--baseline %s: no model file %s beside it (rerun `training baseline` to get one)", f, npz.name
+            )
+            continue
+        try:
+            PoseOnlyModel.load(npz)
+        except PoseOnlyError as e:
+            raise ValueError(f"--baseline {f}: {e}") from None
+        atomic.write_bytes(Path(out) / npz.name, npz.read_bytes())
+
+
 def _leave_family_out(path: str | None) -> dict:
     """``{"leave_family_out": metrics}`` from a `training evaluate` result of a leave-family-out run
     (its ``held_out_families`` entry: the families never seen in training, their rows together)."""
@@ -124,7 +144,8 @@ def main(argv=None) -> None:
         default=[],
         metavar="JSON",
         help="a `python -m training baseline` result on the same data; its test metrics go into "
-        "the card's metrics as baseline_<model> (repeatable)",
+        "the card's metrics as baseline_<model>, and its model file (baseline_<model>.npz beside it) is copied "
+        "into the model folder (repeatable)",
     )
     p.add_argument(
         "--leave-family-out",
@@ -214,6 +235,7 @@ def main(argv=None) -> None:
             int8_check=int8,
             calibration=calibration,
         )
+        _copy_baseline_models(a.baseline, a.out)
         if a.int8_encoder:
             _add_int8_encoder(a.out, ds, meta["arch"], a.int8_check_n, a.seed)
         if calibration is not None and a.reliability_png:

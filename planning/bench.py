@@ -15,7 +15,8 @@ candidate it scored is judged by the oracle: robust Ferrari-Canny on the true me
 random sample of the candidates; and no collision of the swept gripper with the true mesh or
 the table (datagen.collision) at the known camera pose. Reported: precision@1 and @5 of the plan (top-k after NMS), of a random
 collision-free candidate of the same sampler (its expectation: the positive share of the
-candidates), and of the pose-only baseline's ranking when its model file exists.
+candidates), and of the pose-only baseline's ranking of the same candidates when its model
+file exists (``--baseline FILE`` or ``baseline_mlp.npz`` in the model folder).
 
 Needs the datagen extra (trimesh, python-fcl, embree); the planner itself does not.
 """
@@ -155,13 +156,19 @@ def judge(scene: BenchScene, frames_cam: np.ndarray, config, rng: np.random.Gene
     }
 
 
-def pose_only_model(model_dir: str):
-    """The pose-only baseline's model file, or None (it is not bundled)."""
-    for name in ("baseline_mlp.onnx", "baseline.onnx", "pose_only.onnx"):
+def pose_only_model(model_dir: str, path: str | None = None):
+    """The pose-only baseline (:class:`vgq.pose_only.PoseOnlyModel`): ``path`` (a
+    ``training baseline`` output), else the model folder's ``baseline_mlp.npz`` /
+    ``baseline_logreg.npz`` (export copies it there), else None."""
+    from vgq.pose_only import PoseOnlyModel, file_name
+
+    if path:
+        return PoseOnlyModel.load(path), Path(path)
+    for name in (file_name("mlp"), file_name("logreg")):
         p = Path(model_dir) / name
         if p.exists():
-            return p
-    return None
+            return PoseOnlyModel.load(p), p
+    return None, None
 
 
 def _setup(args):
@@ -187,7 +194,7 @@ def run_precision(args) -> dict:
 
     model, config, params, picked, rng = _setup(args)
     oracle = args.oracle or default_oracle(config)
-    baseline_file = pose_only_model(args.model)
+    baseline, baseline_file = pose_only_model(args.model, args.baseline)
     rows = []
     for i, oid in enumerate(picked):
         t = time.perf_counter()
@@ -196,10 +203,13 @@ def run_precision(args) -> dict:
         cand = res.candidates or {"frames": np.zeros((0, 4, 4)), "scores": np.zeros(0)}
         n = len(cand["frames"])
         top = nms(cand["frames"], cand["scores"], 5, params.nms_distance, params.nms_angle) if n else np.zeros(0, int)
+        base_top = np.zeros(0, int)
+        if baseline is not None and n:  # the same candidates, ranked by the pose alone
+            base_top = nms(cand["frames"], baseline.predict(cand["poses"]), 5, params.nms_distance, params.nms_angle)
         jrng = np.random.default_rng(1000 + i)
         # the physics oracle costs trials: it judges the top 5 and a random sample of the candidates
         sample = jrng.choice(n, size=min(n, args.random_sample), replace=False) if oracle == "physics" else np.arange(n)
-        judged = np.union1d(top, sample).astype(int)
+        judged = np.union1d(np.union1d(top, base_top), sample).astype(int)
         v = judge(scene, cand["frames"][judged], config, jrng, oracle)
         pos = np.zeros(n, bool)
         pos[judged] = v["positive"]
@@ -214,6 +224,8 @@ def run_precision(args) -> dict:
             "top5": float(pos[top].mean()) if len(top) else 0.0,
             "n_top": int(len(top)),
             "random": float(pos[sample].mean()) if len(sample) else 0.0,
+            "baseline_top1": bool(pos[base_top[0]]) if len(base_top) else False,
+            "baseline_top5": float(pos[base_top].mean()) if len(base_top) else 0.0,
             "top1_score": float(cand["scores"][top[0]]) if len(top) else None,
             "top1_quality": float(verdict["quality"][top[0]]) if len(top) else None,
             "top1_collides": bool(verdict["collides"][top[0]]) if len(top) else None,
@@ -238,7 +250,9 @@ def run_precision(args) -> dict:
         "random_candidate_precision": float(np.mean([r["random"] for r in rows])) if rows else 0.0,
         "scenes_with_a_positive_candidate": int(sum(r["oracle_best_exists"] for r in rows)),
         "oracle": oracle,
-        "pose_only_baseline": str(baseline_file) if baseline_file else "not available: no model file is bundled",
+        "pose_only_baseline": str(baseline_file) if baseline_file else None,
+        "baseline_precision_at_1": float(np.mean([r["baseline_top1"] for r in rows])) if rows and baseline else None,
+        "baseline_precision_at_5": float(np.mean([r["baseline_top5"] for r in rows])) if rows and baseline else None,
         "params": {
             "cem_iterations": args.cem,
             "windows": args.windows,
@@ -258,7 +272,11 @@ def run_precision(args) -> dict:
     )
     r = 100 * summary["random_candidate_precision"]
     print(f"| random collision-free candidate (expectation) | {r:.1f}% | {r:.1f}% |")
-    print(f"| pose-only baseline | {summary['pose_only_baseline']} | |")
+    if baseline is None:
+        print("| pose-only baseline ranking | not run: no baseline_mlp.npz in the model folder (--baseline FILE) | |")
+    else:
+        b1, b5 = 100 * summary["baseline_precision_at_1"], 100 * summary["baseline_precision_at_5"]
+        print(f"| pose-only baseline ranking ({baseline_file.name}) | {b1:.1f}% | {b5:.1f}% |")
     print(f"scenes: {len(rows)} ({summary['scenes_with_a_positive_candidate']} with at least one positive candidate)")
     return summary
 
@@ -491,6 +509,12 @@ def main(argv=None) -> int:
         type=int,
         default=16,
         help="precision with the physics oracle: random candidates judged per scene for the random baseline",
+    )
+    ap.add_argument(
+        "--baseline",
+        metavar="FILE",
+        help="precision: a pose-only baseline file (`training baseline --out DIR` writes DIR/baseline_mlp.npz) "
+        "whose ranking of the same candidates is judged too; default: the one in the model folder, if any",
     )
     ap.add_argument("--json", help="write the results here")
     args = ap.parse_args(argv)

@@ -187,6 +187,7 @@ class WindowScorer:
         self.actual: dict[tuple[float, float], np.ndarray] = {}
         self.missing: dict[tuple[float, float], float] = {}
         self.reused = 0
+        self.scored_poses: list[np.ndarray] = []  # the head's pose rows of every score() call, in order
         self.encode_seconds = 0.0
         self.score_seconds = 0.0
 
@@ -250,6 +251,7 @@ class WindowScorer:
         poses = np.empty((len(rows), 7), np.float32)
         poses[:, :2] = pose_uv(rows[:, :2], actual, self.geom)
         poses[:, 2:] = rows[:, 2:]
+        self.scored_poses.append(poses)
         terms = np.stack([self.terms[k] for k in keys]).astype(np.float32)
         p = self.model.head.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: terms, HEAD_INPUTS[1]: poses})[0]
         self.score_seconds += time.perf_counter() - t
@@ -469,5 +471,10 @@ def plan_resampled(
     )
     seconds["select"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - t0
-    everything = {"frames": cands.frames, "contacts": cands.contacts, "scores": scores}
+    everything = {
+        "frames": cands.frames,
+        "contacts": cands.contacts,
+        "scores": scores,
+        "poses": np.concatenate(scorer.scored_poses),  # the head's pose rows (window-relative u, v)
+    }
     return PlanResult(grasps, None, counts, seconds, version, everything)

@@ -165,7 +165,8 @@ class PlanResult:
     counts: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
     model_version: str = ""
-    #: every scored candidate (``frames`` (n, 4, 4), ``contacts`` (n, 2, 3), ``scores`` (n,)),
+    #: every scored candidate (``frames`` (n, 4, 4), ``contacts`` (n, 2, 3), ``scores`` (n,),
+    #: ``poses`` (n, 7): the head's pose rows),
     #: for benchmarks; not part of :meth:`to_dict`
     candidates: dict | None = field(default=None, repr=False, compare=False)
 

@@ -240,6 +240,8 @@ def test_export_cli_records_recipe_and_pose_only_baseline(tmp_path):
     recorded = json.loads((tmp_path / "b" / "baseline_logreg.json").read_text())["test"]
     assert base["test"] == recorded and base["test"]["n"] == 8  # the baseline's own test numbers, all 8 test crops
     assert card.training["samples_seen"] == 16
+    copied = tmp_path / "m" / "baseline_logreg.npz"  # the model file travels with the model, for planning.bench
+    assert copied.read_bytes() == (tmp_path / "b" / "baseline_logreg.npz").read_bytes()
 
 
 def test_export_cli_records_the_leave_family_out_result(tmp_path, capsys):

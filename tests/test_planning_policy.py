@@ -154,6 +154,22 @@ def test_cem_adds_collision_free_rotations_and_never_lowers_the_best_score(model
     assert cem.grasps[0].score >= plain.grasps[0].score
 
 
+def test_every_candidate_keeps_the_head_pose_it_was_scored_with(model, two_boxes):
+    """candidates["poses"]: what a pose-only ranking (planning.bench --baseline) reads. CEM grasps too."""
+    import dataclasses
+
+    from planning.policy import grasp_rows
+
+    depth, _, _ = two_boxes
+    res = plan(depth, DEFAULT_INTRINSICS, model, k=1, seed=3, params=dataclasses.replace(FAST, cem_iterations=2))
+    c = res.candidates
+    assert c["poses"].shape == (len(c["scores"]), 7) == (len(c["frames"]), 7)
+    rows = grasp_rows(c["frames"], DEFAULT_INTRINSICS)
+    assert np.allclose(c["poses"][:, 2:], rows[:, 2:], atol=1e-6)  # z, quaternion as given
+    kappa = model.geometry.kappa_px
+    assert np.abs(c["poses"][:, :2]).max() <= kappa / model.geometry.scale + 1e-3  # crop px from the window centre
+
+
 def test_missing_depth_is_filled_before_the_encoder_as_in_training(two_boxes):
     """A depth image with holes (0 = no reading, as real cameras send) reaches the encoder
     filled by vgq.inpaint, the crop stage's and the service's fill: never a 0."""

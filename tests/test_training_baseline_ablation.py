@@ -2,13 +2,16 @@
 
 import json
 
+import numpy as np
 import pytest
 
 from training.ablation import run_ablation
 from training.baseline import BaselineConfig, run_baseline
 from training.config import TrainConfig
-from training.data import DatasetError
+from training.data import DatasetError, open_crop_dataset
+from training.metrics import binary_metrics
 from training.synthetic import make_synthetic_crop_dataset
+from vgq.pose_only import PoseOnlyError, PoseOnlyModel
 
 
 @pytest.fixture(scope="module")
@@ -25,6 +28,27 @@ def test_pose_baseline_learns_pose_signal(pose_data, tmp_path):
     assert rec["test"]["balanced_accuracy"] > 0.9  # the label is a threshold on qw
     assert (tmp_path / "out" / "baseline_logreg.json").is_file()
     assert (tmp_path / "out" / "heatmap_baseline_logreg.png").is_file()
+
+
+@pytest.mark.parametrize("model", ["logreg", "mlp"])
+def test_pose_baseline_file_scores_like_the_trained_model_without_torch(pose_data, tmp_path, model):
+    rec = run_baseline(pose_data, BaselineConfig(model=model, epochs=3, batch_size=128), tmp_path, progress=False)
+    m = PoseOnlyModel.load(tmp_path / f"baseline_{model}.npz")
+    test = open_crop_dataset(pose_data).split("test")
+    p = m.predict(np.asarray(test.arrays["poses"]))
+    metrics = binary_metrics(np.asarray(test.labels), p)
+    assert metrics["balanced_accuracy"] == pytest.approx(rec["test"]["balanced_accuracy"], abs=1e-6)
+    assert m.columns == tuple(rec["columns"])
+
+
+def test_pose_only_file_with_broken_layers_is_refused(tmp_path):
+    ok = PoseOnlyModel(("z",), np.zeros(1, np.float32), np.ones(1, np.float32), ((np.ones((3, 1)), np.zeros(3)),))
+    ok.save(tmp_path / "b.npz")  # 3 outputs, not 2 logits
+    with pytest.raises(PoseOnlyError, match="not 2 logits"):
+        PoseOnlyModel.load(tmp_path / "b.npz")
+    (tmp_path / "c.npz").write_bytes(b"not a zip")
+    with pytest.raises(PoseOnlyError, match="not a pose-only baseline file"):
+        PoseOnlyModel.load(tmp_path / "c.npz")
 
 
 def test_pose_baseline_restricted_columns_see_no_signal(pose_data):

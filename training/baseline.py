@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from vgq import atomic
 from vgq.pose import FULL_POSE_COLUMNS, POSE_COLUMNS, QUATERNION_COLUMNS
+from vgq.pose_only import PoseOnlyModel, file_name
 
 from . import metrics as M
 from .data import DatasetError, open_crop_dataset
@@ -67,7 +68,9 @@ def run_baseline(
 ) -> dict:
     """Train the baseline on ``train``, report metrics on ``val`` (if present) and ``test``.
 
-    With ``out`` (a folder) writes ``baseline_<model>.json`` and ``heatmap_baseline_<model>.png``.
+    With ``out`` (a folder) writes ``baseline_<model>.json`` (metrics), ``baseline_<model>.npz``
+    (the model, :mod:`vgq.pose_only`: planning ranks grasps with it torch-free) and
+    ``heatmap_baseline_<model>.png``.
     """
     cfg = config or BaselineConfig()
     data = open_crop_dataset(data_dir)
@@ -142,6 +145,13 @@ def _fit_and_score(cfg, data, cols, x, y, mean, std, weight, out, progress) -> d
                 rec["grid"] = M.grid_to_json(grid)
     if out is not None:
         out = Path(out)
+        linears = [m for m in model.modules() if isinstance(m, nn.Linear)]
+        PoseOnlyModel(
+            tuple(cols),
+            mean.astype(np.float32),
+            std.astype(np.float32),
+            tuple((m.weight.detach().numpy().copy(), m.bias.detach().numpy().copy()) for m in linears),
+        ).save(out / file_name(cfg.model))
         atomic.write_json(out / f"baseline_{cfg.model}.json", rec)
         plot_grid_heatmaps(
             grid, out / f"heatmap_baseline_{cfg.model}.png", title=f"pose-only {cfg.model} baseline (test)"
