@@ -299,8 +299,36 @@ def _recorded_config(d) -> dict | None:
         return d
 
 
-def prepare_run(out: str | Path, config: DatagenConfig) -> tuple[dict, list]:
-    """The run's manifest (new, or the existing one to resume) and its mesh sources.
+IDENTITY = ("source_scale", "family", "params")  # what makes an object's mesh, besides its name (and source file)
+
+
+def refresh_changed_objects(m: dict, objects: list[dict]) -> list[str]:
+    """Objects of manifest ``m`` whose mesh definition (:data:`IDENTITY`: e.g. a family's
+    parameters after its size ranges changed) differs from ``objects`` (the code's, same
+    order): their recorded definition is replaced and they go back to pending, their shard
+    entries dropped (in place). A field a manifest does not record (one written before it
+    existed) is taken to match. Returns their names."""
+    changed = []
+    for rec, new in zip(m["objects"], objects):
+        keys = [k for k in IDENTITY if k in rec]
+        if json.loads(json.dumps([rec[k] for k in keys])) != json.loads(json.dumps([new[k] for k in keys])):
+            for k in list(rec):
+                if k not in ("object_id", "name"):
+                    del rec[k]
+            rec.update({k: new[k] for k in ("source", *IDENTITY)}, status="pending")
+            changed.append(rec["name"])
+    if changed:
+        ids = {o["object_id"] for o in m["objects"] if o["name"] in set(changed)}
+        m["shards"] = [s for s in m["shards"] if s["object_id"] not in ids]
+        m["complete"] = False
+        storage.update_counts(m)
+    return changed
+
+
+def prepare_run(out: str | Path, config: DatagenConfig, log: Callable[[str], None] = print) -> tuple[dict, list]:
+    """The run's manifest (new, or the existing one to resume) and its mesh sources. On
+    resume, objects whose definition changed since they were made are regenerated
+    (:func:`refresh_changed_objects`, logged).
 
     Raises ConfigError when ``out`` holds a dataset made with a different config or
     object list."""
@@ -328,6 +356,12 @@ def prepare_run(out: str | Path, config: DatagenConfig) -> tuple[dict, list]:
             )
         if [o["name"] for o in m["objects"]] != [s.name for s in sources]:
             raise ConfigError(f"{out} holds a dataset of a different object list; use a new --out")
+        changed = refresh_changed_objects(m, objects)
+        if changed:
+            log(
+                f"{out}: {len(changed)} objects were made from another definition than the code's now (e.g. a "
+                f"family's size ranges changed): regenerating {', '.join(changed[:5])}{', ...' if len(changed) > 5 else ''}"
+            )
         return m, sources
     return storage.new_grasp_manifest(
         cfg, config.seed, objects, config.label_threshold, intrinsics=config.intrinsics.to_dict()
@@ -358,7 +392,7 @@ def run_generate(
     from .parallel import run_tasks
 
     out = Path(out)
-    m, sources = prepare_run(out, config)
+    m, sources = prepare_run(out, config, log)
     todo = [
         i
         for i, o in enumerate(m["objects"])

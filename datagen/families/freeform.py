@@ -112,24 +112,25 @@ SIMPLIFY_TOLERANCE = 0.0002  # then merge triangles where the surface moves < 0.
 
 
 def sample_metaball(rng: np.random.Generator) -> dict:
-    """2-6 balls of radius 8-16 mm, mostly in a chain; ball i > 0 sits 0.45-0.85 of the
+    """2-6 balls of radius 12-18 mm, mostly in a chain; ball i > 0 sits 0.45-0.85 of the
     blending reach (ri^(2/3) + rj^(2/3))^(3/2) from a random earlier ball j, the distance up
     to which the field stays >= 1 along the segment between them, so the blob is one smooth
     body (potatoes, peanuts, pebbles, bent sausages). It is then squashed along y and z
-    (factors 0.75-1 and 0.6-0.9) so it rests in a few distinct poses, not on any facet of
-    a near-sphere."""
+    (factors 0.8-1 and 0.7-0.9) so it rests in a few distinct poses, not on any facet of
+    a near-sphere, and still at least ~2 cm high (room for the fingertips above the table)
+    and thin enough somewhere for the 5 cm jaws (measured over 25 blobs: 3-4.4 cm)."""
     n = int(rng.integers(2, 7))
-    radii = [uniform(rng, 0.008, 0.016)]
+    radii = [uniform(rng, 0.012, 0.018)]
     centers = [np.zeros(3)]
     for _ in range(1, n):
         j = len(radii) - 1 if rng.random() < 0.7 else int(rng.integers(len(radii)))  # mostly chains
         d = rng.normal(size=3)
         d /= np.linalg.norm(d)
-        r = uniform(rng, 0.008, 0.016)
+        r = uniform(rng, 0.012, 0.018)
         reach = (radii[j] ** (2 / 3) + r ** (2 / 3)) ** 1.5  # farthest centre distance that still blends
         centers.append(centers[j] + d * rng.uniform(0.45, 0.85) * reach)
         radii.append(r)
-    squash = [1.0, uniform(rng, 0.75, 1.0), uniform(rng, 0.6, 0.9)]
+    squash = [1.0, uniform(rng, 0.8, 1.0), uniform(rng, 0.7, 0.9)]
     return {"centers": rounded(np.array(centers)), "radii": radii, "squash": squash}
 
 

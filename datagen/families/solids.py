@@ -48,12 +48,15 @@ def build_box(p: dict) -> trimesh.Trimesh:
 
 
 def sample_cylinder(rng: np.random.Generator) -> dict:
-    """Discs (coasters, lids), rods (pens, dowels) and cans."""
+    """Discs (pucks, jar lids, spools: 3-4.6 cm across, 2-3.5 cm high), rods (handles,
+    dowels, thick markers: 2-4 cm thick) and cans. Everything lies at least 2 cm high: the
+    fingertips reach 1 cm past the contacts, so a flatter disc or a pen lying on the table
+    has no grasp this gripper can make."""
     kind = ("disc", "rod", "can")[int(rng.integers(3))]
     if kind == "disc":
-        r, h = log_uniform(rng, 0.015, 0.06), uniform(rng, 0.01, 0.035)
+        r, h = log_uniform(rng, 0.015, 0.023), uniform(rng, 0.02, 0.035)
     elif kind == "rod":
-        r, h = log_uniform(rng, 0.004, 0.02), uniform(rng, 0.06, 0.25)
+        r, h = log_uniform(rng, 0.01, 0.02), uniform(rng, 0.06, 0.25)
     else:
         r, h = uniform(rng, 0.012, 0.022), uniform(rng, 0.03, 0.16)
     return {"kind": kind, "radius": r, "height": h}
@@ -68,14 +71,15 @@ def build_cylinder(p: dict) -> trimesh.Trimesh:
 
 
 def sample_cone(rng: np.random.Generator) -> dict:
-    """Cones and frustums (cups upside down, funnels, lamp feet): base radius 12-50 mm,
-    top radius below 20 mm, height 2.5-15 cm and at least 2.2 x the radius difference, so
-    the sides are steep enough for a friction-cone grasp across them."""
-    rb = uniform(rng, 0.012, 0.05)
-    rt = uniform(rng, 0.0, min(0.85 * rb, 0.02))
+    """Cones and frustums (cups upside down, funnels, lamp feet): base radius 12-35 mm,
+    top radius below 25 mm, height 3-15 cm and at least 4.7 x the radius difference: sides
+    within 12 deg of vertical, well inside the friction cone (26.6 deg at mu 0.5), so a grasp
+    across them holds when lifted (steeper tapers squeeze the object out of the jaws)."""
+    rb = uniform(rng, 0.012, 0.035)
+    rt = uniform(rng, max(0.0, rb - 0.03), min(0.85 * rb, 0.025))
     if rt < 0.002:
         rt = 0.0
-    h = uniform(rng, max(0.025, 2.2 * (rb - rt)), 0.15)  # sides within 25 deg of vertical: graspable across
+    h = uniform(rng, max(0.03, 4.7 * (rb - rt)), 0.15)
     return {"kind": "cone" if rt == 0 else "frustum", "radius_bottom": rb, "radius_top": rt, "height": h}
 
 
@@ -89,11 +93,12 @@ def build_cone(p: dict) -> trimesh.Trimesh:
 
 
 def sample_ellipsoid(rng: np.random.Generator) -> dict:
-    """Eggs, pebbles, bars of soap: semi-axes a < b < c with a 12-19 mm and b at most
-    23 mm, so the object rests 2.4-3.8 cm high and is at most 4.6 cm across (graspable
-    from above; a flatter pebble leaves no room for the fingertips above the table)."""
-    a = uniform(rng, 0.012, 0.019)
-    b = uniform(rng, 1.1 * a, 0.023)
+    """Eggs, pebbles, bars of soap: semi-axes a < b < c with a 17-21 mm and b at most
+    22.5 mm, so the object rests 3.4-4.2 cm high and is at most 4.5 cm across (graspable
+    from above with the fingertips, 1 cm past the contacts, clear of the table; a flatter
+    pebble has no such grasp)."""
+    a = uniform(rng, 0.017, 0.021)
+    b = uniform(rng, 1.05 * a, 0.0225)
     c = uniform(rng, 1.2 * b, 0.08)
     return {"semi_axes": [a, b, c]}
 
@@ -108,12 +113,13 @@ def build_ellipsoid(p: dict) -> trimesh.Trimesh:
 
 
 def sample_torus(rng: np.random.Generator) -> dict:
-    """Tori (donuts, bagels, handles; tube 1.6-4 cm thick) and flat rings (tape rolls,
-    pipe sections, bangles; 1.5-5 cm high, walls 3-20 mm, holes 4-10 cm across). Mostly tall enough to grasp
-    lying on the table: a tube or ring below ~2 cm leaves no room for the fingertips."""
+    """Tori (bagels, donuts, thick handles; tube 3-4.2 cm thick) and flat rings (tape rolls,
+    pipe sections, bangles; 1.5-5 cm high, walls 3-20 mm, holes 4-10 cm across). A tube
+    thinner than ~3 cm lying on the table leaves no room for the fingertips below a grasp
+    across it."""
     if rng.random() < 0.5:
-        R = uniform(rng, 0.022, 0.06)
-        return {"kind": "torus", "major_radius": R, "minor_radius": uniform(rng, 0.008, min(0.02, 0.6 * R))}
+        R = uniform(rng, 0.03, 0.06)
+        return {"kind": "torus", "major_radius": R, "minor_radius": uniform(rng, 0.015, 0.021)}
     ri = uniform(rng, 0.02, 0.05)  # the 5 cm-open jaws fit inside for a grasp across the wall
     return {"kind": "ring", "inner_radius": ri, "wall": uniform(rng, 0.003, 0.02), "height": uniform(rng, 0.015, 0.05)}
 
