@@ -108,8 +108,11 @@ class GripperCollision:
         """(n,) bool: some corner of the swept boxes lies below the table (less the clearance)."""
         if self.table is None or len(frames) == 0:
             return np.zeros(len(frames), dtype=bool)
-        world = np.einsum("nij,kj->nki", frames[:, :3, :3], self._corners) + frames[:, None, :3, 3]
-        return self.table.height(world).min(axis=1) < -self.table_clearance
+        # height of corner c of frame (R, t): c . (R^T n) + t . n + offset; one (n, 3) x (3, 24) product
+        # (the corners in the camera frame, an (n, 24, 3) einsum, cost 50x more)
+        up = np.tensordot(frames[:, :3, :3], self.table.normal, axes=([1], [0]))
+        lowest = (up @ self._corners.T).min(axis=1) + self.table.height(frames[:, :3, 3])
+        return lowest < -self.table_clearance
 
     def collides_points(self, frames: np.ndarray, points: np.ndarray | None = None, chunk: int = 128) -> np.ndarray:
         """(n,) bool: some observed point (``points``, default all) lies inside a swept box
