@@ -182,6 +182,7 @@ def _setup(args):
         windows=args.windows,
         max_centre_offset=args.centre_offset,
         min_width=args.min_width,
+        table_margin=args.table_margin,
     )
     ids = heldout_object_ids(args.heldout)
     rng = np.random.default_rng(args.seed)
@@ -347,6 +348,94 @@ def run_trials_bench(args) -> dict:
     return summary
 
 
+POOL_FEATURES = {
+    "fingertip_height": "lowest gripper point above the true table (m)",
+    "width": "contact distance (m)",
+    "com_line_offset": "distance of the true centre of mass from the jaw line (m)",
+    "tcp_height": "TCP above the true table (m)",
+    "approach_tilt": "approach from straight down (deg)",
+    "axis_tilt": "jaw axis from vertical (deg)",
+    "score": "the model's score",
+}
+
+
+def candidate_features(scene: BenchScene, frames_world: np.ndarray, contacts_cam: np.ndarray, scores, gripper) -> dict:
+    """:data:`POOL_FEATURES` of grasp frames (n, 4, 4) in the world frame (table z = 0)."""
+    from vgq.gripper import box_corners, gripper_boxes
+
+    corners = box_corners(*gripper_boxes(gripper, swept=False))  # (24, 3) grasp frame
+    x, z, t = frames_world[:, :3, 0], frames_world[:, :3, 2], frames_world[:, :3, 3]
+    d = scene.T_world_object[:3, 3] - t  # meshes are centred on their centre of mass
+    return {
+        "fingertip_height": (np.einsum("kj,nij->nki", corners, frames_world[:, :3, :3]) + t[:, None])[..., 2].min(1),
+        "width": np.linalg.norm(contacts_cam[:, 1] - contacts_cam[:, 0], axis=1),
+        "com_line_offset": np.linalg.norm(d - np.sum(d * x, axis=1, keepdims=True) * x, axis=1),
+        "tcp_height": t[:, 2],
+        "approach_tilt": np.degrees(np.arccos(np.clip(-z[:, 2], -1, 1))),
+        "axis_tilt": np.degrees(np.arccos(np.clip(np.abs(x[:, 2]), 0, 1))),
+        "score": np.asarray(scores, np.float64),
+    }
+
+
+def run_pool(args) -> dict:
+    """What makes the sampler's candidates hold: pybullet trials (datagen.physics, execution
+    noise) of ``--per-scene`` random candidates per scene, the trial outcomes, and each
+    :data:`POOL_FEATURES`' ROC AUC for "held in more than half the trials"."""
+    from datagen.gripper import GripperGeometry as DatagenGripper
+    from datagen.physics import REASONS, GraspSimulator, PhysicsParams, run_trials
+    from training.metrics import auc
+
+    from .policy import plan
+
+    model, config, params, picked, rng = _setup(args)
+    feats: dict[str, list] = {k: [] for k in POOL_FEATURES}
+    held, reasons, scenes = [], [], 0
+    with GraspSimulator(DatagenGripper(**dataclasses.asdict(config.gripper)), PhysicsParams()) as sim:
+        for i, oid in enumerate(picked):
+            scene = make_scene(int(oid), config, rng)
+            res = plan(scene.depth, config.intrinsics, model, k=5, seed=int(args.seed) + i, params=params)
+            if not res.grasps:
+                continue
+            scenes += 1
+            c = res.candidates
+            pick = np.random.default_rng(2000 + i).choice(
+                len(c["frames"]), min(len(c["frames"]), args.per_scene), False
+            )
+            Tw = scene.T_world_camera @ c["frames"][pick]
+            sim.set_object(scene.mesh_object, scene.T_world_object)
+            tr = run_trials(sim, Tw, args.trials, np.random.default_rng(3000 + i))
+            held.append(tr.held.mean(axis=1))
+            reasons.append(tr.reason)
+            for k, v in candidate_features(scene, Tw, c["contacts"][pick], c["scores"][pick], params.gripper).items():
+                feats[k].append(v)
+            print(f"scene {i:2d} object {oid:3d}: {len(pick)} candidates, held {held[-1].mean():.2f}", flush=True)
+    rate = np.concatenate(held) if held else np.zeros(0)
+    outcome = np.concatenate(reasons) if reasons else np.zeros((0, args.trials), np.int8)
+    y = rate > 0.5
+    out = {
+        "scenes": len(picked),
+        "scenes_with_candidates": scenes,
+        "candidates": int(len(rate)),
+        "trials_per_candidate": args.trials,
+        "mean_held": float(rate.mean()) if len(rate) else 0.0,
+        "positive": float(y.mean()) if len(rate) else 0.0,
+        "outcomes": {r: float((outcome == j).mean()) if outcome.size else 0.0 for j, r in enumerate(REASONS)},
+        "table_margin": params.table_margin,
+        "auc": {k: auc(np.concatenate(v), y) if v else float("nan") for k, v in feats.items()},
+        "seed": args.seed,
+    }
+    print(
+        f"\n{out['candidates']} candidates of {scenes} scenes, {args.trials} trials each (table margin "
+        f"{1e3 * params.table_margin:g} mm): held {100 * out['mean_held']:.1f}% of trials, "
+        f"{100 * out['positive']:.1f}% held in more than half"
+    )
+    print("trial outcomes: " + ", ".join(f"{k} {100 * v:.1f}%" for k, v in out["outcomes"].items()))
+    print("ROC AUC of each feature for 'held in more than half':")
+    for k, v in out["auc"].items():
+        print(f"  {k:18s} {v:.3f}   ({POOL_FEATURES[k]})")
+    return out
+
+
 def run_ranker(args) -> dict:
     """The ranker alone, on the precision benchmark's scenes: grasps sampled on the TRUE mesh
     by datagen's antipodal sampler (the training distribution), 12 rotations omega each,
@@ -480,14 +569,23 @@ def run_timing(args) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m planning.bench", description=__doc__.splitlines()[0])
-    ap.add_argument("what", choices=["timing", "precision", "trials", "ranker"])
+    ap.add_argument("what", choices=["timing", "precision", "trials", "ranker", "pool"])
     ap.add_argument("--model", default=MODEL_DIR)
     ap.add_argument("--heldout", default=HELDOUT)
     ap.add_argument("--scenes", type=int, default=None, help="timing: 4, precision: 20")
     ap.add_argument("--repeats", type=int, default=26, help="timing: passes over the scenes (the first is warm-up)")
     ap.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--trials", type=int, default=5, help="trials: pybullet trials per grasp (with execution noise)")
+    ap.add_argument(
+        "--trials", type=int, default=5, help="trials / pool: pybullet trials per grasp (with execution noise)"
+    )
+    ap.add_argument("--per-scene", type=int, default=24, help="pool: random candidates tried per scene")
+    ap.add_argument(
+        "--table-margin",
+        type=float,
+        default=PlanParams().table_margin,
+        help="fingertips at least this far above the estimated table (m)",
+    )
     ap.add_argument("--cem", type=int, default=0, help="CEM iterations over omega (0: off)")
     ap.add_argument("--windows", choices=["cover", "grid"], default="cover")
     ap.add_argument(
@@ -523,10 +621,14 @@ def main(argv=None) -> int:
     if args.random_sample < 1:
         ap.error("--random-sample must be >= 1")
     if args.scenes is None:
-        args.scenes = {"timing": 4, "precision": 20, "trials": 10, "ranker": 20}[args.what]
-    run = {"timing": run_timing, "precision": run_precision, "trials": run_trials_bench, "ranker": run_ranker}[
-        args.what
-    ]
+        args.scenes = {"timing": 4, "precision": 20, "trials": 10, "ranker": 20, "pool": 60}[args.what]
+    run = {
+        "timing": run_timing,
+        "precision": run_precision,
+        "trials": run_trials_bench,
+        "ranker": run_ranker,
+        "pool": run_pool,
+    }[args.what]
     out = run(args)
     if args.json:
         from vgq import atomic

@@ -84,15 +84,15 @@ class GripperCollision:
         gripper: GripperGeometry,
         table: TablePlane | None,
         points: np.ndarray,
-        table_clearance: float = 0.001,
+        table_margin: float = 0.0,
         point_clearance: float = 0.001,
     ):
         """``points`` (m, 3): the observed points the gripper must not enter (the objects,
         not the table); a box grown by ``point_clearance`` may not hold any. The box
-        corners may not reach more than ``table_clearance`` below the table."""
+        corners must stay ``table_margin`` above the table (negative: may reach that far below)."""
         self.table = table
         self.points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-        self.table_clearance = float(table_clearance)
+        self.table_margin = float(table_margin)
         self._centres, self._half = gripper_boxes(gripper, swept=True)
         self._half_grown = self._half + float(point_clearance)
         self._corners = box_corners(self._centres, self._half)  # (24, 3) grasp frame
@@ -105,14 +105,14 @@ class GripperCollision:
             raise ValueError("GripperCollision expects two fingers mirrored in x and a centred palm")
 
     def collides_table(self, frames: np.ndarray) -> np.ndarray:
-        """(n,) bool: some corner of the swept boxes lies below the table (less the clearance)."""
+        """(n,) bool: some corner of the swept boxes lies less than ``table_margin`` above the table."""
         if self.table is None or len(frames) == 0:
             return np.zeros(len(frames), dtype=bool)
         # height of corner c of frame (R, t): c . (R^T n) + t . n + offset; one (n, 3) x (3, 24) product
         # (the corners in the camera frame, an (n, 24, 3) einsum, cost 50x more)
         up = np.tensordot(frames[:, :3, :3], self.table.normal, axes=([1], [0]))
         lowest = (up @ self._corners.T).min(axis=1) + self.table.height(frames[:, :3, 3])
-        return lowest < -self.table_clearance
+        return lowest < self.table_margin
 
     def collides_points(self, frames: np.ndarray, points: np.ndarray | None = None, chunk: int = 128) -> np.ndarray:
         """(n,) bool: some observed point (``points``, default all) lies inside a swept box

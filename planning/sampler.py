@@ -273,7 +273,7 @@ def collision_checker(scene: Scene, params: PlanParams, rng: np.random.Generator
     pts = voxel_downsample(scene.points[above], params.collision_voxel)
     if len(pts) > params.max_collision_points:
         pts = pts[rng.choice(len(pts), size=params.max_collision_points, replace=False)]
-    return GripperCollision(params.gripper, scene.table, pts, params.table_clearance, params.point_clearance)
+    return GripperCollision(params.gripper, scene.table, pts, params.table_margin, params.point_clearance)
 
 
 def sample_grasps(

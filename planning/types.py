@@ -41,7 +41,9 @@ class PlanParams:
     contact's inward normal (and of the second's where it is visible); the contacts are
     ``min_width`` to ``max_width - 2 * jaw_clearance`` apart.
     Scene: the table is the dominant plane (RANSAC, ``table_inlier_distance``); points more
-    than ``object_height`` above it are the objects.
+    than ``object_height`` above it are the objects. The gripper's lowest point (a fingertip)
+    stays ``table_margin`` above the estimated table: a robot's execution error (datagen's
+    trials: 5 mm per axis) must not put the fingers into it.
     Results: two grasps are the same (non-maximum suppression) when their centres are
     closer than ``nms_distance`` and their jaw axes within ``nms_angle``.
     Windows: ``windows`` "cover" places few windows over the candidates (see
@@ -66,7 +68,7 @@ class PlanParams:
     surface_tolerance: float = 0.003
     table_inlier_distance: float = 0.003
     object_height: float = 0.004
-    table_clearance: float = 0.001
+    table_margin: float = 0.005
     point_clearance: float = 0.001
     collision_voxel: float = 0.004
     max_collision_points: int = 2000

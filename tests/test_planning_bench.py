@@ -72,3 +72,22 @@ def test_held_out_objects_come_from_a_crop_file_or_a_crop_datasets_test_split(tm
     m = {"format": "vgq-crops", "format_version": 1, "counts": {"test": {"n": 5, "objects": [640, 12, 601]}}}
     (d / "manifest.json").write_text(json.dumps(m))
     assert heldout_object_ids(str(d)) == [12, 601, 640]
+
+
+def test_candidate_features_measure_the_grasp_against_the_true_scene():
+    """planning.bench pool's features of a top-down grasp across a box standing on the table."""
+    from planning.bench import candidate_features
+    from vgq.gripper import GripperGeometry
+
+    scene = _box_scene()  # box centre of mass 3 cm above the table
+    g = GripperGeometry()
+    Tw = scene.T_world_camera @ _grasp_cam(scene, 0.045)
+    contacts = np.array([[[-0.015, 0.0, 0.6 - 0.045], [0.015, 0.0, 0.6 - 0.045]]])
+    f = candidate_features(scene, Tw[None], contacts, [0.7], g)
+    assert f["fingertip_height"][0] == pytest.approx(0.045 - g.tip_offset)
+    assert f["tcp_height"][0] == pytest.approx(0.045)
+    assert f["width"][0] == pytest.approx(0.03)
+    assert f["com_line_offset"][0] == pytest.approx(0.015)  # the jaw line passes 1.5 cm above the centre of mass
+    assert f["approach_tilt"][0] == pytest.approx(0.0, abs=1e-6)
+    assert f["axis_tilt"][0] == pytest.approx(90.0)
+    assert f["score"][0] == 0.7

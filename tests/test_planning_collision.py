@@ -52,6 +52,24 @@ def test_a_grasp_through_the_table_collides_and_one_above_it_does_not():
     assert checker.collides(np.stack([above, through, sideways])).tolist() == [False, True, True]
 
 
+def test_fingertips_must_keep_the_table_margin():
+    """Fingertips 3 mm above the table: free with no margin, a collision with the planner's
+    default 5 mm (execution error would put them into the table)."""
+    from planning.types import PlanParams
+
+    rng = np.random.default_rng(1)
+    pts, normal, centre = _plane_points(rng)
+    table = fit_table(pts, rng)
+    g = GripperGeometry()
+    low = _frame(centre + (g.tip_offset + 0.003) * normal, -normal, [1.0, 0, 0])
+    high = _frame(centre + (g.tip_offset + 0.008) * normal, -normal, [1.0, 0, 0])
+    frames = np.stack([low, high])
+    assert GripperCollision(g, table, np.zeros((0, 3))).collides(frames).tolist() == [False, False]
+    margin = PlanParams().table_margin
+    assert 0.003 < margin < 0.008
+    assert GripperCollision(g, table, np.zeros((0, 3)), margin).collides(frames).tolist() == [True, False]
+
+
 def test_a_grasp_whose_finger_holds_an_observed_point_collides():
     tcp = np.array([0.0, 0.0, 0.6])
     T = _frame(tcp, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
