@@ -111,27 +111,48 @@ EDGE_LENGTH = 0.004  # level-set grid: ~4 mm triangles
 SIMPLIFY_TOLERANCE = 0.0002  # then merge triangles where the surface moves < 0.2 mm
 
 
+def _blob_thickness(centers: np.ndarray, radii: list[float], squash: list[float], step: float = 0.002) -> float:
+    """The squashed metaball's extent (metres) along its thinnest principal axis, from the
+    field sampled on a ``step`` grid (blending makes a cluster of balls swell well beyond
+    each ball)."""
+    r2 = np.asarray(radii) ** 2
+    margin = 1.05 * math.sqrt(float(r2.sum()))
+    axes = [np.arange(lo - margin, hi + margin, step) for lo, hi in zip(centers.min(axis=0), centers.max(axis=0))]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    field = sum(rr / np.maximum(((g - c) ** 2).sum(axis=1), 1e-12) for c, rr in zip(centers, r2))
+    inside = g[field >= 1.0] * np.asarray(squash)
+    if len(inside) < 4:
+        return 0.0
+    thin = np.linalg.svd(inside - inside.mean(axis=0), full_matrices=False)[2][-1]
+    return float(np.ptp(inside @ thin))
+
+
 def sample_metaball(rng: np.random.Generator) -> dict:
     """2-6 balls of radius 12-18 mm, mostly in a chain; ball i > 0 sits 0.45-0.85 of the
     blending reach (ri^(2/3) + rj^(2/3))^(3/2) from a random earlier ball j, the distance up
     to which the field stays >= 1 along the segment between them, so the blob is one smooth
     body (potatoes, peanuts, pebbles, bent sausages). It is then squashed along y and z
     (factors 0.8-1 and 0.7-0.9) so it rests in a few distinct poses, not on any facet of
-    a near-sphere, and still at least ~2 cm high (room for the fingertips above the table)
-    and thin enough somewhere for the 5 cm jaws (measured over 25 blobs: 3-4.4 cm)."""
-    n = int(rng.integers(2, 7))
-    radii = [uniform(rng, 0.012, 0.018)]
-    centers = [np.zeros(3)]
-    for _ in range(1, n):
-        j = len(radii) - 1 if rng.random() < 0.7 else int(rng.integers(len(radii)))  # mostly chains
-        d = rng.normal(size=3)
-        d /= np.linalg.norm(d)
-        r = uniform(rng, 0.012, 0.018)
-        reach = (radii[j] ** (2 / 3) + r ** (2 / 3)) ** 1.5  # farthest centre distance that still blends
-        centers.append(centers[j] + d * rng.uniform(0.45, 0.85) * reach)
-        radii.append(r)
-    squash = [1.0, uniform(rng, 0.8, 1.0), uniform(rng, 0.7, 0.9)]
-    return {"centers": rounded(np.array(centers)), "radii": radii, "squash": squash}
+    a near-sphere. A blob must be at most 4.2 cm thick (:func:`_blob_thickness`), so the
+    5 cm jaws close across it, else it is drawn again; balls of this size lie at least
+    ~2 cm high, room for the fingertips above the table."""
+    for _ in range(30):
+        n = int(rng.integers(2, 7))
+        radii = [uniform(rng, 0.012, 0.018)]
+        centers = [np.zeros(3)]
+        for _ in range(1, n):
+            j = len(radii) - 1 if rng.random() < 0.7 else int(rng.integers(len(radii)))  # mostly chains
+            d = rng.normal(size=3)
+            d /= np.linalg.norm(d)
+            r = uniform(rng, 0.012, 0.018)
+            reach = (radii[j] ** (2 / 3) + r ** (2 / 3)) ** 1.5  # farthest centre distance that still blends
+            centers.append(centers[j] + d * rng.uniform(0.45, 0.85) * reach)
+            radii.append(r)
+        c = rounded(np.array(centers))
+        squash = [1.0, uniform(rng, 0.8, 1.0), uniform(rng, 0.7, 0.9)]
+        if _blob_thickness(np.asarray(c), radii, squash) <= 0.042:
+            break
+    return {"centers": c, "radii": radii, "squash": squash}
 
 
 def build_metaball(p: dict) -> trimesh.Trimesh:
