@@ -2,12 +2,14 @@
 repository, so tests can score them through the service's own upload path (crop, pose
 rows, encoder, head) instead of pre-made crops.
 
-    python examples/make_heldout_images.py
+    python examples/make_heldout_images.py                       # v1: regenerates the objects
+    python examples/make_heldout_images.py --grasps data/v2/grasps  # reads a generated dataset
 
 The objects are test-split objects of the bundled model's recipe (``datagen recipe``:
 the object ids of ``heldout_test_crops.npz``), regenerated with the recipe's config and
-seed (datagen is deterministic per object), so the images and labels are exactly the
-dataset's. Per object, ``--images`` images are drawn among those with a positive grasp, and
+seed (datagen is deterministic per object), or with ``--grasps`` read from the recipe's
+generated grasp dataset (a physics-labelled object takes ~40 s to regenerate), so the images
+and labels are exactly the dataset's (clean renders: a sensor model is the caller's to add). Per object, ``--images`` images are drawn among those with a positive grasp, and
 up to ``--per-class`` positive and as many negative grasps at random among their grasps
 with psi < 90 deg (the sampling stage's filter); each grasp
 gets its own window centre drawn as the crop stage draws it for Fast-VGQ-CNN (within kappa
@@ -27,6 +29,7 @@ from datagen.config import DatagenConfig
 from datagen.crops import fast_window_origins
 from datagen.mesh import mesh_sources
 from datagen.pipeline import generate_object, object_seed
+from datagen.sampling import SamplingParams
 from vgq import atomic
 from vgq import crop as vcrop
 
@@ -40,27 +43,47 @@ def main() -> None:
     p.add_argument("--per-class", type=int, default=16, help="positives and negatives per object (at most)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=str(HERE / "heldout_images.npz"))
+    p.add_argument("--crops", default=str(HERE / "heldout_test_crops.npz"), help="whose object ids to use")
+    p.add_argument("--grasps", help="the recipe's generated grasp dataset (datagen generate --out DIR) to read")
     a = p.parse_args()
 
-    crops = np.load(HERE / "heldout_test_crops.npz")
+    crops = np.load(a.crops)
     test_ids = sorted(set(int(i) for i in crops["object_id"]))[: a.objects]
-    cfg = DatagenConfig().with_overrides(
-        {
-            "cameras_per_pose": RECIPE["cameras"],
-            "seed": RECIPE["seed"],
-            "num_objects": RECIPE["objects"],
-            **RECIPE["set"],
-        }
-    )
     geom = vcrop.CropGeometry(kappa_px=RECIPE["kappa"])
-    sources = mesh_sources(cfg.source)[: RECIPE["objects"]]
+    if a.grasps:
+        from datagen.storage import open_dataset
+
+        ds = open_dataset(a.grasps)
+        threshold, max_psi = ds.label_threshold, SamplingParams().max_psi
+        entries = {e["object_id"]: e for e in ds.shard_entries}
+
+        def load(oid: int):
+            if oid not in entries:
+                raise SystemExit(f"make_heldout_images: object {oid} has no shard in {a.grasps} (not generated?)")
+            shard = ds.load(entries[oid])
+            return shard.name, shard.images, shard.grasps
+    else:
+        cfg = DatagenConfig().with_overrides(
+            {
+                "cameras_per_pose": RECIPE["cameras"],
+                "seed": RECIPE["seed"],
+                "num_objects": RECIPE["objects"],
+                **RECIPE["set"],
+            }
+        )
+        threshold, max_psi = cfg.label_threshold, cfg.sampling.max_psi
+        sources = mesh_sources(cfg.source)[: RECIPE["objects"]]
+
+        def load(oid: int):
+            src = sources[oid]
+            return (src.name, *generate_object(src, cfg, oid, object_seed(cfg.seed, src.name)))
+
     rng = np.random.default_rng(a.seed)
     depth, obj, rows, labels, image_index, centers = [], [], [], [], [], []
     for oid in test_ids:
-        src = sources[oid]
-        images, grasps = generate_object(src, cfg, oid, object_seed(cfg.seed, src.name))
-        keep = grasps["psi"] < cfg.sampling.max_psi
-        pos = keep & (grasps["quality"] > cfg.label_threshold)
+        name, images, grasps = load(oid)
+        keep = grasps["psi"] < max_psi
+        pos = keep & (grasps["quality"] > threshold)
         with_pos = np.unique(grasps["image_index"][pos])
         if len(with_pos) == 0:
             continue
@@ -80,7 +103,7 @@ def main() -> None:
             image_index.append(np.full(len(s), len(depth), np.int32))
             depth.append(images["depth"][img].astype(np.float32))
             obj.append(oid)
-        print(f"object {oid} ({src.name}): {len(depth)} images so far", flush=True)
+        print(f"object {oid} ({name}): {len(depth)} images so far", flush=True)
     atomic.save_npz(
         a.out,
         compressed=True,
