@@ -47,8 +47,13 @@ main() {
     export_model --leave-family-out "$RUN-lfo/eval/metrics_test.json"  # the same model, its card with the LFO result
   fi
   cp "$RUN/eval/heatmap_test.png" "$RUN/eval/curves.png" "$OUT/"
-  # golden end-to-end scores of the new model on the example image (tests/test_golden_scores.py)
-  if [ "$OUT" = models/fast-vgqcnn-default ]; then $PY examples/golden.py --model-dir "$OUT"; fi
+  if [ "$OUT" = models/fast-vgqcnn-default ]; then
+    # the held-out examples the tests score the bundled model on: test-split crops and whole images
+    # of its own test objects, then the golden end-to-end scores (tests/test_golden_scores.py)
+    $PY examples/make_heldout.py --data "$DATA/crops"
+    $PY examples/make_heldout_images.py --grasps "$DATA/grasps"
+    $PY examples/golden.py --model-dir "$OUT"
+  fi
 }
 main "$@"
 exit
