@@ -38,20 +38,25 @@ def pose_rows(grasps: np.ndarray, window_center: np.ndarray, geom: CropGeometry,
         raise GraspError("no grasps given (k = 0)")
     if k > max_grasps:
         raise GraspError(f"{k} grasps given; at most {max_grasps} per request")
-    bad = ~np.isfinite(grasps).all(axis=1)
-    if bad.any():
+    # whole-array checks first; the offending rows are only looked for when one fails
+    if not np.isfinite(grasps).all():
+        bad = ~np.isfinite(grasps).all(axis=1)
         raise GraspError(f"{int(bad.sum())} grasps have non-finite values", np.flatnonzero(bad))
-    bad = ~((grasps[:, 2] > 0) & (grasps[:, 2] <= MAX_Z_M))
-    if bad.any():
+    z = grasps[:, 2]
+    if not (z.min() > 0 and z.max() <= MAX_Z_M):
+        bad = ~((z > 0) & (z <= MAX_Z_M))
         raise GraspError(
             f"{int(bad.sum())} grasps have depth z outside (0, {MAX_Z_M:g}] (metres, camera frame)", np.flatnonzero(bad)
         )
     q = grasps[:, 3:7]
-    bad = np.abs(q).max(axis=1) < ZERO_QUATERNION
-    if bad.any():
+    a = np.abs(q)
+    largest = np.maximum(np.maximum(a[:, 0], a[:, 1]), np.maximum(a[:, 2], a[:, 3]))
+    if largest.min() < ZERO_QUATERNION:
+        bad = largest < ZERO_QUATERNION
         raise GraspError(f"{int(bad.sum())} grasps have a zero quaternion", np.flatnonzero(bad))
-    bad = ~in_training_range(grasps[:, :2], window_center, geom)
-    if bad.any():
+    off = np.abs(grasps[:, :2] - np.asarray(window_center, dtype=np.float64))
+    if off.max() > geom.kappa_px + 1e-9:  # vgq.crop.in_training_range, on the whole batch at once
+        bad = ~in_training_range(grasps[:, :2], window_center, geom)
         c, r = window_center, geom.kappa_px
         raise GraspError(
             f"{int(bad.sum())} grasps lie outside the window the model was trained for: u in "
