@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import sys
@@ -82,15 +83,24 @@ class BenchScene:
     torque_scaling: float
 
 
+@functools.lru_cache(maxsize=4)
+def _recipe_sources(config_json: str) -> list:
+    """The recipe's mesh sources (families included; drawing their parameters takes seconds)."""
+    from datagen.config import DatagenConfig
+    from datagen.pipeline import run_sources
+
+    return run_sources(DatagenConfig.from_dict(json.loads(config_json)))
+
+
 def make_scene(object_id: int, config, rng: np.random.Generator) -> BenchScene:
     """One held-out object on a stable pose (drawn by probability), seen by a recipe camera."""
     from datagen.camera import sample_cameras
     from datagen.mesh import load_object, stable_poses
-    from datagen.pipeline import run_sources
     from datagen.quality import resolve_torque_scaling
     from datagen.render import render_depth
 
-    obj = load_object(run_sources(config)[object_id], config.mesh)  # the recipe's objects, families included
+    sources = _recipe_sources(json.dumps(config.to_dict(), sort_keys=True))
+    obj = load_object(sources[object_id], config.mesh)  # the recipe's objects, families included
     T_poses, probs = stable_poses(obj, config.stable_pose_min_probability, config.max_stable_poses)
     T_wo = T_poses[rng.choice(len(probs), p=probs / probs.sum())]
     mesh_world = obj.mesh.copy()

@@ -67,10 +67,12 @@ def test_round_objects_lie_at_least_2cm_high_so_fingertips_clear_the_table(famil
         obj = make_object(family, index, 0)
         if obj.params.get("kind") == "ring":  # rings are grasped across their wall, from inside
             continue
-        thinnest = principal_extents(obj.mesh).min()
-        assert thinnest >= (0.028 if family == "metaball" else 0.0199), (family, index, obj.params)
+        ext = np.sort(principal_extents(obj.mesh))
+        assert ext[0] >= (0.028 if family == "metaball" else 0.0199), (family, index, obj.params)
         if family != "cone":  # and thin enough across to close the 5 cm jaws on (a cone: near its top)
-            assert thinnest <= 0.045, (family, index, obj.params)
+            assert ext[0] <= 0.045, (family, index, obj.params)
+        if family in ("metaball", "ellipsoid"):  # resting on its broad side, it is gripped across its width
+            assert ext[1] <= 0.046, (family, index, obj.params)
 
 
 @pytest.mark.parametrize("family", ALL)

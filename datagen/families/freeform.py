@@ -111,10 +111,10 @@ EDGE_LENGTH = 0.004  # level-set grid: ~4 mm triangles
 SIMPLIFY_TOLERANCE = 0.0002  # then merge triangles where the surface moves < 0.2 mm
 
 
-def _blob_thickness(centers: np.ndarray, radii: list[float], squash: list[float], step: float = 0.002) -> float:
-    """The squashed metaball's extent (metres) along its thinnest principal axis, from the
-    field sampled on a ``step`` grid (blending makes a cluster of balls swell well beyond
-    each ball)."""
+def _blob_extents(centers: np.ndarray, radii: list[float], squash: list[float], step: float = 0.002) -> np.ndarray:
+    """The squashed metaball's extents (3,) (metres, ascending) along its principal axes, from the
+    field sampled on a ``step`` grid (blending makes a cluster of balls swell well beyond each
+    ball)."""
     r2 = np.asarray(radii) ** 2
     margin = 1.05 * math.sqrt(float(r2.sum()))
     axes = [np.arange(lo - margin, hi + margin, step) for lo, hi in zip(centers.min(axis=0), centers.max(axis=0))]
@@ -122,9 +122,9 @@ def _blob_thickness(centers: np.ndarray, radii: list[float], squash: list[float]
     field = sum(rr / np.maximum(((g - c) ** 2).sum(axis=1), 1e-12) for c, rr in zip(centers, r2))
     inside = g[field >= 1.0] * np.asarray(squash)
     if len(inside) < 4:
-        return 0.0
-    thin = np.linalg.svd(inside - inside.mean(axis=0), full_matrices=False)[2][-1]
-    return float(np.ptp(inside @ thin))
+        return np.zeros(3)
+    principal = np.linalg.svd(inside - inside.mean(axis=0), full_matrices=False)[2]
+    return np.sort(np.ptp(inside @ principal.T, axis=0))
 
 
 def sample_metaball(rng: np.random.Generator) -> dict:
@@ -133,11 +133,13 @@ def sample_metaball(rng: np.random.Generator) -> dict:
     to which the field stays >= 1 along the segment between them, so the blob is one smooth
     body (potatoes, peanuts, pebbles, bent sausages). It is then squashed along y and z
     (factors 0.8-1 and 0.7-0.9) so it rests in a few distinct poses, not on any facet of
-    a near-sphere. A blob must be 3-4.2 cm thick (:func:`_blob_thickness`), else it is drawn
-    again: at most 4.2 cm so the 5 cm jaws close across it, at least 3 cm because a round body
-    is gripped across its middle and the fingertips reach 1 cm past the contacts (a 2.6 cm
-    blob had collision-free grasps for under 1% of its antipodal pairs)."""
-    for _ in range(40):  # ~36% of draws pass
+    a near-sphere. A blob must be at least 3 cm thick and at most 4.4 cm wide (its two
+    smallest principal extents, :func:`_blob_extents`), else it is drawn again: it rests on its
+    broad side, so the jaws close across its width from above (a blob 4.3 cm thick but 7 cm
+    wide had no collision-free grasp), and a round body is gripped across its middle with the
+    fingertips 1 cm past the contacts (a 2.6 cm blob had collision-free grasps for under 1% of
+    its antipodal pairs)."""
+    for _ in range(60):
         n = int(rng.integers(2, 7))
         radii = [uniform(rng, 0.012, 0.018)]
         centers = [np.zeros(3)]
@@ -151,7 +153,8 @@ def sample_metaball(rng: np.random.Generator) -> dict:
             radii.append(r)
         c = rounded(np.array(centers))
         squash = [1.0, uniform(rng, 0.8, 1.0), uniform(rng, 0.7, 0.9)]
-        if 0.03 <= _blob_thickness(np.asarray(c), radii, squash) <= 0.042:
+        e = _blob_extents(np.asarray(c), radii, squash)
+        if e[0] >= 0.03 and e[1] <= 0.044:
             break
     return {"centers": c, "radii": radii, "squash": squash}
 
