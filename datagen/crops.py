@@ -18,13 +18,18 @@ service does not serve).
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
+import os
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+from vgq import atomic, inpaint
 from vgq import crop as vcrop
-from vgq import inpaint
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
 from vgq.schema import CROP_FIELDS, SPLITS, crop_counts, write_crop_manifest
 
@@ -103,6 +108,10 @@ def crop_grasps(
         raise ValueError(f"unknown architecture {arch!r}")
     return images, pose_uv, missing
 
+
+JOB_FILE = ".crops-job.json"  # an unfinished run's inputs (deleted when the manifest is written)
+DONE_FILE = ".crops-done.jsonl"  # its finished objects, one JSON line each, written after their rows
+SAVE_EVERY_S = 30.0  # how often an unfinished run records its progress (what a stop can lose)
 
 _OPEN: dict[str, storage.GraspDataset] = {}  # per process: folder -> opened dataset (workers read it once)
 
@@ -191,17 +200,52 @@ def make_crops(
     entries = [e for e in ds.shard_entries if split_of[e["object_id"]] in splits]
     intr_d = m_src.get("intrinsics") or m_src.get("config", {}).get("intrinsics")
     intr = Intrinsics.from_dict(intr_d) if intr_d else DEFAULT_INTRINSICS
-    writers = {s: storage.crop_writers(out, s, n[s]) for s in SPLITS}
+    thr = ds.label_threshold
+    job = {  # what the rows depend on: a stopped run resumes only into the same job
+        "source_manifest_sha256": hashlib.sha256((ds.root / storage.MANIFEST).read_bytes()).hexdigest(),
+        "arch": arch,
+        "geometry": dataclasses.asdict(geom),
+        "seed": int(seed),
+        "sensor": sensor.to_dict(),
+        "splits": list(splits),
+        "rows": n,
+        "label_threshold": thr,
+        "intrinsics": intr.to_dict(),
+    }
+    job = json.loads(json.dumps(job))  # as it reads back from the job file
+    done = _resume_state(out, job, n, log)
+    if not done:
+        _clear_leftovers(out)
+        atomic.write_json(out / JOB_FILE, job)
+    writers = {s: storage.crop_writers(out, s, n[s], partial=True, resume=bool(done)) for s in SPLITS}
     pos = {s: 0 for s in SPLITS}
     written = {s: 0 for s in SPLITS}
     missing_sum = {s: 0.0 for s in SPLITS}
+    for r in done.values():
+        pos[r["split"]] += r["positives"]
+        written[r["split"]] += r["rows"]
+        missing_sum[r["split"]] += r["missing"]
     # each object's rows start where the previous object's (in id order) of its split end
     start, fill = {}, {s: 0 for s in SPLITS}
     for e in entries:
         s = split_of[e["object_id"]]
         start[e["object_id"]] = fill[s]
         fill[s] += e["num_grasps"]
-    thr = ds.label_threshold
+    pending: list[dict] = []
+    last_save = [time.monotonic()]
+
+    def save_progress() -> None:
+        """Flush the memory maps, then record the objects whose rows they now hold."""
+        for ws in writers.values():
+            for wr in ws.values():
+                wr.flush()
+        if pending:
+            with open(out / DONE_FILE, "a") as f:
+                f.write("".join(json.dumps(r) + "\n" for r in pending))
+                f.flush()
+                os.fsync(f.fileno())
+            pending.clear()
+        last_save[0] = time.monotonic()
 
     def write(r: dict) -> None:
         s = split_of[r["object_id"]]
@@ -209,26 +253,36 @@ def make_crops(
         dst = slice(start[r["object_id"]], start[r["object_id"]] + len(rows["labels"]))
         for k, a in rows.items():
             writers[s][k].array[dst] = a
-        pos[s] += int(rows["labels"].sum())
+        npos = int(rows["labels"].sum())
+        pos[s] += npos
         written[s] += len(rows["labels"])
         missing_sum[s] += r["missing"]
+        pending.append(
+            {
+                "object_id": r["object_id"],
+                "split": s,
+                "rows": len(rows["labels"]),
+                "positives": npos,
+                "missing": r["missing"],
+            }
+        )
+        if time.monotonic() - last_save[0] > SAVE_EVERY_S:
+            save_progress()
 
     from .parallel import run_tasks
 
     _OPEN[str(ds.root)] = ds  # this run's manifest, not one cached from an earlier run on the same folder
-    tasks = [(str(ds.root), e, arch, geom, sensor, seed, intr, thr) for e in entries]
+    todo = [e for e in entries if e["object_id"] not in done]
+    tasks = [(str(ds.root), e, arch, geom, sensor, seed, intr, thr) for e in todo]
     try:
         run_tasks(crop_object, tasks, workers=workers, on_result=write, progress=progress, desc=f"crops {arch}")
-        for s in SPLITS:
-            if written[s] != n[s]:
-                raise storage.DatasetError(f"{src}: split {s} filled {written[s]} rows, manifest counts {n[s]}")
-            for wr in writers[s].values():
-                wr.close()
-    except BaseException:
-        for ws in writers.values():
-            for wr in ws.values():
-                wr.abort()
-        raise
+    finally:  # an interrupted run keeps what it cropped: rerunning the same command resumes
+        save_progress()
+    for s in SPLITS:
+        if written[s] != n[s]:
+            raise storage.DatasetError(f"{src}: split {s} filled {written[s]} rows, manifest counts {n[s]}")
+        for wr in writers[s].values():
+            wr.close()
     counts = {
         s: crop_counts(
             n[s],
@@ -265,9 +319,53 @@ def make_crops(
         inpaint={"method": "nearest valid pixel (OpenCV distance transform, 5x5 mask)", "margin_px": inpaint.MARGIN_PX},
         versions=storage.library_versions(),
     )
+    for f in (DONE_FILE, JOB_FILE):  # complete: nothing left to resume
+        (out / f).unlink(missing_ok=True)
     for s in splits:
         log(
             f"{s}: {n[s]} crops, positivity {100 * counts[s]['positivity']:.1f}%, "
             f"missing pixels {100 * counts[s]['missing_fraction_mean']:.2f}% (sensor {sensor_name})"
         )
     return m
+
+
+def _resume_state(out: Path, job: dict, n: dict, log: Callable[[str], None]) -> dict[int, dict]:
+    """The finished objects (id -> progress record) of a stopped run of the same ``job`` in
+    ``out``; empty when there is none to resume. A stopped run of a different job is an error."""
+    try:
+        old = json.loads((out / JOB_FILE).read_text())
+    except FileNotFoundError:
+        return {}
+    except ValueError:
+        old = None
+    if old != job:
+        raise storage.DatasetError(
+            f"{out} holds an unfinished crop run with other inputs (source, architecture, seed, sensor or splits); "
+            f"delete the folder or choose a new --out"
+        )
+    parts = [out / s / f".{k}.npy.partial" for s in SPLITS if n[s] for k in CROP_FIELDS]
+    if not all(p.is_file() for p in parts):
+        log(f"{out}: the unfinished run's files are incomplete; starting over")
+        return {}
+    done = {}
+    try:
+        lines = (out / DONE_FILE).read_text().splitlines()
+    except FileNotFoundError:
+        lines = []
+    for line in lines:
+        try:
+            r = json.loads(line)
+        except ValueError:  # a line cut by the stop: that object is cropped again
+            continue
+        done[int(r["object_id"])] = r
+    log(f"{out}: resuming an unfinished run, {len(done)} objects already cropped")
+    return done
+
+
+def _clear_leftovers(out: Path) -> None:
+    """Remove the temporary files of earlier unfinished runs in ``out`` (they can be gigabytes)."""
+    for s in SPLITS:
+        for k in CROP_FIELDS:
+            for p in (out / s).glob(f".{k}.npy.*"):
+                p.unlink()
+    (out / DONE_FILE).unlink(missing_ok=True)

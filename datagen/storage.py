@@ -306,18 +306,35 @@ def open_dataset(path: str | Path, verify: bool = True) -> GraspDataset:
 class NpyWriter:
     """Fill a (rows, *shape) .npy file through a memory map, then rename it into place.
 
-    The data lives in ``.<name>.tmp-*`` until :meth:`close`; an unfinished writer leaves
-    only that temporary file behind."""
+    The data lives in a temporary file until :meth:`close`: ``.<name>.tmp-*`` (an unfinished
+    writer leaves only that behind), or with ``partial=True`` the fixed ``.<name>.partial``,
+    which ``resume=True`` reopens (same dtype and shape) to go on filling it after a stop."""
 
-    def __init__(self, path: str | Path, dtype: str, shape: tuple[int, ...]):
+    def __init__(
+        self, path: str | Path, dtype: str, shape: tuple[int, ...], partial: bool = False, resume: bool = False
+    ):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, self.tmp = tempfile.mkstemp(prefix=f".{self.path.name}.tmp-", dir=self.path.parent)
-        os.close(fd)
+        if partial:
+            self.tmp = str(self.path.parent / f".{self.path.name}.partial")
+        else:
+            fd, self.tmp = tempfile.mkstemp(prefix=f".{self.path.name}.tmp-", dir=self.path.parent)
+            os.close(fd)
         if shape[0] == 0:
             self.array = np.zeros(shape, dtype=dtype)
+        elif resume:
+            self.array = np.lib.format.open_memmap(self.tmp, mode="r+")
+            if self.array.dtype != np.dtype(dtype) or self.array.shape != tuple(shape):
+                raise DatasetError(
+                    f"{self.tmp}: holds {self.array.dtype} {self.array.shape}, expected {np.dtype(dtype)} {tuple(shape)}"
+                )
         else:
             self.array = np.lib.format.open_memmap(self.tmp, mode="w+", dtype=np.dtype(dtype), shape=shape)
+
+    def flush(self) -> None:
+        """Write the rows filled so far to the file (kept by a later ``resume``)."""
+        if isinstance(self.array, np.memmap):
+            self.array.flush()
 
     def close(self) -> None:
         if isinstance(self.array, np.memmap):
@@ -327,7 +344,8 @@ class NpyWriter:
                 os.fsync(f.fileno())
             os.replace(self.tmp, self.path)
         else:
-            os.unlink(self.tmp)
+            if os.path.exists(self.tmp):
+                os.unlink(self.tmp)
             atomic.save_npy(self.path, self.array)
 
     def abort(self) -> None:
@@ -338,10 +356,13 @@ class NpyWriter:
             pass
 
 
-def crop_writers(root: str | Path, split: str, n: int) -> dict[str, NpyWriter]:
-    """One :class:`NpyWriter` per CROP_FIELDS field for ``n`` rows of ``root/split``."""
+def crop_writers(
+    root: str | Path, split: str, n: int, partial: bool = False, resume: bool = False
+) -> dict[str, NpyWriter]:
+    """One :class:`NpyWriter` per CROP_FIELDS field for ``n`` rows of ``root/split``
+    (``partial``/``resume``: see :class:`NpyWriter`)."""
     return {
-        k: NpyWriter(Path(root) / split / f"{k}.npy", dtype, (n, *shape))
+        k: NpyWriter(Path(root) / split / f"{k}.npy", dtype, (n, *shape), partial=partial, resume=resume)
         for k, (dtype, shape, _) in CROP_FIELDS.items()
     }
 

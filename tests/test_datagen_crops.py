@@ -9,7 +9,7 @@ import pytest
 from datagen_fakes import fake_dataset
 
 from datagen import storage
-from datagen.crops import fast_window_origins, geometry_for, make_crops
+from datagen.crops import crop_object, fast_window_origins, geometry_for, make_crops
 from vgq import crop as vcrop
 from vgq.schema import SPLITS
 
@@ -131,3 +131,47 @@ def test_parallel_crops_equal_the_serial_ones(tmp_path):
         ca, cb = storage.open_crops(tmp_path / "a", s), storage.open_crops(tmp_path / "b", s)
         for k in ca:
             np.testing.assert_array_equal(ca[k], cb[k], err_msg=f"{s}/{k}")
+
+
+def _stop_after(monkeypatch, k):
+    """Make datagen.crops.crop_object raise KeyboardInterrupt on its (k+1)-th call; returns the call log."""
+    import datagen.crops as crops_mod
+
+    calls, real = [], crop_object
+
+    def stopping(src, entry, *a):
+        if len(calls) == k:
+            raise KeyboardInterrupt
+        calls.append(entry["object_id"])
+        return real(src, entry, *a)
+
+    monkeypatch.setattr(crops_mod, "crop_object", stopping)
+    monkeypatch.setattr(crops_mod, "SAVE_EVERY_S", 0.0)
+    return calls
+
+
+def test_a_stopped_crop_run_resumes_where_it_stopped_with_the_same_rows(tmp_path, monkeypatch):
+    fake_dataset(tmp_path / "g", n_objects=6, n_images=2, n_grasps=8)
+    ref = make_crops(tmp_path / "g", tmp_path / "ref", "fast_vgqcnn", log=lambda s: None, sensor="realistic")
+    first = _stop_after(monkeypatch, 4)
+    with pytest.raises(KeyboardInterrupt):
+        make_crops(tmp_path / "g", tmp_path / "c", "fast_vgqcnn", log=lambda s: None, sensor="realistic")
+    assert not (tmp_path / "c" / storage.MANIFEST).exists()
+    again = _stop_after(monkeypatch, 99)
+    m = make_crops(tmp_path / "g", tmp_path / "c", "fast_vgqcnn", log=lambda s: None, sensor="realistic")
+    assert sorted(first + again) == list(range(6)) and not set(first) & set(again)  # nothing cropped twice
+    assert m["counts"] == ref["counts"]
+    for s in SPLITS:
+        a, b = storage.open_crops(tmp_path / "ref", s), storage.open_crops(tmp_path / "c", s)
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=f"{s}/{k}")
+    assert sorted(p.name for p in (tmp_path / "c").rglob(".*")) == []  # no job or partial files left
+
+
+def test_a_stopped_crop_run_does_not_resume_into_other_inputs(tmp_path, monkeypatch):
+    fake_dataset(tmp_path / "g", n_objects=4, n_images=1, n_grasps=5)
+    _stop_after(monkeypatch, 2)
+    with pytest.raises(KeyboardInterrupt):
+        make_crops(tmp_path / "g", tmp_path / "c", "fast_vgqcnn", log=lambda s: None, sensor="clean")
+    with pytest.raises(storage.DatasetError, match="unfinished crop run with other inputs"):
+        make_crops(tmp_path / "g", tmp_path / "c", "fast_vgqcnn", seed=1, log=lambda s: None, sensor="clean")
