@@ -94,6 +94,22 @@ def test_loadtest_through_the_balancer_has_no_errors(topo):
     assert all(e["requests"] > 0 for e in report["endpoints"].values()) and report["grasps_per_s"] > 0
 
 
+def test_wrk_through_the_balancer_is_answered_in_full(topo):
+    """wrk (C load generator) drives cached score calls through nginx: every call it counts is in
+    nginx's log answered 200 by a replica, none failed."""
+    from tools.loadtest.wrk import main
+
+    need("wrk", "wrk")
+    lb, _, log = topo
+    before = log.read_text().count(" 200 upstream=")
+    report = main(["--url", lb, "--connections", "4", "--duration", "2", "--warmup", "0", "--k", "32"])
+    time.sleep(0.2)  # nginx writes its log line after the answer
+    answered = log.read_text().count(" 200 upstream=") - before
+    assert report["errors"] == 0, report["errors_by_kind"]
+    assert report["requests"] > 0 and report["grasps_per_s"] == pytest.approx(32 * report["req_per_s"], rel=0.01)
+    assert report["requests"] <= answered <= report["requests"] + 4 + 2  # + in flight at the end, + set-up calls
+
+
 def test_killing_a_replica_mid_load_loses_no_request_silently(model_dir, tmp_path):
     """Kill -9 one replica while 4 clients load the balancer: nginx resends what was in flight
     (and what it sends before it marks the replica down) to the other one. Every request the

@@ -285,3 +285,19 @@ def test_overhead_benchmark_measures_every_row_against_a_real_service(model_dir)
     assert (
         r["one_shot_over_model"] == rep["median_ms"]["this: HTTP one-shot"] / rep["median_ms"]["model encoder + head"]
     )
+
+
+def test_wrk_driver_reads_its_summary_line_and_refuses_bad_settings():
+    from tools.loadtest import wrk
+
+    out = 'Running 2s test\nVGQ_WRK {"requests": 10, "duration_us": 2000000, "connect": 0, "read": 1, "write": 0, '
+    out += '"status": 2, "timeout": 0, "p50_us": 1500, "p90_us": 2000, "p99_us": 3000, "p999_us": 3100, '
+    out += '"max_us": 3200, "mean_us": 1600.0}\n'
+    rep = wrk.report(wrk.parse_summary(out), k=128)
+    assert rep["errors"] == 3 and rep["req_per_s"] == 5.0 and rep["grasps_per_s"] == 8 * 128 // 2
+    assert rep["p99_ms"] == 3.0
+    with pytest.raises(ValueError, match="no summary"):
+        wrk.parse_summary("Running 2s test\nunable to connect\n")
+    with pytest.raises(SystemExit) as e:
+        wrk.main(["--connections", "0"])
+    assert e.value.code == 2

@@ -4,8 +4,11 @@ free loopback ports. Used by tests/test_deploy_nginx.py and to measure through t
 
     python -m tools.loadtest.topology --replicas 2 -- --clients 8 --duration 20
     python -m tools.loadtest.topology --replicas 2 --kill-after 5 -- --clients 8 --duration 15
+    python -m tools.loadtest.topology --engine wrk --replicas 2 -- --connections 8 --duration 20
 
-Arguments after ``--`` go to ``python -m tools.loadtest`` (its ``--url`` is the balancer's).
+Arguments after ``--`` go to ``python -m tools.loadtest`` (its ``--url`` is the balancer's), or
+with ``--engine wrk`` to ``python -m tools.loadtest.wrk`` (cached score calls from wrk, a C load
+generator, so the client does not take a core from the replicas).
 ``--kill-after S`` kills (SIGKILL) the first replica S seconds into the run and then reports how
 many requests nginx resent to another replica (from its access log). Needs ``nginx`` and
 ``redis-server`` (Debian: nginx-light, redis-server).
@@ -215,10 +218,19 @@ def main(argv=None) -> dict:
     p.add_argument("--model-dir", help="model folder (default: the service's default)")
     p.add_argument("--threads", type=int, default=1, help="onnxruntime threads per replica (default 1)")
     p.add_argument("--kill-after", type=float, help="SIGKILL the first replica this many seconds into the run")
+    p.add_argument(
+        "--engine",
+        choices=("python", "wrk"),
+        default="python",
+        help="load generator: python (tools.loadtest, any mix) or wrk (cached score calls)",
+    )
     a = p.parse_args(own)
     if a.replicas < 1 or a.threads < 0 or (a.kill_after is not None and a.kill_after < 0):
         p.error("--replicas must be >= 1, --threads >= 0, --kill-after >= 0")
-    from .cli import main as loadtest
+    if a.engine == "wrk":
+        from .wrk import main as loadtest
+    else:
+        from .cli import main as loadtest
 
     with tempfile.TemporaryDirectory(prefix="vgq-topology-") as tmp:
         try:
