@@ -111,6 +111,13 @@ EDGE_LENGTH = 0.004  # level-set grid: ~4 mm triangles
 SIMPLIFY_TOLERANCE = 0.0002  # then merge triangles where the surface moves < 0.2 mm
 
 
+def metaball_field(x: np.ndarray, centers: np.ndarray, r2: np.ndarray) -> np.ndarray:
+    """sum_i r_i^2 / |x - c_i|^2 at points ``x`` (..., 3) (metres) for balls at ``centers``
+    (n, 3) with squared radii ``r2`` (n,): each ball alone is >= 1 inside its sphere."""
+    d2 = ((np.asarray(x)[..., None, :] - centers) ** 2).sum(axis=-1)
+    return (r2 / np.maximum(d2, 1e-12)).sum(axis=-1)
+
+
 def _blob_extents(centers: np.ndarray, radii: list[float], squash: list[float], step: float = 0.002) -> np.ndarray:
     """The squashed metaball's extents (3,) (metres, ascending) along its principal axes, from the
     field sampled on a ``step`` grid (blending makes a cluster of balls swell well beyond each
@@ -119,7 +126,7 @@ def _blob_extents(centers: np.ndarray, radii: list[float], squash: list[float], 
     margin = 1.05 * math.sqrt(float(r2.sum()))
     axes = [np.arange(lo - margin, hi + margin, step) for lo, hi in zip(centers.min(axis=0), centers.max(axis=0))]
     g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    field = sum(rr / np.maximum(((g - c) ** 2).sum(axis=1), 1e-12) for c, rr in zip(centers, r2))
+    field = metaball_field(g, centers, r2)
     inside = g[field >= 1.0] * np.asarray(squash)
     if len(inside) < 4:
         return np.zeros(3)
@@ -172,11 +179,9 @@ def build_metaball(p: dict) -> trimesh.Trimesh:
     r2 = r * r
     margin = 1.05 * math.sqrt(float(r2.sum())) + 2 * EDGE_LENGTH  # the field is < 1 beyond this
     bounds = list(c.min(axis=0) - margin) + list(c.max(axis=0) + margin)
-    cx, cy, cz = c[:, 0].copy(), c[:, 1].copy(), c[:, 2].copy()
 
     def field(x: float, y: float, z: float) -> float:
-        d2 = (x - cx) ** 2 + (y - cy) ** 2 + (z - cz) ** 2
-        return float((r2 / np.maximum(d2, 1e-12)).sum()) - 1.0
+        return float(metaball_field((x, y, z), c, r2)) - 1.0
 
     squash = lengths(p, "squash", "metaball", 3, lo=0.1, hi=1.0)
     solid = m3d.Manifold.level_set(field, bounds, EDGE_LENGTH).simplify(SIMPLIFY_TOLERANCE).scale(tuple(squash))
