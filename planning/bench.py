@@ -373,11 +373,13 @@ def candidate_features(scene: BenchScene, frames_world: np.ndarray, contacts_cam
     """:data:`POOL_FEATURES` of grasp frames (n, 4, 4) in the world frame (table z = 0)."""
     from vgq.gripper import box_corners, gripper_boxes
 
+    from .collision import lowest_corner_height
+
     corners = box_corners(*gripper_boxes(gripper, swept=False))  # (24, 3) grasp frame
     x, z, t = frames_world[:, :3, 0], frames_world[:, :3, 2], frames_world[:, :3, 3]
     d = scene.T_world_object[:3, 3] - t  # meshes are centred on their centre of mass
     return {
-        "fingertip_height": (np.einsum("kj,nij->nki", corners, frames_world[:, :3, :3]) + t[:, None])[..., 2].min(1),
+        "fingertip_height": lowest_corner_height(frames_world, corners, np.array([0.0, 0.0, 1.0]), 0.0),
         "width": np.linalg.norm(contacts_cam[:, 1] - contacts_cam[:, 0], axis=1),
         "com_line_offset": np.linalg.norm(d - np.sum(d * x, axis=1, keepdims=True) * x, axis=1),
         "tcp_height": t[:, 2],

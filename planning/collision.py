@@ -29,6 +29,16 @@ class TablePlane:
         return np.asarray(x) @ self.normal + self.offset
 
 
+def lowest_corner_height(frames: np.ndarray, corners: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray:
+    """(n,) height (metres) above the plane n . x + offset = 0 of the lowest of ``corners`` (k, 3,
+    grasp frame) for each grasp frame (n, 4, 4) given in the plane's frame.
+
+    Corner c of frame (R, t) is at c . (R^T n) + t . n + offset: one (n, 3) x (3, k) product
+    (the corners moved into the frame, an (n, k, 3) einsum, cost 50x more)."""
+    up = np.tensordot(frames[:, :3, :3], normal, axes=([1], [0]))
+    return (up @ corners.T).min(axis=1) + frames[:, :3, 3] @ normal + offset
+
+
 def fit_table(
     points: np.ndarray, rng: np.random.Generator, iterations: int = 60, inlier_distance: float = 0.003
 ) -> TablePlane | None:
@@ -108,10 +118,7 @@ class GripperCollision:
         """(n,) bool: some corner of the swept boxes lies less than ``table_margin`` above the table."""
         if self.table is None or len(frames) == 0:
             return np.zeros(len(frames), dtype=bool)
-        # height of corner c of frame (R, t): c . (R^T n) + t . n + offset; one (n, 3) x (3, 24) product
-        # (the corners in the camera frame, an (n, 24, 3) einsum, cost 50x more)
-        up = np.tensordot(frames[:, :3, :3], self.table.normal, axes=([1], [0]))
-        lowest = (up @ self._corners.T).min(axis=1) + self.table.height(frames[:, :3, 3])
+        lowest = lowest_corner_height(frames, self._corners, self.table.normal, self.table.offset)
         return lowest < self.table_margin
 
     def collides_points(self, frames: np.ndarray, points: np.ndarray | None = None, chunk: int = 128) -> np.ndarray:
