@@ -88,9 +88,7 @@ def test_loadtest_through_the_balancer_has_no_errors(topo):
             "upload=1,score=2,once=1",
         ]
     )
-    truncated = ("RemoteProtocolError", "ReadError")  # connection-level: the client saw the request fail
-    assert all(m.startswith(truncated) for m in report["error_messages"]), report["error_messages"]
-    assert report["errors"] <= 4, report["error_messages"]  # at most the requests in flight at the kill
+    assert report["errors"] == 0, report["error_messages"]  # no replica is killed here: nothing may fail
     assert all(e["requests"] > 0 for e in report["endpoints"].values()) and report["grasps_per_s"] > 0
 
 
