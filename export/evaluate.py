@@ -1,0 +1,110 @@
+"""Score exported model folders on a crop dataset's split through their ONNX graphs (what the
+service runs), overall and per object family: to compare two models on the same grasps, e.g.
+the bundled model on a new dataset or v1 against v2 on v2's test split.
+
+    python -m export.evaluate --model-dir models/fast-vgqcnn-default /work/data/v2-model \\
+        --data data/v2/crops --split test --max-n 20000
+
+Metrics: balanced accuracy, TPR, TNR at raw score 0.5 (the training threshold) and ROC AUC, on
+``--max-n`` rows drawn at random (seed 0) from the split, the same rows for every model; fp32
+head and encoder (exact scores). Fast-VGQ-CNN folders only (crops are its 32 x 32 windows).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from datagen import storage
+from training import metrics as M
+from vgq.schema import SPLITS
+
+
+def crop_rows(data: str | Path, split: str, max_n: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """``images``, ``poses``, ``labels`` and ``family`` of at most ``max_n`` random rows (sorted)."""
+    arrays = storage.open_crops(data, split)
+    n = len(arrays["labels"])
+    if n == 0:
+        raise ValueError(f"{data}: split {split!r} has no crops")
+    idx = np.arange(n) if n <= max_n else np.sort(np.random.default_rng(seed).choice(n, max_n, replace=False))
+    m = json.loads((Path(data) / storage.MANIFEST).read_text())
+    fam = {int(o["object_id"]): o.get("family") or "" for o in m.get("source", {}).get("objects", [])}
+    oid = np.asarray(arrays["object_id"][idx])
+    return {
+        "images": np.asarray(arrays["images"][idx], np.float32),
+        "poses": np.asarray(arrays["poses"][idx], np.float32),
+        "labels": np.asarray(arrays["labels"][idx]).astype(bool),
+        "family": np.array([fam.get(int(i), "") for i in oid]),
+    }
+
+
+def raw_scores(model_dir: str | Path, images: np.ndarray, poses: np.ndarray, batch: int = 256) -> np.ndarray:
+    """(n,) raw scores of the folder's fp32 graphs for crops (n, 32, 32) and pose rows (n, 7)."""
+    from service.runtime import FastModel
+
+    model = FastModel(model_dir, threads=0, head_precision="fp32", encoder_precision="fp32")
+    out = np.empty(len(images), np.float32)
+    for s in range(0, len(images), batch):
+        terms = model.encode(images[s : s + batch])
+        out[s : s + batch] = model.score(terms, poses[s : s + batch])
+    return out
+
+
+def evaluate(labels: np.ndarray, scores: np.ndarray, family: np.ndarray) -> dict:
+    """Overall and per-family metrics at raw score 0.5, with ROC AUC."""
+    by_family = M.metrics_by_group(labels[family != ""], scores[family != ""], family[family != ""])
+    return {
+        "all": M.nan_to_none(M.binary_metrics(labels, scores)),
+        "by_family": {f: M.nan_to_none(m) for f, m in by_family.items()},
+    }
+
+
+def _pct(x) -> str:
+    return "n/a" if x is None else f"{100 * x:.1f}%"
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(
+        prog="python -m export.evaluate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument("--model-dir", nargs="+", required=True, help="exported Fast-VGQ-CNN folders")
+    p.add_argument("--data", required=True, help="a vgq-crops dataset (fast_vgqcnn crops)")
+    p.add_argument("--split", default="test", choices=SPLITS)
+    p.add_argument("--max-n", type=int, default=20_000, help="rows drawn at random from the split (default 20000)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", help="also write the results here")
+    a = p.parse_args(argv)
+    if a.max_n < 1:
+        p.error("--max-n must be >= 1")
+    for d in a.model_dir:
+        if not (Path(d) / "model_card.json").is_file():
+            p.error(f"--model-dir {d}: no model_card.json there")
+    try:
+        rows = crop_rows(a.data, a.split, a.max_n, a.seed)
+    except (OSError, ValueError) as e:
+        print(f"export.evaluate: {e}", file=sys.stderr)
+        sys.exit(2)
+    results = {}
+    for d in a.model_dir:
+        r = evaluate(rows["labels"], raw_scores(d, rows["images"], rows["poses"]), rows["family"])
+        results[d] = r
+        print(f"\n{d} on {a.data} {a.split} ({len(rows['labels'])} crops):")
+        print("| family | n | balanced accuracy | TPR | TNR | AUC |\n|---|---:|---:|---:|---:|---:|")
+        for name, m in [("all", r["all"]), *r["by_family"].items()]:
+            auc = "n/a" if m["auc"] is None else f"{m['auc']:.3f}"
+            print(
+                f"| {name} | {m['n']} | {_pct(m['balanced_accuracy'])} | {_pct(m['tpr'])} | {_pct(m['tnr'])} | {auc} |"
+            )
+    if a.json:
+        from vgq import atomic
+
+        atomic.write_json(a.json, {"data": str(a.data), "split": a.split, "max_n": a.max_n, "results": results})
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,50 @@
+"""export.evaluate: an exported folder scored on a crop dataset through its ONNX graphs, per family."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from datagen_fakes import fake_dataset
+
+from datagen import storage
+from datagen.crops import make_crops
+from export.evaluate import crop_rows, evaluate, main, raw_scores
+from service.runtime import FastModel
+
+
+@pytest.fixture(scope="module")
+def crops(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ev")
+    g = fake_dataset(root / "g", n_objects=10, n_images=1, n_grasps=12, seed=3)
+    for o in g["objects"]:
+        o["family"] = "mug" if o["object_id"] % 2 else "box"
+    storage.write_manifest(root / "g", g)
+    make_crops(root / "g", root / "c", "fast_vgqcnn", log=lambda s: None, sensor="clean")
+    return root / "c"
+
+
+def test_scores_are_each_crops_own_in_any_batch(model_dir, crops):
+    rows = crop_rows(crops, "test", 50)
+    batched = raw_scores(model_dir, rows["images"], rows["poses"], batch=7)
+    m = FastModel(model_dir, threads=1, head_precision="fp32", encoder_precision="fp32")
+    one = [m.score(m.encode(rows["images"][i]), rows["poses"][i : i + 1])[0] for i in range(len(batched))]
+    np.testing.assert_allclose(batched, one, atol=1e-5)
+
+
+def test_metrics_split_by_family_and_agree_with_the_whole():
+    y = np.array([1, 0, 1, 0, 1, 0], bool)
+    s = np.array([0.9, 0.2, 0.4, 0.6, 0.8, 0.1], np.float32)
+    fam = np.array(["a", "a", "b", "b", "b", ""])
+    r = evaluate(y, s, fam)
+    assert r["all"]["tpr"] == pytest.approx(2 / 3) and r["all"]["tnr"] == pytest.approx(2 / 3)
+    assert set(r["by_family"]) == {"a", "b"} and r["by_family"]["a"]["balanced_accuracy"] == 1.0
+    assert r["by_family"]["b"]["tpr"] == 0.5 and r["by_family"]["b"]["tnr"] == 0.0
+
+
+def test_cli_prints_a_row_per_family_and_refuses_a_folder_without_a_card(model_dir, crops, capsys, tmp_path):
+    res = main(["--model-dir", str(model_dir), "--data", str(crops), "--split", "train", "--max-n", "40"])
+    out = capsys.readouterr().out
+    assert "| box |" in out and "| mug |" in out and set(res[str(model_dir)]["by_family"]) == {"box", "mug"}
+    with pytest.raises(SystemExit) as e:
+        main(["--model-dir", str(tmp_path), "--data", str(crops)])
+    assert e.value.code == 2
