@@ -5,6 +5,9 @@ rows, encoder, head) instead of pre-made crops.
     python examples/make_heldout_images.py                       # v1: regenerates the objects
     python examples/make_heldout_images.py --grasps data/v2/grasps  # reads a generated dataset
 
+With ``--grasps`` the test objects are taken round-robin over the dataset's families (v2: the
+first 44 then cover every family, not only the ``random_urdfs``, whose ids come first).
+
 The objects are test-split objects of the bundled model's recipe (``datagen recipe``:
 the object ids of ``heldout_test_crops.npz``), regenerated with the recipe's config and
 seed (datagen is deterministic per object), or with ``--grasps`` read from the recipe's
@@ -36,6 +39,16 @@ from vgq import crop as vcrop
 HERE = Path(__file__).resolve().parent
 
 
+def interleave_families(ids: list[int], family: dict[int, str]) -> list[int]:
+    """``ids`` reordered round-robin over their families (families in name order, ids ascending
+    within each), so the first N objects cover every family; one family keeps the order."""
+    by: dict[str, list[int]] = {}
+    for i in sorted(ids):
+        by.setdefault(family.get(i, ""), []).append(i)
+    queues = [by[f] for f in sorted(by)]
+    return [q[r] for r in range(max(map(len, queues), default=0)) for q in queues if r < len(q)]
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--objects", type=int, default=44, help="test objects to use (first N test ids)")
@@ -48,13 +61,15 @@ def main() -> None:
     a = p.parse_args()
 
     crops = np.load(a.crops)
-    test_ids = sorted(set(int(i) for i in crops["object_id"]))[: a.objects]
+    test_ids = sorted(set(int(i) for i in crops["object_id"]))
     geom = vcrop.CropGeometry(kappa_px=RECIPE["kappa"])
     if a.grasps:
         from datagen.storage import open_dataset
 
         ds = open_dataset(a.grasps)
         threshold, max_psi = ds.label_threshold, SamplingParams().max_psi
+        family = {int(o["object_id"]): o.get("family") or "" for o in ds.manifest["objects"]}
+        test_ids = interleave_families(test_ids, family)
         entries = {e["object_id"]: e for e in ds.shard_entries}
 
         def load(oid: int):
@@ -78,6 +93,7 @@ def main() -> None:
             src = sources[oid]
             return (src.name, *generate_object(src, cfg, oid, object_seed(cfg.seed, src.name)))
 
+    test_ids = test_ids[: a.objects]
     rng = np.random.default_rng(a.seed)
     depth, obj, rows, labels, image_index, centers = [], [], [], [], [], []
     for oid in test_ids:
