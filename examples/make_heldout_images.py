@@ -5,8 +5,9 @@ rows, encoder, head) instead of pre-made crops.
     python examples/make_heldout_images.py                       # v1: regenerates the objects
     python examples/make_heldout_images.py --grasps data/v2/grasps  # reads a generated dataset
 
-With ``--grasps`` the test objects are taken round-robin over the dataset's families (v2: the
-first 44 then cover every family, not only the ``random_urdfs``, whose ids come first).
+With ``--grasps`` the test objects are taken round-robin over the dataset's families, in
+proportion (``datagen.pipeline.interleaved``; v2: the first 44 then cover every family, not only
+the ``random_urdfs``, whose ids come first).
 
 The objects are test-split objects of the bundled model's recipe (``datagen recipe``:
 the object ids of ``heldout_test_crops.npz``), regenerated with the recipe's config and
@@ -31,22 +32,12 @@ from datagen.__main__ import RECIPE
 from datagen.config import DatagenConfig
 from datagen.crops import fast_window_origins
 from datagen.mesh import mesh_sources
-from datagen.pipeline import generate_object, object_seed
+from datagen.pipeline import generate_object, interleaved, object_seed
 from datagen.sampling import SamplingParams
 from vgq import atomic
 from vgq import crop as vcrop
 
 HERE = Path(__file__).resolve().parent
-
-
-def interleave_families(ids: list[int], family: dict[int, str]) -> list[int]:
-    """``ids`` reordered round-robin over their families (families in name order, ids ascending
-    within each), so the first N objects cover every family; one family keeps the order."""
-    by: dict[str, list[int]] = {}
-    for i in sorted(ids):
-        by.setdefault(family.get(i, ""), []).append(i)
-    queues = [by[f] for f in sorted(by)]
-    return [q[r] for r in range(max(map(len, queues), default=0)) for q in queues if r < len(q)]
 
 
 def main() -> None:
@@ -68,8 +59,7 @@ def main() -> None:
 
         ds = open_dataset(a.grasps)
         threshold, max_psi = ds.label_threshold, SamplingParams().max_psi
-        family = {int(o["object_id"]): o.get("family") or "" for o in ds.manifest["objects"]}
-        test_ids = interleave_families(test_ids, family)
+        test_ids = interleaved(test_ids, ds.manifest)  # every family in proportion, not only the first
         entries = {e["object_id"]: e for e in ds.shard_entries}
 
         def load(oid: int):
