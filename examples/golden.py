@@ -73,12 +73,13 @@ class HandScorer:
 
     @staticmethod
     def small_window(depth: np.ndarray, centre=(CENTRE, CENTRE)) -> np.ndarray:
-        """The 96 px window centred on ``centre`` (u, v; a window centre: an integer + 0.5,
-        the window inside the image), shrunk to 32 x 32."""
+        """The 96 px window centred on ``centre`` (u, v; a window centre: an integer + 0.5),
+        the image's edge pixels repeated where the window leaves it, shrunk to 32 x 32."""
         u0, v0 = centre[0] - 47.5, centre[1] - 47.5
-        assert u0 == int(u0) and v0 == int(v0) and 0 <= u0 and 0 <= v0, centre
-        assert v0 + 96 <= depth.shape[0] and u0 + 96 <= depth.shape[1], centre
-        window = np.ascontiguousarray(depth[int(v0) : int(v0) + 96, int(u0) : int(u0) + 96], np.float32)
+        assert u0 == int(u0) and v0 == int(v0), centre
+        u0, v0 = int(u0) + 96, int(v0) + 96  # in the image padded by 96 px of repeated edge
+        padded = np.pad(np.asarray(depth, np.float32), 96, mode="edge")
+        window = np.ascontiguousarray(padded[v0 : v0 + 96, u0 : u0 + 96])
         return np.asarray(Image.fromarray(window).resize((96 // SHRINK,) * 2, Image.Resampling.BILINEAR), np.float32)
 
     @staticmethod

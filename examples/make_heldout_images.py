@@ -17,7 +17,8 @@ and labels are exactly the dataset's (clean renders: a sensor model is the calle
 up to ``--per-class`` positive and as many negative grasps at random among their grasps
 with psi < 90 deg (the sampling stage's filter); each grasp
 gets its own window centre drawn as the crop stage draws it for Fast-VGQ-CNN (within kappa
-per axis, an integer window). Only the images those grasps lie on are kept. Writes
+per axis, an integer window), moved to the image's edge where it fell outside the image (the
+service's ``center_u`` / ``center_v`` must lie in the image). Only the images those grasps lie on are kept. Writes
 ``heldout_images.npz`` (see ``heldout.py`` for the arrays).
 """
 
@@ -103,7 +104,9 @@ def main() -> None:
         for img in np.unique(grasps["image_index"][sel]):
             s = sel[grasps["image_index"][sel] == img]
             uv = np.stack([grasps["u"][s], grasps["v"][s]], 1)
-            centers.append(vcrop.window_center(fast_window_origins(uv, geom, rng), geom))
+            c = vcrop.window_center(fast_window_origins(uv, geom, rng), geom)
+            h, w = images["depth"][img].shape  # the service takes window centres in the image: move those
+            centers.append(np.clip(c, 0.5, [w - 1.5, h - 1.5]))  # outside to its edge (still within kappa)
             rows.append(np.column_stack([uv, grasps["z"][s], grasps["q"][s]]))
             labels.append(pos[s].astype(np.uint8))
             image_index.append(np.full(len(s), len(depth), np.int32))

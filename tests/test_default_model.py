@@ -25,7 +25,9 @@ from heldout import load_heldout_images  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT = ROOT / "models" / "fast-vgqcnn-default"
-BOUND = 0.77  # balanced accuracy on the held-out images: see test_service_classifies_whole_heldout_images
+# balanced accuracy on the held-out images that separates the serving path from broken ones, just
+# below what examples/golden.py measured for the bundled model: see test_service_classifies_whole_heldout_images
+BOUND = json.loads(GOLDEN_HELDOUT.read_text())["balanced_accuracy"] - 0.015
 
 
 @pytest.fixture(scope="module")
@@ -75,15 +77,17 @@ def served(heldout) -> np.ndarray:
 def test_service_classifies_whole_heldout_images(card, heldout, served):
     """Balanced accuracy of the served model on whole images of the recipe's test objects.
 
-    The bound is not the card's 0.864 - 0.02: these 700 grasps are drawn at random on 54 images
-    (no positivity equalisation, no uniform (phi, beta) binning as in the recipe's test split),
-    and the model scores 0.784 on them (fp32; examples/golden_heldout.json, measured by
-    ``python examples/golden.py``). BOUND = 0.77 lies between that and what a broken serving
-    path scores on the same grasps (see the next test): u and v swapped 0.661, offsets negated
-    0.641, only u negated 0.758, the network's crop mirrored (left-right, in service/app.py) 0.754.
-    A mirrored whole image (window and grasps staying put: 0.779) is not separable by accuracy
-    here (the objects lie near the image centre, most of them near-symmetric); the per-grasp
-    comparison below and tests/test_golden_scores.py catch it."""
+    The bound is not the card's test balanced accuracy - 0.02: these grasps are drawn at random
+    on whole images (no positivity equalisation, no uniform (phi, beta) binning as in the recipe's
+    test split), where the model scores lower (fp32; examples/golden_heldout.json, measured by
+    ``python examples/golden.py``). BOUND, 0.015 below that, lies between it and what a broken
+    serving path scores on the same grasps (the next test). v1 on its 700 grasps: 0.784; u and
+    v swapped 0.661, offsets negated 0.641, only u negated 0.758, the network's crop mirrored
+    (left-right, in service/app.py) 0.754. A v2 checkpoint (1 M samples) on v2's 997 grasps:
+    0.741; swapped 0.661, negated 0.594, u negated 0.653. A mirrored whole image (window and
+    grasps staying put: v1 0.779) is not separable by accuracy here (the objects lie near the
+    image centre, most of them near-symmetric); the per-grasp comparison below and
+    tests/test_golden_scores.py catch it."""
     y = heldout.labels == 1
     assert y.sum() >= 200 and (~y).sum() >= 200 and len(np.unique(heldout.image_index)) >= 50
     ba = balanced_accuracy(heldout.labels, served)
