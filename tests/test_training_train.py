@@ -142,6 +142,15 @@ def test_evaluate_writes_metrics_heatmap_and_curves(data, run):
     assert meta["metrics"]["test"]["balanced_accuracy"] == rec["overall"]["balanced_accuracy"]
 
 
+def test_evaluate_max_n_scores_the_same_random_rows_each_time(data, run, tmp_path):
+    full = evaluate(run, data, "test", progress=False, out_dir=tmp_path / "full")
+    a = evaluate(run, data, "test", progress=False, out_dir=tmp_path / "a", max_n=20)
+    b = evaluate(run, data, "test", progress=False, out_dir=tmp_path / "b", max_n=20)
+    assert a["overall"]["n"] == 20 and a["rows"] == {"evaluated": 20, "of": 32, "seed": 0}
+    assert a["overall"] == b["overall"] and full["rows"]["evaluated"] == 32
+    assert evaluate(run, data, "test", progress=False, out_dir=tmp_path / "c", max_n=99)["overall"] == full["overall"]
+
+
 def test_lr_schedule_staircase():
     cfg = TrainConfig(decay_every_samples=1000)
     assert cfg.lr_at(999) == pytest.approx(0.001) and cfg.lr_at(2500) == pytest.approx(0.001 * 0.95**2)

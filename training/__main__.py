@@ -53,6 +53,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.add_argument("--threshold", type=float, default=0.5)
     e.add_argument("--batch-size", type=int, default=1024)
+    e.add_argument(
+        "--max-n",
+        type=int,
+        default=0,
+        help="evaluate this many rows drawn at random (--seed) from the split (default 0: all; a clean copy "
+        "of the split gets the same rows)",
+    )
+    e.add_argument("--seed", type=int, default=0)
     e.add_argument("--no-progress", action="store_true")
 
     b = sub.add_parser("baseline", help="pose-only baseline (no image)")
@@ -117,6 +125,8 @@ def main(argv: list[str] | None = None) -> int:
                 batch_size=args.batch_size,
                 progress=progress,
                 name=args.name,
+                max_n=args.max_n,
+                seed=args.seed,
             )
             print(json.dumps({"split": rec["split"], "name": rec["name"], "sensor": rec["sensor"], **rec["overall"]}))
             for fam, m in rec["by_family"].items():
