@@ -13,7 +13,7 @@ from pathlib import Path
 
 # The datasets of the bundled models (``datagen recipe --version V``): generate -> sample -> crops.
 RECIPES = {
-    # v1: the model bundled today (fast_vgqcnn-60b272a5a797): random_urdfs only, the paper's label, clean renders
+    # v1: the model bundled until 2026-11-30 (fast_vgqcnn-60b272a5a797): random_urdfs only, the paper's label, clean renders
     "v1": {
         "objects": 600,  # first 600 of pybullet_data's random_urdfs (sorted by name)
         "families": None,
@@ -25,7 +25,8 @@ RECIPES = {
         "sensor": "clean",
         "set": {"label.kind": "paper"},
     },
-    # v2 (issue 10): everyday families + random_urdfs, the physics label (docs/labels.md), the depth-sensor model
+    # v2 (issue 10), bundled since 2026-11-30: everyday families + random_urdfs, the physics label
+    # (docs/labels.md), the depth-sensor model
     "v2": {
         "objects": 600,
         "families": "all=40",  # 40 objects of each of the 11 families, split object-wise within every family
@@ -43,7 +44,7 @@ RECIPES = {
         "leave_out": ["mug", "metaball"],
     },
 }
-RECIPE = RECIPES["v1"]  # the bundled model's recipe until v2 is trained
+RECIPE = RECIPES["v2"]  # the bundled model's recipe
 
 
 class CliError(Exception):

@@ -2,7 +2,7 @@
 repository, so tests can score them through the service's own upload path (crop, pose
 rows, encoder, head) instead of pre-made crops.
 
-    python examples/make_heldout_images.py                       # v1: regenerates the objects
+    python examples/make_heldout_images.py                       # a recipe without families: regenerates
     python examples/make_heldout_images.py --grasps data/v2/grasps  # reads a generated dataset
 
 With ``--grasps`` the test objects are taken round-robin over the dataset's families, in
@@ -69,6 +69,11 @@ def main() -> None:
             shard = ds.load(entries[oid])
             return shard.name, shard.images, shard.grasps
     else:
+        if RECIPE["families"]:
+            raise SystemExit(
+                "make_heldout_images: the bundled recipe has object families; read its generated dataset "
+                "with --grasps DIR (datagen recipe --version v2 --out data/v2 writes data/v2/grasps)"
+            )
         cfg = DatagenConfig().with_overrides(
             {
                 "cameras_per_pose": RECIPE["cameras"],

@@ -45,7 +45,8 @@ def test_card_records_recipe_training_and_test_metrics(card):
 
 def test_card_beats_the_pose_only_baseline_on_the_same_test_split(card):
     model, base = card.metrics["test"], card.metrics["baseline_mlp"]["test"]
-    assert model["n"] == base["n"]
+    # the baseline scores the whole split; the model all of it or rows drawn from it (evaluate --max-n)
+    assert model["n"] <= base["n"] == card.dataset["counts"]["test"]["n"]
     assert model["balanced_accuracy"] > base["balanced_accuracy"] + 0.05
 
 
@@ -59,7 +60,8 @@ def served(heldout) -> np.ndarray:
     """fp32 scores of the held-out grasps from the real service: each grasp sent in a one-shot
     request with its whole image and its window centre (the npz ``center``)."""
     p = np.empty(len(heldout))
-    with running_service(DEFAULT, "--head-precision", "fp32") as url, httpx.Client(base_url=url) as c:
+    fp32 = ("--head-precision", "fp32", "--encoder-precision", "fp32")  # the graphs golden.py ran
+    with running_service(DEFAULT, *fp32) as url, httpx.Client(base_url=url) as c:
         for j in range(len(heldout)):
             body = io.BytesIO()
             np.savez(

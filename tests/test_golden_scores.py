@@ -66,7 +66,8 @@ def test_hand_computation_reproduces_the_stored_golden_scores(stored, depth):
 
 @pytest.fixture(scope="module")
 def fp32_url():
-    with running_service(golden.MODEL, "--head-precision", "fp32") as u:
+    # fp32 graphs: the golden scores are the fp32 encoder's and head's (auto may pick the int8 encoder)
+    with running_service(golden.MODEL, "--head-precision", "fp32", "--encoder-precision", "fp32") as u:
         yield u
 
 
@@ -101,7 +102,7 @@ def test_service_one_shot_npz_with_off_centre_window_equals_hand_computation(fp3
 
 
 def test_default_int8_service_equals_the_int8_head_run_directly(stored, depth):
-    with running_service(golden.MODEL) as url:
+    with running_service(golden.MODEL, "--encoder-precision", "fp32") as url:  # the int8 head, the fp32 encoder
         up = httpx.post(f"{url}/v1/images", content=_npy(depth), headers={"content-type": "application/x-npy"})
         r = httpx.post(f"{url}/v1/images/{up.json()['image_id']}/scores", json={"grasps": stored["grasps"]})
     assert r.status_code == 200, r.text
