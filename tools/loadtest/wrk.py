@@ -149,16 +149,15 @@ def main(argv=None) -> dict:
     if not find_wrk():
         print("loadtest.wrk: needs wrk (apt-get install -y wrk)", file=sys.stderr)
         sys.exit(2)
+    import httpx
+
     try:
         image_id, body = pin_image(url, a.k, a.timeout)
         path = f"/v1/images/{image_id}/scores"
         if a.warmup >= 1:
             run_wrk(url, path, body, a.connections, a.warmup, a.threads, a.timeout)
         rep = report(run_wrk(url, path, body, a.connections, a.duration, a.threads, a.timeout), a.k)
-    except (OSError, RuntimeError, ValueError) as e:  # httpx errors are OSErrors' cousins: report, not trace
-        print(f"loadtest.wrk: {e}", file=sys.stderr)
-        sys.exit(1)
-    except Exception as e:  # noqa: BLE001 - httpx.HTTPError and the like: one line, not a trace
+    except (OSError, RuntimeError, ValueError, subprocess.TimeoutExpired, httpx.HTTPError) as e:
         print(f"loadtest.wrk: {type(e).__name__}: {e}", file=sys.stderr)
         sys.exit(1)
     rep.update(connections=a.connections, wrk_threads=a.threads, k=a.k)
