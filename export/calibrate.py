@@ -259,6 +259,7 @@ def calibrate_on_dataset(
     positivity; ``meta`` is ``training.checkpoint.load_trained``'s (the class balance the
     net was trained with sets the temperature fit's prior)."""
     from training.data import DatasetError
+    from training.metrics import sample_rows
     from training.predict import predict_split
 
     probs = {}
@@ -267,9 +268,7 @@ def calibrate_on_dataset(
             split = ds.split(name)
         except DatasetError as e:
             raise CalibrationError(f"calibration needs a val and a test split: {e}") from None
-        idx = np.arange(len(split))
-        if max_n and len(idx) > max_n:
-            idx = np.sort(np.random.default_rng(seed).choice(len(idx), max_n, replace=False))
+        idx = sample_rows(len(split), max_n, seed)
         p, _ = predict_split(net, split, idx)
         probs[name] = (p, np.asarray(split.labels[idx]))
     target, source = native_positivity(ds.manifest, native)

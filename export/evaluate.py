@@ -30,7 +30,7 @@ def crop_rows(data: str | Path, split: str, max_n: int, seed: int = 0) -> dict[s
     n = len(arrays["labels"])
     if n == 0:
         raise ValueError(f"{data}: split {split!r} has no crops")
-    idx = np.arange(n) if n <= max_n else np.sort(np.random.default_rng(seed).choice(n, max_n, replace=False))
+    idx = M.sample_rows(n, max_n, seed)  # the rows training evaluate --max-n scores
     m = json.loads((Path(data) / storage.MANIFEST).read_text())
     fam = {int(o["object_id"]): o.get("family") or "" for o in m.get("source", {}).get("objects", [])}
     oid = np.asarray(arrays["object_id"][idx])

@@ -59,9 +59,7 @@ def evaluate(
     sp = data.split(split)
     if max_n < 0:
         raise ValueError(f"max_n must be >= 0, got {max_n}")
-    rows = np.arange(len(sp))
-    if max_n and len(sp) > max_n:
-        rows = np.sort(np.random.default_rng(seed).choice(len(sp), max_n, replace=False))
+    rows = M.sample_rows(len(sp), max_n, seed)
     t0 = time.time()
     p, loss = predict_split(net, sp, rows, batch_size=batch_size, progress=progress, desc=f"evaluate {split}")
     dt = time.time() - t0

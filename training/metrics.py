@@ -42,6 +42,14 @@ def from_confusion(c: dict[str, int]) -> dict[str, float]:
     }
 
 
+def sample_rows(n: int, max_n: int, seed: int = 0) -> np.ndarray:
+    """Sorted indices of the rows to evaluate out of ``n``: all of them, or ``max_n`` (> 0) drawn at
+    random with ``seed`` (the same rows for every model and for a copy of the split with the same grasps)."""
+    if max_n and n > max_n:
+        return np.sort(np.random.default_rng(seed).choice(n, max_n, replace=False))
+    return np.arange(n)
+
+
 def binary_metrics(labels: np.ndarray, p_success: np.ndarray, threshold: float = 0.5) -> dict[str, float]:
     """Metrics of predicting success where ``p_success > threshold``, and the ROC AUC of ``p_success``."""
     out = from_confusion(confusion(labels, np.asarray(p_success) > threshold))
