@@ -15,6 +15,7 @@ from vgq.pose import POSE_COLUMNS
 CLASS_BALANCE = ("none", "loss_weights")
 OPTIMIZERS = ("sgd", "adamw")
 PRECISIONS = ("fp32", "bf16", "auto")
+SELECT_ON = ("data", "mix", "mean")
 
 
 @dataclass
@@ -54,6 +55,29 @@ class TrainConfig:
         },
     )
 
+    init: str = field(
+        default="",
+        metadata={
+            "help": "fine-tune: a fresh run starts from this checkpoint's weights and input normalisation "
+            "(a checkpoint file or a run folder: its best.pt); '' = random weights"
+        },
+    )
+    mix_data: str = field(
+        default="",
+        metadata={"help": "a second crop dataset whose train split supplies --mix-share of every batch"},
+    )
+    mix_share: float = field(
+        default=0.0, metadata={"help": "share of each batch drawn at random from --mix-data's train split"}
+    )
+    select_on: str = field(
+        default="data",
+        metadata={
+            "choices": SELECT_ON,
+            "help": "best checkpoint by the validation balanced accuracy of 'data' (--data), 'mix' (--mix-data) "
+            "or their 'mean'",
+        },
+    )
+
     def __post_init__(self) -> None:
         if self.arch not in POSE_COLUMNS:
             raise ValueError(f"unknown architecture {self.arch!r}; expected one of {sorted(POSE_COLUMNS)}")
@@ -78,6 +102,21 @@ class TrainConfig:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
         if self.class_balance not in CLASS_BALANCE:
             raise ValueError(f"class_balance must be one of {CLASS_BALANCE}, got {self.class_balance!r}")
+        if self.select_on not in SELECT_ON:
+            raise ValueError(f"select_on must be one of {SELECT_ON}, got {self.select_on!r}")
+        if self.mix_data and not 0.0 < self.mix_share < 1.0:
+            raise ValueError(f"mix_share must be in (0, 1) with mix_data, got {self.mix_share}")
+        if not self.mix_data and (self.mix_share or self.select_on != "data"):
+            raise ValueError("mix_share and select_on 'mix' / 'mean' need mix_data (a second crop dataset)")
+
+    def mix_rows(self, batch: int) -> int:
+        """Rows of a (per-process) batch of ``batch`` drawn from ``mix_data``: 0 without it, else the
+        share rounded, at least 1 and leaving at least 1 row of ``data``."""
+        if not self.mix_data:
+            return 0
+        if batch < 2:
+            raise ValueError(f"a batch of {batch} row cannot be shared between two datasets")
+        return min(max(int(round(batch * self.mix_share)), 1), batch - 1)
 
     def lr_at(self, samples_seen: int) -> float:
         """Learning rate after ``samples_seen`` samples (staircase exponential decay)."""
@@ -85,6 +124,11 @@ class TrainConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    @classmethod
+    def defaults(cls) -> dict:
+        """Every field's default: the value a config saved before the field existed had."""
+        return cls().to_dict()
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:

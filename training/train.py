@@ -5,6 +5,11 @@ torchrun), reshuffled per epoch with the config's seed, so a resumed run reads e
 batches the killed run would have read next. The global batch is ``config.batch_size``,
 split evenly over the processes; rank 0 alone writes the run folder.
 
+Fine-tuning (``config.init``) starts a fresh run from a checkpoint's weights and input
+normalisation. A mix dataset (``config.mix_data``, e.g. the planner's own candidates) supplies
+``config.mix_share`` of every batch, its rows drawn by (seed, step, rank), so a resumed run
+draws the same ones; its validation split is logged as ``val_mix``.
+
 The loop state is one :class:`TrainState`; a checkpoint is one dict
 (:func:`checkpoint_dict`): weights, optimizer, config, normalisation, that state, dataset facts.
 """
@@ -37,6 +42,7 @@ from .checkpoint import (
     CheckpointError,
     RunPaths,
     load_checkpoint,
+    resolve_run,
     save_checkpoint,
 )
 from .config import TrainConfig
@@ -89,7 +95,9 @@ class TrainState:
 
     ``(epoch, batch_in_epoch)`` is the position in the data order, so a resumed run reads the
     very batches the killed one would have read next. ``wall_time_s`` (seconds) adds up over
-    resumes; ``best_val_balanced_accuracy`` is NaN until a validation gives a finite one.
+    resumes; ``best_val_balanced_accuracy`` (the score ``config.select_on`` names: the validation
+    balanced accuracy of ``--data`` unless a mix dataset is selected on) is NaN until a validation
+    gives a finite one.
     """
 
     step: int = 0
@@ -184,13 +192,30 @@ def _better(a: float, b: float) -> bool:
     return math.isfinite(a) and (not math.isfinite(b) or a > b)
 
 
-def _class_weights(split: CropSplit) -> torch.Tensor:
-    lab = np.asarray(split.labels)
-    n, pos = len(lab), int(lab.sum())
-    neg = n - pos
-    if pos == 0 or neg == 0:
+def _class_weights(split: CropSplit, mix: CropSplit | None = None, mix_share: float = 0.0) -> torch.Tensor:
+    """Cross-entropy weights 1 / (2 * class share) of the batches: the training split's shares, or
+    with ``mix`` the expected shares of batches holding ``mix_share`` of its rows."""
+    pos = float(np.mean(np.asarray(split.labels)))
+    if mix is not None:
+        pos = (1.0 - mix_share) * pos + mix_share * float(np.mean(np.asarray(mix.labels)))
+    if pos == 0 or pos == 1:
         raise DatasetError("class_balance='loss_weights' needs both classes in the training split")
-    return torch.tensor([n / (2.0 * neg), n / (2.0 * pos)], dtype=torch.float32)
+    return torch.tensor([1.0 / (2.0 * (1.0 - pos)), 1.0 / (2.0 * pos)], dtype=torch.float32)
+
+
+def _mix_index(cfg: TrainConfig, step: int, rank: int, n_rows: int, k: int) -> np.ndarray:
+    """Rows of the mix dataset's train split for optimizer step ``step`` on process ``rank``:
+    drawn from a stream of (seed, step, rank) alone, so a resumed run draws the same rows."""
+    return np.random.default_rng((cfg.seed, 0x6D6978, step, rank)).integers(0, n_rows, k)
+
+
+def _selection_score(cfg: TrainConfig, val: dict, val_mix: dict | None) -> float:
+    """The balanced accuracy that picks the best checkpoint (``cfg.select_on``)."""
+    if cfg.select_on == "data" or val_mix is None:
+        return val["balanced_accuracy"]
+    if cfg.select_on == "mix":
+        return val_mix["balanced_accuracy"]
+    return 0.5 * (val["balanced_accuracy"] + val_mix["balanced_accuracy"])
 
 
 def _trim_log(path: Path, samples: int) -> None:
@@ -208,6 +233,7 @@ def _trim_log(path: Path, samples: int) -> None:
 
 
 def _check_resume_config(saved: dict, cfg: TrainConfig) -> None:
+    saved = {**TrainConfig.defaults(), **saved}  # a field newer than the checkpoint had its default
     diff = sorted(k for k, v in cfg.to_dict().items() if k not in RESUMABLE_CHANGES and saved.get(k) != v)
     if diff:
         raise CheckpointError(
@@ -216,7 +242,7 @@ def _check_resume_config(saved: dict, cfg: TrainConfig) -> None:
         )
 
 
-def _check_resume_dataset(saved: dict, data: CropDataset) -> None:
+def _check_resume_dataset(saved: dict, data: CropDataset, mix: CropDataset | None = None) -> None:
     now = data.info()
     for k in ("geometry", "counts", "architecture"):
         if saved.get(k) != now.get(k):
@@ -224,6 +250,11 @@ def _check_resume_dataset(saved: dict, data: CropDataset) -> None:
                 f"cannot resume on a different dataset: {k} is {now.get(k)!r} in {data.path}, "
                 f"{saved.get(k)!r} in the checkpoint's dataset {saved.get('path')}"
             )
+    if mix is not None and (saved.get("mix") or {}).get("counts") != mix.counts():
+        raise CheckpointError(
+            f"cannot resume on a different mix dataset: counts {mix.counts()} in {mix.path}, "
+            f"{(saved.get('mix') or {}).get('counts')!r} in the checkpoint's"
+        )
 
 
 def _open_data(cfg: TrainConfig, data_dir, d: _Dist) -> tuple[CropDataset, CropSplit, CropSplit]:
@@ -245,15 +276,47 @@ def _open_data(cfg: TrainConfig, data_dir, d: _Dist) -> tuple[CropDataset, CropS
     return data, train_split, val_split
 
 
-def _checkpoint_to_resume(paths: RunPaths, resume: bool, cfg: TrainConfig, data: CropDataset) -> dict | None:
-    """``last.pt`` when resuming (checked against ``cfg`` and ``data``), None on a fresh start."""
+def _open_mix(cfg: TrainConfig, data: CropDataset, d: _Dist) -> tuple[CropDataset | None, CropSplit | None, CropSplit | None]:
+    """The ``mix_data`` crop dataset and its train / val splits (Nones without one), checked to
+    share ``data``'s crop geometry and label threshold (the network's input and label contract)."""
+    if not cfg.mix_data:
+        return None, None, None
+    mix = open_crop_dataset(cfg.mix_data)
+    mix.check_arch(cfg.arch)
+    if mix.geometry != data.geometry:
+        raise DatasetError(f"mix dataset {mix.path} has crop geometry {mix.geometry}; {data.path} has {data.geometry}")
+    if mix.label_threshold != data.label_threshold:
+        raise DatasetError(
+            f"mix dataset {mix.path} has label threshold {mix.label_threshold}; {data.path} has {data.label_threshold}"
+        )
+    cfg.mix_rows(cfg.batch_size // d.world)  # a batch must hold rows of both
+    return mix, mix.split("train"), mix.split("val")
+
+
+def _init_checkpoint(cfg: TrainConfig, data: CropDataset) -> dict:
+    """The checkpoint ``cfg.init`` names (a file, or a run folder's best.pt), checked to suit the run."""
+    path, _ = resolve_run(Path(cfg.init))
+    ckpt = load_checkpoint(path)
+    if ckpt["arch"] != cfg.arch:
+        raise CheckpointError(f"init checkpoint {path} is a {ckpt['arch']} network; this run trains {cfg.arch}")
+    if ckpt["geometry"] != data.geometry.to_dict():
+        raise CheckpointError(
+            f"init checkpoint {path} was trained on crops {ckpt['geometry']}; {data.path} has {data.geometry.to_dict()}"
+        )
+    return ckpt
+
+
+def _checkpoint_to_resume(
+    paths: RunPaths, resume: bool, cfg: TrainConfig, data: CropDataset, mix: CropDataset | None = None
+) -> dict | None:
+    """``last.pt`` when resuming (checked against ``cfg``, ``data`` and ``mix``), None on a fresh start."""
     if not paths.last.is_file():
         return None
     if not resume:
         raise CheckpointError(f"run folder {paths.root} already holds a checkpoint; pass --resume or another --out")
     ckpt = load_checkpoint(paths.last)
     _check_resume_config(ckpt["config"], cfg)
-    _check_resume_dataset(ckpt["dataset"], data)
+    _check_resume_dataset(ckpt["dataset"], data, mix)
     return ckpt
 
 
@@ -270,7 +333,12 @@ def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit
     net = GraspQualityNet(cfg.arch, image_size=data.geometry.out)
     opt = _optimizer(cfg, net)
     best_val: dict = {}
-    if ckpt is None:
+    if ckpt is None and cfg.init:  # fine-tuning: the init's weights and its input normalisation, a fresh optimizer
+        init = _init_checkpoint(cfg, data)
+        net.load_state_dict(init["model"])
+        norm = Normalization.from_dict(init["normalization"])
+        state, last_val = TrainState(), {}
+    elif ckpt is None:
         norm = Normalization.from_data(train_split.arrays["images"], train_split.poses(cfg.arch), net.pose_columns)
         state, last_val = TrainState(), {}
     else:
@@ -362,22 +430,25 @@ def train(
     d = _init_distributed()
     cfg = config
     data, train_split, val_split = _open_data(cfg, data_dir, d)
+    mix, mix_train, mix_val = _open_mix(cfg, data, d)
     paths = RunPaths(Path(run_dir))
     if cfg.num_threads:
         torch.set_num_threads(cfg.num_threads)
     bf16 = resolve_precision(cfg.precision) == "bf16"
-    ckpt = _checkpoint_to_resume(paths, resume, cfg, data)
+    ckpt = _checkpoint_to_resume(paths, resume, cfg, data, mix)
 
     net, opt, norm, state, last_val, best_val = _start_or_resume(cfg, data, train_split, ckpt, paths)
     state.world_size = d.world
     model = DistributedDataParallel(net) if d.world > 1 else net
-    weights = _class_weights(train_split) if cfg.class_balance == "loss_weights" else None
+    weights = _class_weights(train_split, mix_train, cfg.mix_share) if cfg.class_balance == "loss_weights" else None
     data_info = data.info()  # counts read once
+    if mix is not None:
+        data_info["mix"] = mix.info()
 
     if d.main:
         paths.root.mkdir(parents=True, exist_ok=True)
         _trim_log(paths.metrics, state.samples_seen if ckpt is not None else -1)  # all lines on a fresh start
-        atomic.write_json(paths.run_json, _run_info(cfg, data, norm, state, finished=False, bf16=bf16))
+        atomic.write_json(paths.run_json, _run_info(cfg, data_info, data, norm, state, finished=False, bf16=bf16))
     d.barrier()
 
     t0, wall0 = time.time(), state.wall_time_s
@@ -391,6 +462,8 @@ def train(
 
     total_steps = math.ceil(cfg.samples / cfg.batch_size)
     local_batch = cfg.batch_size // d.world
+    local_mix = cfg.mix_rows(local_batch)  # of each process's batch, rows of the mix dataset
+    local_main = local_batch - local_mix
     sampler = DistributedSampler(
         range(len(train_split)), num_replicas=d.world, rank=d.rank, shuffle=True, seed=cfg.seed, drop_last=True
     )
@@ -410,10 +483,13 @@ def train(
         while state.step < total_steps:
             sampler.set_epoch(state.epoch)
             order = np.fromiter(iter(sampler), dtype=np.int64, count=len(sampler))
-            n_batches = len(order) // local_batch  # BatchSampler(sampler, local_batch, drop_last=True)
+            n_batches = len(order) // local_main  # BatchSampler(sampler, local_main, drop_last=True)
             for bi in range(state.batch_in_epoch, n_batches):
                 lr = cfg.lr_at(state.samples_seen)
-                batch = train_split.batch(order[bi * local_batch : (bi + 1) * local_batch], cfg.arch)
+                batch = train_split.batch(order[bi * local_main : (bi + 1) * local_main], cfg.arch)
+                if local_mix:
+                    extra = mix_train.batch(_mix_index(cfg, state.step, d.rank, len(mix_train), local_mix), cfg.arch)
+                    batch = tuple(torch.cat(pair) for pair in zip(batch, extra))
                 loss = _sgd_step(model, opt, batch, lr, weights, bf16)
                 state.advance(cfg.batch_size)
                 loss_acc, loss_n = loss_acc + loss, loss_n + 1
@@ -444,9 +520,13 @@ def train(
                 if _crossed(state.samples_seen, cfg.batch_size, cfg.val_every_samples) or done:
                     last_val = _validate(net, val_split, cfg, d)
                     log.write({"kind": "val", "step": state.step, "samples": state.samples_seen, **last_val})
-                    if _better(last_val["balanced_accuracy"], state.best_val_balanced_accuracy):
-                        state.best_val_balanced_accuracy, state.best_step = last_val["balanced_accuracy"], state.step
-                        best_val = dict(last_val)
+                    val_mix = _validate(net, mix_val, cfg, d) if mix_val is not None else None
+                    if val_mix is not None:
+                        log.write({"kind": "val_mix", "step": state.step, "samples": state.samples_seen, **val_mix})
+                    score = _selection_score(cfg, last_val, val_mix)
+                    if _better(score, state.best_val_balanced_accuracy):
+                        state.best_val_balanced_accuracy, state.best_step = score, state.step
+                        best_val = dict(last_val) if val_mix is None else {**last_val, "mix": val_mix}
                         save(paths.best, last_val, with_optimizer=False)
                     save(paths.last, last_val, with_optimizer=True)
                     d.barrier()
@@ -464,7 +544,7 @@ def train(
     state.wall_time_s = wall0 + time.time() - t0
     if d.main:
         atomic.write_json(
-            paths.run_json, _run_info(cfg, data, norm, state, finished=True, best_val=best_val, bf16=bf16)
+            paths.run_json, _run_info(cfg, data_info, data, norm, state, finished=True, best_val=best_val, bf16=bf16)
         )
     d.barrier()
     return TrainResult(
@@ -474,6 +554,7 @@ def train(
 
 def _run_info(
     cfg: TrainConfig,
+    data_info: dict,
     data: CropDataset,
     norm: Normalization,
     state: TrainState,
@@ -484,7 +565,7 @@ def _run_info(
     return {
         "arch": cfg.arch,
         "config": cfg.to_dict(),
-        "dataset": data.info(),
+        "dataset": data_info,
         "geometry": data.geometry.to_dict(),
         "intrinsics": data.intrinsics.to_dict(),
         "intrinsics_from_manifest": data.intrinsics_from_manifest,
