@@ -1,4 +1,4 @@
-"""Command line: ``python -m training {train,evaluate,baseline,ablation,bench} ...``.
+"""Command line: ``python -m training {train,evaluate,baseline,ablation,label-noise,bench} ...``.
 
 Training options are generated from ``TrainConfig`` (``--batch-size``, ``--base-lr``, ...)
 by the shared bridge ``vgq.cli_config``, so the dataclass stays the one place where they
@@ -75,6 +75,10 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--no-progress", action="store_true")
     _add_dataclass_options(a, TrainConfig)
 
+    n = sub.add_parser("label-noise", help="the balanced accuracy / AUC ceiling the physics label's trial noise sets")
+    n.add_argument("--data", required=True, help="crop dataset folder (physics label)")
+    n.add_argument("--split", default="test", choices=("train", "val", "test"))
+
     s = sub.add_parser("bench", help="training throughput (samples/s) of full SGD steps on this CPU")
     s.add_argument("--arch", default="fast_vgqcnn", choices=("fast_vgqcnn", "vgqcnn", "gqcnn"))
     s.add_argument("--batch-size", type=int, default=64)
@@ -94,7 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    progress = not args.no_progress
+    progress = not getattr(args, "no_progress", False)
     try:
         if args.command == "train":
             from .train import train
@@ -141,6 +145,13 @@ def main(argv: list[str] | None = None) -> int:
 
             rec = run_ablation(args.data, args.out, _config_from(args, TrainConfig), progress=progress)
             print(json.dumps(rec["results"]))
+        elif args.command == "label-noise":
+            from dataclasses import asdict
+
+            from .label_noise import dataset_ceiling
+
+            c = dataset_ceiling(args.data, args.split)
+            print(json.dumps({"split": args.split, **asdict(c)}))
         elif args.command == "bench":
             from .bench import measure_train_throughput
 
