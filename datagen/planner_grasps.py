@@ -12,7 +12,12 @@ From an existing ``vgq-grasps`` dataset (the source, SRC), per object:
    (:func:`planner_candidates`: ``planning.sampler.analyse_scene`` + ``sample_grasps`` with
    ``PlanParams()``, as ``planning.policy.plan_resampled`` does; SRC's images are already at
    the model's intrinsics); draw up to ``candidates`` of its collision-free candidates at
-   random (TCP inside the image);
+   random (TCP inside the image). The sensor model scales every depth by one Gamma draw (3%
+   std in the ``realistic`` preset), which would put a candidate found in the scaled scene
+   centimetres off the true one (below the table at a scale > 1): each candidate's TCP is moved
+   along its camera ray by the scale measured between the two images (:func:`depth_scale`,
+   :func:`unscaled_frames`), keeping its pixel and orientation, as datagen's rows keep the true
+   grasp while the crop stage scales the image;
 4. label them as datagen's physics label does on the true mesh: a grasp whose nominal
    approach collides (:class:`datagen.collision.CollisionChecker`) gets 0 without trials,
    the others ``trials`` noisy pybullet trials (``datagen.pipeline._physics_success``);
@@ -20,7 +25,8 @@ From an existing ``vgq-grasps`` dataset (the source, SRC), per object:
    ``fc_quality`` NaN (not computed).
 
 The result is a ``vgq-grasps`` dataset (one shard per object: the used image rows of SRC,
-clean depth as datagen stores it, and the candidates' rows), so ``datagen sample`` and
+clean depth as datagen stores it, and the candidates' rows; an image where the sampler finds no
+candidate is passed over, up to 3 x ``images_per_object`` images are tried), so ``datagen sample`` and
 ``datagen crops`` run on it unchanged. Its manifest keeps SRC's objects and config and
 records ``split_object_ids`` (SRC's objects), over which ``datagen sample`` draws its
 object-wise split: every object lands in the split it has when SRC is sampled with the same
@@ -358,11 +364,15 @@ def source_trials(src_manifest: dict) -> int | None:
 
 
 def prepare_run(src: str | Path, out: str | Path, params: PlannerGraspParams) -> tuple[storage.GraspDataset, dict]:
-    """Open SRC and the output manifest (new, or the existing one to resume). Raises
-    ConfigError when ``out`` holds a dataset of another source or other settings."""
+    """Open SRC and the output manifest (new, or the existing one to resume). On resume, objects
+    SRC has finished since (a source still being generated) become pending, and the split
+    population follows SRC's. Raises ConfigError when ``out`` holds a dataset of another source,
+    object list or settings."""
     ds = storage.open_dataset(src)
     src_root = str(Path(src).resolve())
     stage = {"source": src_root, "params": params.to_dict()}
+    src_m = ds.manifest
+    have = set(ds.object_ids)
     out = Path(out)
     if (out / storage.MANIFEST).exists():
         m = storage.read_manifest(out, storage.GRASP_FORMAT)
@@ -370,11 +380,18 @@ def prepare_run(src: str | Path, out: str | Path, params: PlannerGraspParams) ->
             raise ConfigError(
                 f"{out} holds planner grasps of another source or settings ({m.get(STAGE)}); use a new --out"
             )
+        if [o["name"] for o in m["objects"]] != [o["name"] for o in ds.objects]:
+            raise ConfigError(f"{out} holds planner grasps of another object list than {src}; use a new --out")
+        for o in m["objects"]:
+            if o.get("not_in_source") and o["object_id"] in have:
+                for k in ("not_in_source", "reason"):
+                    o.pop(k, None)
+                o["status"] = "pending"
+        m["split_object_ids"] = [int(i) for i in src_m.get("split_object_ids", ds.object_ids)]
+        storage.update_counts(m)
         return ds, m
     keep = ("object_id", "name", "source", "source_scale", "family", "params")
     objects = [{k: o[k] for k in keep if k in o} for o in ds.objects]
-    src_m = ds.manifest
-    population = src_m.get("split_object_ids", ds.object_ids)
     cfg = output_config(src_m, params)
     m = storage.new_grasp_manifest(
         cfg,
@@ -383,13 +400,14 @@ def prepare_run(src: str | Path, out: str | Path, params: PlannerGraspParams) ->
         DatagenConfig.from_dict(cfg).label_threshold,
         **({"intrinsics": src_m["intrinsics"]} if src_m.get("intrinsics") else {}),
         source_dataset=src_root,
-        split_object_ids=[int(i) for i in population],
+        split_object_ids=[int(i) for i in src_m.get("split_object_ids", ds.object_ids)],
         **{STAGE: stage},
     )
     for o in m["objects"]:
-        so = ds.objects[o["object_id"]]
-        if so.get("status") != "done" or o["object_id"] not in set(ds.object_ids):
-            storage.record_skip(m, o["object_id"], f"not in the source: {so.get('reason', so.get('status'))}")
+        if o["object_id"] not in have:
+            so = ds.objects[o["object_id"]]
+            reason = f"not in the source ({so.get('status')}: {so.get('reason', 'no shard')})"
+            storage.record_skip(m, o["object_id"], reason, not_in_source=True)
     return ds, m
 
 

@@ -290,3 +290,26 @@ def test_bad_sources_exit_2_naming_them(made, tmp_path, capsys):
     rc, _, err = _cli(capsys, "planner-grasps", "--grasps", paper, "--out", tmp_path / "o")
     assert rc == 2 and "not physics-labelled" in err and "--trials" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_objects_the_source_finishes_later_are_picked_up(made, tmp_path):
+    """A source still being generated: an object it has not finished is skipped as not in the
+    source, and done once the source has it (the split population follows the source)."""
+    src, _ = made
+    part = tmp_path / "part"
+    shutil.copytree(src, part)
+    m = json.loads((part / "manifest.json").read_text())
+    full = json.loads(json.dumps(m))
+    m["shards"] = [s for s in m["shards"] if s["object_id"] != 4]
+    m["objects"][4]["status"] = "pending"
+    storage.update_counts(m)
+    storage.write_manifest(part, m)
+    out = tmp_path / "o"
+    o = run_planner_grasps(part, out, PARAMS, max_objects=2, **QUIET)
+    assert o["objects"][4]["status"] == "skipped" and "not in the source" in o["objects"][4]["reason"]
+    assert o["split_object_ids"] == [0, 1, 2, 3]
+    storage.write_manifest(part, full)
+    o = run_planner_grasps(part, out, PARAMS, max_objects=2, **QUIET)
+    assert o["objects"][4]["status"] == "pending" and o["split_object_ids"] == [0, 1, 2, 3, 4]
+    o = run_planner_grasps(part, out, PARAMS, **QUIET)
+    assert o["complete"] and o["objects"][4]["status"] == "done"
