@@ -420,10 +420,11 @@ def cmd_stats(args) -> int:
         print(json.dumps({"counts": m["counts"], "families": fams}, indent=2))
         return 0
     c = m["counts"]
+    resume = "datagen planner-grasps" if "planner_grasps" in m else "datagen generate"  # the stage that wrote it
     print(
         f"{args.inp}: {c['objects_done']} of {c['objects']} objects done ({c['objects_skipped']} skipped), "
         f"{c['grasps']} grasps, positivity {100 * c['positivity_rate']:.2f}%"
-        + ("" if m.get("complete") else " (generation not complete: rerun `datagen generate` to resume)")
+        + ("" if m.get("complete") else f" (generation not complete: rerun `{resume}` to resume)")
     )
     print(
         f"{'family':<14}{'done':>6}{'skip':>6}{'todo':>6}{'grasps':>11}{'coll.-free':>11}{'positive':>10}{'no pos.':>9}"
