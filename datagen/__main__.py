@@ -1,4 +1,4 @@
-"""Command line: ``python -m datagen {generate,sample,crops,bench,recipe,config,objects} ...``.
+"""Command line: ``python -m datagen {generate,planner-grasps,sample,crops,bench,recipe,config,objects} ...``.
 
 Bad input (missing folders, unreadable meshes, nonsense config values) exits with code 2
 and one line naming the problem; an interrupted ``generate`` resumes when rerun.
@@ -186,6 +186,46 @@ def cmd_crops(args) -> int:
         workers=args.workers or default_workers(),
     )
     return 0
+
+
+def cmd_planner_grasps(args) -> int:
+    from .parallel import default_workers
+    from .planner_grasps import PlannerGraspParams, run_planner_grasps, source_trials
+    from .storage import GRASP_FORMAT, read_manifest
+
+    src_m = read_manifest(args.grasps, GRASP_FORMAT)  # DatasetError naming a missing / foreign SRC
+    trials = args.trials if args.trials is not None else source_trials(src_m)
+    if trials is None:
+        raise CliError(
+            f"--grasps {args.grasps} is not physics-labelled (config.label.kind "
+            f"{src_m.get('config', {}).get('label', {}).get('kind', 'paper')!r}); give --trials N"
+        )
+    params = PlannerGraspParams(
+        images_per_object=args.images_per_object,
+        candidates=args.candidates,
+        trials=trials,
+        sensor=args.sensor,
+        sensor_seed=args.sensor_seed,
+        seed=args.seed,
+    )
+    m = run_planner_grasps(
+        args.grasps,
+        args.out,
+        params,
+        workers=args.workers or default_workers(),
+        max_objects=args.objects,
+        progress=not args.quiet,
+    )
+    c = m["counts"]
+    print(
+        f"{args.out}: {c['objects_done']} objects done, {c['images']} images, {c['grasps']} planner candidates, "
+        f"{100 * c['collision_free'] / max(c['grasps'], 1):.1f}% collision-free, "
+        f"positivity {100 * c['positivity_rate']:.1f}% (success rate > {m['label_threshold']:g})"
+    )
+    failed = [o for o in m["objects"] if o.get("failed")]
+    for o in failed:
+        print(f"error: object {o['name']} (id {o['object_id']}): {o.get('reason')}", file=sys.stderr)
+    return 1 if failed else 0
 
 
 def cmd_bench(args) -> int:
@@ -380,10 +420,11 @@ def cmd_stats(args) -> int:
         print(json.dumps({"counts": m["counts"], "families": fams}, indent=2))
         return 0
     c = m["counts"]
+    resume = "datagen planner-grasps" if "planner_grasps" in m else "datagen generate"  # the stage that wrote it
     print(
         f"{args.inp}: {c['objects_done']} of {c['objects']} objects done ({c['objects_skipped']} skipped), "
         f"{c['grasps']} grasps, positivity {100 * c['positivity_rate']:.2f}%"
-        + ("" if m.get("complete") else " (generation not complete: rerun `datagen generate` to resume)")
+        + ("" if m.get("complete") else f" (generation not complete: rerun `{resume}` to resume)")
     )
     print(
         f"{'family':<14}{'done':>6}{'skip':>6}{'todo':>6}{'grasps':>11}{'coll.-free':>11}{'positive':>10}{'no pos.':>9}"
@@ -465,6 +506,47 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument("--quiet", action="store_true")
     c.set_defaults(func=cmd_crops)
+
+    pg = sub.add_parser(
+        "planner-grasps",
+        help="the grasp planner's candidates on a grasp dataset's images, labelled by physics trials (vgq-grasps)",
+    )
+    pg.add_argument("--grasps", required=True, help="source grasp dataset (vgq-grasps, `datagen generate` output)")
+    pg.add_argument("--out", required=True, help="output folder (vgq-grasps); rerun to resume")
+    pg.add_argument(
+        "--images-per-object",
+        type=_positive_int("--images-per-object"),
+        default=2,
+        help="images per object the planner samples on (default 2)",
+    )
+    pg.add_argument(
+        "--candidates",
+        type=_positive_int("--candidates"),
+        default=24,
+        help="candidates labelled per image (default 24)",
+    )
+    pg.add_argument(
+        "--trials", type=_positive_int("--trials"), help="noisy trials per grasp (default: the source's label trials)"
+    )
+    pg.add_argument("--workers", type=_positive_int("--workers"), help="worker processes (default: CPU cores)")
+    pg.add_argument("--seed", type=_count("--seed"), default=0, help="run seed (default 0)")
+    pg.add_argument(
+        "--objects", type=_positive_int("--objects"), help="only the first N objects (round-robin over the families)"
+    )
+    pg.add_argument(
+        "--sensor",
+        default=RECIPE["sensor"],
+        help=f"depth-sensor preset the planner's image passes through (default {RECIPE['sensor']}, the recipe's)",
+    )
+    pg.add_argument(
+        "--sensor-seed",
+        type=_count("--sensor-seed"),
+        default=RECIPE["seed"],
+        help="the sensor's per-image seed: `datagen crops --seed` of the same value sees the planner's image "
+        f"(default {RECIPE['seed']}, the recipe's)",
+    )
+    pg.add_argument("--quiet", action="store_true", help="no progress bar")
+    pg.set_defaults(func=cmd_planner_grasps)
 
     b = sub.add_parser("bench", help="labelled datapoints per minute and native positivity of a small run")
     b.add_argument("--objects", type=_positive_int("--objects"), default=3)

@@ -35,7 +35,7 @@ from vgq.schema import CROP_FIELDS, SPLITS, crop_counts, write_crop_manifest
 
 from . import sensor as sensor_model
 from . import storage
-from .sampling import SamplingParams, split_objects
+from .sampling import SamplingParams, split_objects, split_population
 
 ARCHS = ("fast_vgqcnn", "vgqcnn", "gqcnn")
 DEFAULT_KAPPA_PX = 36.0  # the authors' default for the 96 px window (12 px at 32 x 32)
@@ -188,7 +188,9 @@ def make_crops(
         split_of = {int(i): s for s in SPLITS for i in m_src["splits"].get(s, [])}
         split_note = "from the source dataset"
     else:
-        split_of = split_objects(ds.object_ids, SamplingParams().split_fractions, seed)
+        population = split_population(m_src, ds.object_ids)  # a derived dataset: its source's objects
+        split_of = split_objects(population, SamplingParams().split_fractions, seed)
+        split_of = {i: split_of[i] for i in ds.object_ids}
         split_note = f"object-wise 80/10/10 computed by datagen crops (seed {seed})"
     missing = [e["object_id"] for e in ds.shard_entries if e["object_id"] not in split_of]
     if missing:

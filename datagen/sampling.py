@@ -183,6 +183,21 @@ def _family_seed(seed: int, family: str) -> int:
     return int.from_bytes(hashlib.sha256(f"vgq-split:{int(seed)}:{family}".encode()).digest()[:8], "little")
 
 
+def split_population(manifest: dict, object_ids) -> list[int]:
+    """The object ids an object-wise split is drawn over: the manifest's ``split_object_ids`` when
+    it records them (a dataset derived from another one, e.g. by ``datagen planner-grasps``, whose
+    objects must land in the splits they have in the source), else ``object_ids`` (the dataset's
+    own shards). Raises ValueError when the dataset holds an object outside the recorded ones."""
+    ids = [int(i) for i in object_ids]
+    if "split_object_ids" not in manifest:
+        return ids
+    population = [int(i) for i in manifest["split_object_ids"]]
+    extra = sorted(set(ids) - set(population))
+    if extra:
+        raise ValueError(f"objects {extra[:5]} have shards but are not among the manifest's split_object_ids")
+    return population
+
+
 def split_table(split: dict[int, str], families: dict[int, str]) -> dict[str, dict[str, int]]:
     """Objects per split within each family: {family: {split: count}}."""
     out: dict[str, dict[str, int]] = {}
@@ -279,7 +294,9 @@ def sample_dataset(
             "by_beta": _beta_table(t.label[m], t.beta[m], params.beta_bin, n_beta),
         }
     families = {int(o["object_id"]): o.get("family") for o in ds.manifest["objects"]}
-    split = split_by_family(ds.object_ids, families, params.split_fractions, params.seed, params.holdout_families)
+    population = split_population(ds.manifest, ds.object_ids)
+    split = split_by_family(population, families, params.split_fractions, params.seed, params.holdout_families)
+    split = {i: split[i] for i in ds.object_ids}  # a derived dataset's objects, split as in its source
     stats["families"] = split_table(split, families)
     _print_stats(stats, log)
     if len(stats["families"]) > 1:
