@@ -13,7 +13,9 @@ in memory however long it grows (an 85 MB header was answered 200). Here, per re
 * a request the parser refuses (bad syntax, invalid Content-Length) gets 400.
 
 Each of these answers the service's JSON error shape and closes the connection. The body is
-bounded separately by the app (``max_body_bytes``, ``request_timeout_s``).
+bounded separately by the app (``max_body_bytes``, ``request_timeout_s``); the scope's
+``vgq.body_complete`` tells the app when the whole body has arrived already (no timer needed
+to read it).
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ import time
 import httptools
 import orjson
 from uvicorn.protocols.http.httptools_impl import STATUS_LINE, HttpToolsProtocol
+
+from .body import BODY_COMPLETE
 
 #: uvicorn's ``http=`` option for this protocol (a string, so worker processes can import it)
 HTTP = "service.protocol:HeaderTimeoutProtocol"
@@ -124,6 +128,10 @@ class HeaderTimeoutProtocol(HttpToolsProtocol):
         self._in_head = False
         self._heads_done += 1
         super().on_headers_complete()
+
+    def on_message_complete(self) -> None:
+        self.scope[BODY_COMPLETE] = True  # the whole body is buffered: the app reads it without a timer
+        super().on_message_complete()
 
     def data_received(self, data: bytes) -> None:
         self._unset_keepalive_if_required()
