@@ -70,6 +70,18 @@ def check_access(svc: Service, api_key: str) -> None:
 Authorized = Annotated[Service, Depends(authorized)]
 
 
+OCTET_HEADER = (b"content-type", OCTET.encode())
+
+
+class RawResponse(Response):
+    """A Response given its header list encoded already (``(name, value)`` latin-1 bytes, lower
+    case, content-length and content-type included), skipping Response's per-request header
+    building. Answers exactly as a Response with those headers."""
+
+    def __init__(self, body: bytes, raw_headers: list[tuple[bytes, bytes]], status_code: int = 200):
+        self.status_code, self.body, self.raw_headers, self.background = status_code, body, raw_headers, None
+
+
 def _scores_response(
     accept: str | None, svc: Service, image_id: str, cached: bool | None, entry, s: Scores
 ) -> Response:
@@ -78,15 +90,17 @@ def _scores_response(
     application/octet-stream``, little-endian float32 ``p_success`` (k,) with the rest in headers:
     ``x-calibrated``, ``x-ood-count`` (grasps with a flag; their flags need the JSON answer)."""
     if accepts(accept, OCTET):
-        return Response(
-            s.p_success.astype("<f4").tobytes(),
-            media_type=OCTET,
-            headers={
-                "x-image-id": image_id,
-                "x-calibrated": str(svc.calibration is not None).lower(),
-                "x-ood-count": str(int(np.count_nonzero(s.ood_mask))),
-                "x-windows-encoded": str(s.windows_encoded),
-            },
+        body = s.p_success.astype("<f4").tobytes()
+        return RawResponse(
+            body,
+            [
+                (b"x-image-id", image_id.encode("latin-1")),
+                (b"x-calibrated", b"true" if svc.calibration is not None else b"false"),
+                (b"x-ood-count", b"%d" % np.count_nonzero(s.ood_mask)),
+                (b"x-windows-encoded", b"%d" % s.windows_encoded),
+                (b"content-length", b"%d" % len(body)),
+                OCTET_HEADER,
+            ],
         )
     payload = {"image_id": image_id} if cached is None else {"image_id": image_id, "cached": cached}
     payload.update(model_version=svc.model.version, **svc.camera_info(entry), **svc.scores_info(s))
@@ -316,7 +330,10 @@ class ScoringFastPath:
             if handler is None:
                 raise
             response = await handler(Request(scope, receive), e)
-        await response(scope, receive, send)
+            return await response(scope, receive, send)
+        # the answer (a Response or RawResponse, no background task) as the ASGI messages it would send
+        await send({"type": "http.response.start", "status": response.status_code, "headers": response.raw_headers})
+        await send({"type": "http.response.body", "body": response.body})
 
 
 #: the request headers the scoring routes read (names as ASGI servers give them: lower case)
