@@ -25,8 +25,8 @@ def approach_away(q: np.ndarray) -> np.ndarray:
     """(k,) bool: the approach axis (gripper z in the camera frame) points back towards the
     camera or sideways (psi >= 90 deg). ``q`` (k, 4) unit quaternions (w, x, y, z)."""
     q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
-    # R[2, 2] = cos(psi) = 1 - 2 (x^2 + y^2) for a unit quaternion; 1 - 2 s <= 0 exactly when
-    # s >= 0.5 in floating point too (2 s is exact; 1 - 2 s is exact for 2 s in [0.5, 2])
+    # R[2, 2] = cos(psi) = 1 - 2 (x^2 + y^2) for a unit quaternion. In floating point too,
+    # 1 - 2 s <= 0 exactly when s >= 0.5: 2 s is exact, and a positive 1 - 2 s never rounds to 0
     x, y = q[:, 1], q[:, 2]
     return x * x + y * y >= 0.5
 
