@@ -316,6 +316,6 @@ def test_breakdown_times_every_step_in_each_tree_and_compares_their_answers(mode
     )
     assert rep["answers_identical"] and set(rep["us"]) == {"a", "b"}
     steps = rep["us"]["a"]
-    assert "score_cached without the head" in steps and all(v > 0 for v in steps.values())
+    assert "ASGI app without the head" in steps and all(v > 0 for v in steps.values())
     assert steps["score_cached without the head"] < steps["score_cached (route steps)"]
     assert "| Service.place |" in capsys.readouterr().out
