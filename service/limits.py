@@ -79,21 +79,47 @@ class Reservation:
         self.held = 0
 
 
+ENDPOINTS = {
+    "/v1/images": "upload",
+    "/v1/score": "score_once",
+    "/metrics": "metrics",
+    "/healthz": "healthz",
+    "/readyz": "readyz",
+    "/v1/model": "model",
+    "/v1/cache": "cache",
+    "/v1/plan": "plan",
+}
+
+
 def _endpoint(path: str) -> str:
-    if path.startswith("/v1/images/") and path.endswith("/scores"):
-        return "score"
-    if path.startswith("/v1/images/") and path.endswith("/plan"):
-        return "plan"
-    return {
-        "/v1/images": "upload",
-        "/v1/score": "score_once",
-        "/metrics": "metrics",
-        "/healthz": "healthz",
-        "/readyz": "readyz",
-        "/v1/model": "model",
-        "/v1/cache": "cache",
-        "/v1/plan": "plan",
-    }.get(path, "other")
+    """The ``endpoint`` label of a request path (few values: the metrics stay small)."""
+    if path.startswith("/v1/images/"):
+        if path.endswith("/scores"):
+            return "score"
+        if path.endswith("/plan"):
+            return "plan"
+    return ENDPOINTS.get(path, "other")
+
+
+class RequestMetrics:
+    """The per-request metrics (latency by endpoint, count by endpoint and status) with each
+    label combination's child looked up once: prometheus_client's ``labels()`` costs more
+    than the observation itself."""
+
+    def __init__(self, metrics: Metrics):
+        self.metrics = metrics
+        self._latency: dict[str, object] = {}
+        self._count: dict[tuple[str, int], object] = {}
+
+    def observe(self, endpoint: str, status: int, seconds: float) -> None:
+        latency = self._latency.get(endpoint)
+        if latency is None:
+            latency = self._latency[endpoint] = self.metrics.latency.labels(endpoint)
+        count = self._count.get((endpoint, status))
+        if count is None:
+            count = self._count[(endpoint, status)] = self.metrics.requests.labels(endpoint, str(status))
+        latency.observe(seconds)
+        count.inc()
 
 
 async def _send_overloaded(send, message: str) -> None:
@@ -121,6 +147,7 @@ class LimitsMiddleware:
         self, app, metrics: Metrics, log: logging.Logger, access_log: bool, max_inflight: int, max_buffered_bytes: int
     ):
         self.app, self.metrics, self.log, self.access_log = app, metrics, log, access_log
+        self.request_metrics = RequestMetrics(metrics)
         self.max_inflight, self.inflight = max_inflight, 0
         self.budget = ByteBudget(max_buffered_bytes)
 
@@ -152,9 +179,7 @@ class LimitsMiddleware:
             self.inflight -= counted
             reservation.release()
             dt = time.perf_counter() - t0
-            ep = _endpoint(scope["path"])
-            self.metrics.latency.labels(ep).observe(dt)
-            self.metrics.requests.labels(ep, str(status[0])).inc()
+            self.request_metrics.observe(_endpoint(scope["path"]), status[0], dt)
             if status[0] == CLIENT_GONE:
                 logs.event(
                     self.log, "client disconnected", method=scope["method"], path=scope["path"], ms=round(dt * 1e3, 3)

@@ -13,7 +13,10 @@ in memory however long it grows (an 85 MB header was answered 200). Here, per re
 * a request the parser refuses (bad syntax, invalid Content-Length) gets 400.
 
 Each of these answers the service's JSON error shape and closes the connection. The body is
-bounded separately by the app (``max_body_bytes``, ``request_timeout_s``).
+bounded separately by the app (``max_body_bytes``, ``request_timeout_s``); the scope's
+``vgq.body_complete`` tells the app when the whole body has arrived already (no timer needed
+to read it). Writes made in one event-loop step leave in one send (``CoalescingTransport``):
+a response's head and body go out together rather than as two TCP segments.
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ import time
 import httptools
 import orjson
 from uvicorn.protocols.http.httptools_impl import STATUS_LINE, HttpToolsProtocol
+
+from .body import BODY_COMPLETE
 
 #: uvicorn's ``http=`` option for this protocol (a string, so worker processes can import it)
 HTTP = "service.protocol:HeaderTimeoutProtocol"
@@ -40,6 +45,41 @@ def error_response(status: int, message: str) -> bytes:
 
 class _Refused(Exception):
     pass
+
+
+class CoalescingTransport:
+    """A connection's transport whose writes within one event-loop step leave together, in one
+    ``writelines`` (one send): uvloop sends each ``write`` at once, so a response's head and
+    body would be two sends and two wake-ups of the client. Writes keep their order; ``close``
+    sends what is pending first, ``abort`` drops it; everything else is the transport's."""
+
+    def __init__(self, transport, loop):
+        self._transport, self._loop, self._pending = transport, loop, []
+
+    def write(self, data) -> None:
+        if not self._pending:
+            self._loop.call_soon(self._flush)
+        self._pending.append(data)
+
+    def writelines(self, chunks) -> None:
+        for data in chunks:
+            self.write(data)
+
+    def _flush(self) -> None:
+        pending, self._pending = self._pending, []
+        if pending and not self._transport.is_closing():
+            self._transport.writelines(pending)
+
+    def close(self) -> None:
+        self._flush()
+        self._transport.close()
+
+    def abort(self) -> None:
+        self._pending = []
+        self._transport.abort()
+
+    def __getattr__(self, name):
+        return getattr(self._transport, name)
 
 
 class HeaderTimeoutProtocol(HttpToolsProtocol):
@@ -93,6 +133,7 @@ class HeaderTimeoutProtocol(HttpToolsProtocol):
 
     def connection_made(self, transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        self.transport = CoalescingTransport(transport, self.loop)  # each answer in one send
         self._in_head, self._head_bytes, self._n_headers = True, 0, 0
         self._arm()
 
@@ -124,6 +165,10 @@ class HeaderTimeoutProtocol(HttpToolsProtocol):
         self._in_head = False
         self._heads_done += 1
         super().on_headers_complete()
+
+    def on_message_complete(self) -> None:
+        self.scope[BODY_COMPLETE] = True  # the whole body is buffered: the app reads it without a timer
+        super().on_message_complete()
 
     def data_received(self, data: bytes) -> None:
         self._unset_keepalive_if_required()

@@ -16,12 +16,13 @@ import numpy as np
 import orjson
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import Response
+from starlette.datastructures import QueryParams
 
 from vgq.camera import FOCAL_RATIO_RANGE
 from vgq.ood import OOD_FLAGS
 
 from . import openapi as doc
-from .body import read_body
+from .body import BODY_COMPLETE, read_asgi_body, read_body
 from .cache import image_id
 from .camera import focal_range
 from .depth_io import DEPTH_TYPES, decode_depth
@@ -49,8 +50,14 @@ async def authorized(request: Request) -> Service:
     """The dependency of guarded routes: header X-API-Key when a key is configured (401), then
     a loaded model (503). Async, so it runs on the event loop, not in a thread."""
     svc = service_of(request)
+    check_access(svc, request.headers.get("x-api-key", ""))
+    return svc
+
+
+def check_access(svc: Service, api_key: str) -> None:
+    """``authorized``'s checks, given the request's X-API-Key header ("" when absent)."""
     key = svc.settings.api_key
-    if key and not hmac.compare_digest(request.headers.get("x-api-key", "").encode(), key.encode()):
+    if key and not hmac.compare_digest(api_key.encode(), key.encode()):
         raise ApiError(401, "missing or wrong API key (header X-API-Key)")
     if not svc.ready:
         raise ApiError(
@@ -58,10 +65,21 @@ async def authorized(request: Request) -> Service:
             "model not ready" + (f": {svc.load_error}" if svc.load_error else "; retry shortly"),
             headers={"retry-after": "1"},
         )
-    return svc
 
 
 Authorized = Annotated[Service, Depends(authorized)]
+
+
+OCTET_HEADER = (b"content-type", OCTET.encode())
+
+
+class RawResponse(Response):
+    """A Response given its header list encoded already (``(name, value)`` latin-1 bytes, lower
+    case, content-length and content-type included), skipping Response's per-request header
+    building. Answers exactly as a Response with those headers."""
+
+    def __init__(self, body: bytes, raw_headers: list[tuple[bytes, bytes]], status_code: int = 200):
+        self.status_code, self.body, self.raw_headers, self.background = status_code, body, raw_headers, None
 
 
 def _scores_response(
@@ -72,15 +90,17 @@ def _scores_response(
     application/octet-stream``, little-endian float32 ``p_success`` (k,) with the rest in headers:
     ``x-calibrated``, ``x-ood-count`` (grasps with a flag; their flags need the JSON answer)."""
     if accepts(accept, OCTET):
-        return Response(
-            s.p_success.astype("<f4").tobytes(),
-            media_type=OCTET,
-            headers={
-                "x-image-id": image_id,
-                "x-calibrated": str(svc.calibration is not None).lower(),
-                "x-ood-count": str(int(np.count_nonzero(s.ood_mask))),
-                "x-windows-encoded": str(s.windows_encoded),
-            },
+        body = s.p_success.astype("<f4").tobytes()
+        return RawResponse(
+            body,
+            [
+                (b"x-image-id", image_id.encode("latin-1")),
+                (b"x-calibrated", b"true" if svc.calibration is not None else b"false"),
+                (b"x-ood-count", b"%d" % np.count_nonzero(s.ood_mask)),
+                (b"x-windows-encoded", b"%d" % s.windows_encoded),
+                (b"content-length", b"%d" % len(body)),
+                OCTET_HEADER,
+            ],
         )
     payload = {"image_id": image_id} if cached is None else {"image_id": image_id, "cached": cached}
     payload.update(model_version=svc.model.version, **svc.camera_info(entry), **svc.scores_info(s))
@@ -284,22 +304,50 @@ class ScoringFastPath:
         return await self.app(scope, receive, send)
 
     async def _serve(self, scope, receive, send, image_id: str | None) -> None:
-        request = Request(scope, receive)
+        # no Starlette Request unless an error handler needs one: the few headers read in one pass
         try:
-            svc = await authorized(request)
-            strict = _strict(request)
-            body = await _body(request, svc)
-            headers = request.headers
+            svc = self.fastapi_app.state.service
+            headers = _request_headers(scope)
+            check_access(svc, headers.get(b"x-api-key", ""))
+            query = scope.get("query_string")
+            strict = parse_flag("strict", QueryParams(query).get("strict")) if query else False
+            s = svc.settings
+            body = await read_asgi_body(
+                receive,
+                headers.get(b"content-length"),
+                scope.get("vgq.reservation"),
+                s.max_body_bytes,
+                s.request_timeout_s,
+                scope.get(BODY_COMPLETE, False),
+            )
+            ct, accept = headers.get(b"content-type"), headers.get(b"accept")
             if image_id is None:
-                response = score_one_shot(svc, body, headers.get("content-type", ""), headers.get("accept"), strict)
+                response = score_one_shot(svc, body, ct or "", accept, strict)
             else:
-                response = score_cached(svc, image_id, body, headers.get("content-type"), headers.get("accept"), strict)
+                response = score_cached(svc, image_id, body, ct, accept, strict)
         except Exception as e:
             handler = self._handler(e)
             if handler is None:
                 raise
-            response = await handler(request, e)
-        await response(scope, receive, send)
+            response = await handler(Request(scope, receive), e)
+            return await response(scope, receive, send)
+        # the answer (a Response or RawResponse, no background task) as the ASGI messages it would send
+        await send({"type": "http.response.start", "status": response.status_code, "headers": response.raw_headers})
+        await send({"type": "http.response.body", "body": response.body})
+
+
+#: the request headers the scoring routes read (names as ASGI servers give them: lower case)
+FAST_PATH_HEADERS = frozenset({b"content-type", b"content-length", b"accept", b"x-api-key"})
+
+
+def _request_headers(scope) -> dict[bytes, str]:
+    """The first value of each of FAST_PATH_HEADERS the request sent (as Starlette's
+    ``Request.headers.get`` reads them), in one pass over its headers."""
+    out: dict[bytes, str] = {}
+    for name, value in scope["headers"]:
+        if name in FAST_PATH_HEADERS and name not in out:
+            out[name] = value.decode("latin-1")
+    return out
 
 
 # ---- the scoring steps after the body is read (sync: they run on the event loop; also timed

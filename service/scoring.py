@@ -171,14 +171,21 @@ class Service:
     # ---- scoring --------------------------------------------------------------------------------
     def place(self, entry: CachedImage, grasps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Check (k, 7) client grasps against ``entry``: (pose rows (k, 7) float32, window
-        origins (k, 2) int64 in the resampled image, grasp pixels (k, 2) there). Raises 422."""
+        origins (k, 2) int64 in the resampled image, the grasps (k, 7) float64 with (u, v) in
+        the resampled image). Raises 422."""
         g = np.asarray(grasps, dtype=np.float64)
         if g.ndim != 2 or g.shape[1] != 7:
             raise grasp_error(GraspError(f"grasps must be (k, 7) rows u, v, z, qw, qx, qy, qz; got shape {g.shape}"))
         geom = self.model.geometry
         uv = map_pixels(g[:, :2], entry.camera, entry.resampled)
-        finite = np.isfinite(uv).all(axis=1)
-        safe = np.where(finite[:, None], uv, 0.0)
+        mapped = g.copy()
+        mapped[:, :2] = uv
+        finite = np.isfinite(uv)
+        if finite.all():  # the usual case: no row to set aside
+            finite, safe = True, uv
+        else:  # rows with a non-finite (u, v) are left to pose_rows, which names them
+            finite = finite.all(axis=1)
+            safe = np.where(finite[:, None], uv, 0.0)
         if entry.fixed_center is not None:
             centres = np.broadcast_to(entry.fixed_center, safe.shape)
             bad = finite & ~in_training_range(safe, entry.fixed_center, geom)
@@ -195,23 +202,24 @@ class Service:
                 )
         else:
             h, w = entry.image_shape
-            u, v = g[:, 0], g[:, 1]
-            bad = finite & ~((u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5))
-            if bad.any():
-                raise ApiError(
-                    422,
-                    f"{int(bad.sum())} grasps lie outside the {h}x{w} image (u in [-0.5, {w - 0.5}], "
-                    f"v in [-0.5, {h - 0.5}] px)",
-                    {"grasps": np.flatnonzero(bad)[:20].tolist()},
-                )
+            client = g[:, :2]
+            if not ((client >= -0.5) & (client <= (w - 0.5, h - 0.5))).all():  # some row outside, or not finite
+                u, v = g[:, 0], g[:, 1]
+                bad = finite & ~((u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5))
+                if bad.any():
+                    raise ApiError(
+                        422,
+                        f"{int(bad.sum())} grasps lie outside the {h}x{w} image (u in [-0.5, {w - 0.5}], "
+                        f"v in [-0.5, {h - 0.5}] px)",
+                        {"grasps": np.flatnonzero(bad)[:20].tolist()},
+                    )
             centres = grid_window_centers(safe, entry.depth.shape, geom)
-        mapped = g.copy()
-        mapped[:, :2] = uv
         try:
-            rows = pose_rows(mapped, centres, geom, self.settings.max_grasps)
+            # every window was placed above within kappa of its grasps: pose_rows need not check that again
+            rows = pose_rows(mapped, centres, geom, self.settings.max_grasps, check_window=False)
         except GraspError as e:
             raise grasp_error(e) from None
-        return rows, window_origin(centres, geom), uv
+        return rows, window_origin(centres, geom), mapped
 
     def _encode(self, wanted: dict, entry: CachedImage, where: dict) -> dict:
         """Encode the windows ``wanted`` (origin -> None) of ``entry`` in one encoder call.
@@ -239,7 +247,7 @@ class Service:
     ) -> Scores:
         """Score (k, 7) client grasps against ``entry`` (cached as ``key``). ``placed``: what
         ``place(entry, grasps)`` returned, when the caller placed them already."""
-        rows, origins, uv = placed if placed is not None else self.place(entry, grasps)
+        rows, origins, mapped = placed if placed is not None else self.place(entry, grasps)
         where, inverse = window_groups(origins)
         new = [o for o in where if o not in entry.windows]
         if new:
@@ -253,10 +261,11 @@ class Service:
             else float(missing_mask(crop_window(entry.depth, o, geom)).mean())
             for o in where
         }
-        win_missing = np.array([frac[o] > cap for o in where], dtype=bool)[inverse]
-        g = np.asarray(grasps, dtype=np.float64).copy()
-        g[:, :2] = uv
-        mask = ood_flags(g, entry.depth, self.z_range, win_missing)
+        if len(where) == 1:
+            win_missing = next(iter(frac.values())) > cap  # one bool for every grasp
+        else:
+            win_missing = np.array([frac[o] > cap for o in where], dtype=bool)[inverse]
+        mask = ood_flags(mapped, entry.depth, self.z_range, win_missing)
         if strict and mask.any():
             bad = np.flatnonzero(mask)
             raise ApiError(

@@ -301,3 +301,21 @@ def test_wrk_driver_reads_its_summary_line_and_refuses_bad_settings():
     with pytest.raises(SystemExit) as e:
         wrk.main(["--connections", "0"])
     assert e.value.code == 2
+
+
+def test_breakdown_times_every_step_in_each_tree_and_compares_their_answers(model_dir, capsys):
+    """tools.loadtest.breakdown: every step of the cached score call timed (CPU us) in each
+    source tree's own process, trees in turn, and their binary answers compared."""
+    from tools.loadtest.breakdown import main as breakdown_main
+    from tools.loadtest.workload import ROOT
+
+    here = str(ROOT)
+    rep = breakdown_main(
+        ["--model-dir", str(model_dir), "--k", "16", "--number", "2", "--repeat", "1", "--rounds", "1"]
+        + ["--service", f"a={here}", "--service", f"b={here}"]
+    )
+    assert rep["answers_identical"] and set(rep["us"]) == {"a", "b"}
+    steps = rep["us"]["a"]
+    assert "ASGI app without the head" in steps and all(v > 0 for v in steps.values())
+    assert steps["score_cached without the head"] < steps["score_cached (route steps)"]
+    assert "| Service.place |" in capsys.readouterr().out

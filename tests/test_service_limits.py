@@ -249,6 +249,65 @@ def test_client_disconnect_is_499_at_info_without_traceback(served):
     assert "Traceback" not in log.read_text() and not any(x["level"] == "error" for x in lines)
 
 
+def _score_path(url: str) -> str:
+    r = httpx.post(f"{url}/v1/images", content=npy(table_scene()), headers={"content-type": "application/x-npy"})
+    assert r.status_code == 200, r.text
+    return f"/v1/images/{r.json()['image_id']}/scores"
+
+
+def _score_head(path: str, n: int) -> bytes:
+    return b"POST %s HTTP/1.1\r\nHost: x\r\nContent-Type: application/octet-stream\r\nContent-Length: %d\r\n\r\n" % (
+        path.encode(),
+        n,
+    )
+
+
+def test_score_body_late_is_408_and_a_body_after_its_headers_is_read(url):
+    """The scoring fast path reads a body that arrives after its headers (no timer is armed only
+    when the server holds the whole body already) and answers 408 when it never completes."""
+    path = _score_path(url)
+    body = np.ascontiguousarray(grasps_at(k=4), "<f4").tobytes()
+    with socket.create_connection(_addr(url), timeout=10) as s:
+        s.sendall(_score_head(path, len(body)))
+        time.sleep(0.3)  # the headers alone: the app starts before its body is in
+        s.sendall(body)
+        head = s.recv(65536)
+    assert head.startswith(b"HTTP/1.1 200"), head[:200]
+    with socket.create_connection(_addr(url), timeout=10) as s:
+        s.sendall(_score_head(path, len(body)) + body[:10])
+        t0 = time.monotonic()
+        got = b""
+        while c := s.recv(65536):
+            got += c
+    _json_error(got, 408)
+    assert time.monotonic() - t0 < TIMEOUT_S + 3
+
+
+def test_requests_are_counted_per_endpoint_and_status(url):
+    """The request counters and latency histograms (label children looked up once, then reused)
+    count each request under its own endpoint and status."""
+    path = _score_path(url)
+    body = np.ascontiguousarray(grasps_at(k=4), "<f4").tobytes()
+    octet = {"content-type": "application/octet-stream"}
+    lines = (
+        'vgq_requests_total{endpoint="score",status="200"}',
+        'vgq_requests_total{endpoint="score",status="404"}',
+        'vgq_requests_total{endpoint="score",status="422"}',
+        'vgq_request_seconds_count{endpoint="score"}',
+        'vgq_requests_total{endpoint="healthz",status="200"}',
+        'vgq_request_seconds_count{endpoint="healthz"}',
+    )
+    before = [_count(httpx.get(f"{url}/metrics").text, x) for x in lines]
+    for _ in range(3):
+        assert httpx.post(url + path, content=body, headers=octet).status_code == 200
+    assert httpx.post(f"{url}/v1/images/{'0' * 32}/scores", content=body, headers=octet).status_code == 404
+    assert httpx.post(url + path, content=body[:-4], headers=octet).status_code == 422
+    for _ in range(2):
+        assert httpx.get(f"{url}/healthz").status_code == 200
+    after = [_count(httpx.get(f"{url}/metrics").text, x) for x in lines]
+    assert [a - b for a, b in zip(after, before)] == [3, 1, 1, 5, 2, 2]
+
+
 def test_no_absolute_path_in_any_answer(model_dir, tmp_path):
     """The model card may record where its data was built; answers name no folder of this host."""
     m = tmp_path / "model"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import io
 import struct
 import zipfile
@@ -14,6 +15,7 @@ from service.cache import CachedImage, EncodedWindow, MemoryCache
 from service.config import Settings, from_env
 from service.depth_io import decode_depth, encode_npy, parse_npy, png_header, read_npz
 from service.errors import ApiError
+from service.protocol import CoalescingTransport
 from service.redis_cache import (
     pack_entry,
     pack_window,
@@ -338,3 +340,49 @@ def test_multipart_parts_are_views_into_the_body():
     shot = parse_multipart(body, "multipart/form-data; boundary=b")
     assert isinstance(shot.depth_body, memoryview) and shot.depth_body.obj is body  # no copy of the depth bytes
     assert np.array_equal(shot.decode(4096), d) and shot.numbers["center_u"] == 24.5 and shot.grasps.shape == (1, 7)
+
+
+class _RecordingTransport:
+    """What a CoalescingTransport hands to the real transport."""
+
+    def __init__(self):
+        self.sends, self.closed, self.aborted = [], False, False
+
+    def writelines(self, chunks):
+        self.sends.append(b"".join(chunks))
+
+    def is_closing(self):
+        return self.closed or self.aborted
+
+    def close(self):
+        self.closed = True
+
+    def abort(self):
+        self.aborted = True
+
+    def get_extra_info(self, name, default=None):
+        return ("127.0.0.1", 1) if name == "peername" else default
+
+
+def test_coalescing_transport_sends_one_step_s_writes_together_in_order():
+    async def run():
+        raw = _RecordingTransport()
+        t = CoalescingTransport(raw, asyncio.get_running_loop())
+        t.write(b"HTTP/1.1 200 OK\r\n\r\n")
+        t.write(b"body")
+        assert raw.sends == []  # nothing leaves before the step ends
+        await asyncio.sleep(0)
+        await asyncio.sleep(0)
+        assert raw.sends == [b"HTTP/1.1 200 OK\r\n\r\nbody"]
+        t.write(b"last")
+        t.close()  # what is pending leaves before the close
+        assert raw.sends[-1] == b"last" and raw.closed
+        t2 = CoalescingTransport(raw2 := _RecordingTransport(), asyncio.get_running_loop())
+        t2.write(b"dropped")
+        t2.abort()
+        await asyncio.sleep(0)
+        await asyncio.sleep(0)
+        assert raw2.sends == [] and raw2.aborted
+        assert t.get_extra_info("peername") == ("127.0.0.1", 1)  # the rest is the transport's
+
+    asyncio.run(run())

@@ -78,8 +78,8 @@ def valid_depth(depth: np.ndarray) -> np.ndarray:
     """Boolean mask (same shape) of pixels with a depth reading: finite, > 0 and <= MAX_DEPTH_M
     metres. Everything else is *missing* (0 is how uploads say "no reading")."""
     d = np.asarray(depth)
-    with np.errstate(invalid="ignore"):
-        return np.isfinite(d) & (d > 0) & (d <= MAX_DEPTH_M)
+    with np.errstate(invalid="ignore"):  # NaN and +-inf fail one of the two comparisons: no isfinite needed
+        return (d > 0) & (d <= MAX_DEPTH_M)
 
 
 # ----------------------------------------------------------------------------- resampling
@@ -145,9 +145,8 @@ def map_pixels(uv: np.ndarray, src: Intrinsics, dst: Intrinsics) -> np.ndarray:
     """Pixel coordinates (n, 2) of ``src``'s image in ``dst``'s (same camera pose, other
     intrinsics): the same viewing ray, u' = (u - cx) * fx' / fx + cx'."""
     a = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-    return np.stack(
-        [(a[:, 0] - src.cx) * dst.fx / src.fx + dst.cx, (a[:, 1] - src.cy) * dst.fy / src.fy + dst.cy], axis=1
-    )
+    p = np.array([[src.cx, src.cy], [dst.fx, dst.fy], [src.fx, src.fy], [dst.cx, dst.cy]])
+    return (a - p[0]) * p[1] / p[2] + p[3]  # per column, the same operations in the same order
 
 
 def resample_depth(depth: np.ndarray, camera: Intrinsics, model: Intrinsics) -> tuple[np.ndarray, Intrinsics]:

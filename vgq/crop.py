@@ -17,6 +17,7 @@ Conventions (image pixels, pixel centres on integer coordinates, u = column, v =
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from functools import lru_cache
 
 import numpy as np
 from PIL import Image
@@ -108,13 +109,19 @@ def grid_window_centers(grasp_uv, image_shape, geom: CropGeometry) -> np.ndarray
     centre of a fixed grid with spacing ``2 * floor(kappa_px)`` anchored on the image's
     central window, so its offset is within +/- kappa (per axis), as in the training crops,
     and grasps near each other share a window (encoded once). ``image_shape`` is (H, W)."""
-    step = 2 * int(np.floor(geom.kappa_px))
+    step = 2 * int(geom.kappa_px)  # floor: kappa_px >= 0
     if step < 1:
         raise ValueError(f"a window grid needs kappa_px >= 1 px, got {geom.kappa_px}")
-    h, w = image_shape
-    anchor = window_center(window_origin([[(w - 1) / 2, (h - 1) / 2]], geom), geom)[0]
+    anchor = np.array(_grid_anchor(int(image_shape[0]), int(image_shape[1]), geom))
     g = np.asarray(grasp_uv, dtype=np.float64).reshape(-1, 2)
-    return anchor + np.round((g - anchor) / step) * step
+    return anchor + np.rint((g - anchor) / step) * step  # rint: np.round to 0 decimals, half to even
+
+
+@lru_cache(maxsize=256)
+def _grid_anchor(h: int, w: int, geom: CropGeometry) -> tuple[float, float]:
+    """Centre (u, v) of the central window of an h x w image (image px): the grid's anchor."""
+    c = window_center(window_origin([[(w - 1) / 2, (h - 1) / 2]], geom), geom)[0]
+    return float(c[0]), float(c[1])
 
 
 def rotated_crop(depth: np.ndarray, center_uv, angle_rad: float, geom: CropGeometry) -> np.ndarray:

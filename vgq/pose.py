@@ -41,6 +41,13 @@ class PoseError(ValueError):
         self.indices = [int(i) for i in list(indices)[: self.MAX_LISTED]]
 
 
+def largest_component(q: np.ndarray) -> np.ndarray:
+    """(n,) largest |component| of each of (n, 4) quaternions (the scale that normalises them
+    without overflow; below a tolerance: a zero quaternion)."""
+    a = np.abs(q)
+    return np.maximum(np.maximum(a[:, 0], a[:, 1]), np.maximum(a[:, 2], a[:, 3]))
+
+
 def canonical_quaternion(q: np.ndarray, eps: float = 1e-12) -> np.ndarray:
     """Normalise (..., 4) quaternions (w, x, y, z) and flip their sign so w >= 0 (for
     |w| <= 1e-12 after normalising: the first non-zero of x, y, z positive).
@@ -56,21 +63,26 @@ def canonical_quaternion(q: np.ndarray, eps: float = 1e-12) -> np.ndarray:
     if not np.isfinite(flat).all():
         bad = ~np.isfinite(flat).all(axis=1)
         raise PoseError(f"{int(bad.sum())} quaternions have non-finite components", np.flatnonzero(bad))
-    a = np.abs(flat)
-    m = np.maximum(np.maximum(a[:, 0], a[:, 1]), np.maximum(a[:, 2], a[:, 3]))  # scale first: no overflow
+    m = largest_component(flat)
     if len(m) and m.min() < eps:
         bad = m < eps
         raise PoseError(f"{int(bad.sum())} quaternions have zero norm", np.flatnonzero(bad))
-    u = flat / m[:, None]
+    return canonical_rows(flat, m).reshape(q.shape)
+
+
+def canonical_rows(q: np.ndarray, largest: np.ndarray) -> np.ndarray:
+    """:func:`canonical_quaternion` of (n, 4) finite quaternions whose ``largest_component``
+    (n,) the caller has computed and checked (>= 1e-12): a new (n, 4) array, no checks."""
+    u = q / largest[:, None]  # scale first: no overflow
     u /= np.sqrt(np.einsum("ij,ij->i", u, u))[:, None]
     tol = 1e-12
-    sign = np.where(u[:, 0] < 0, -1.0, 1.0)
+    flip = u[:, 0] < 0
     tiny = np.abs(u[:, 0]) <= tol  # rare: w ~ 0, the first non-zero of (x, y, z) decides
     if tiny.any():
         t = u[tiny]
         first = np.argmax(np.abs(t) > tol, axis=1)
-        sign[tiny] = np.where(t[np.arange(len(t)), first] < 0, -1.0, 1.0)
-    return (u * sign[:, None]).reshape(q.shape)
+        flip[tiny] = t[np.arange(len(t)), first] < 0
+    return np.negative(u, out=u, where=flip[:, None])  # -u is exactly u * -1.0
 
 
 def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
