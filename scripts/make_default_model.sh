@@ -8,7 +8,7 @@
 #                                                    # model, physics label, plus its clean-test and
 #                                                    # leave-family-out runs
 #   VERSION=v1 ./scripts/make_default_model.sh       # model v1 (bundled until 2026-11-30)
-#   SAMPLES=1600000 ./scripts/make_default_model.sh  # the bundled v2 (its best checkpoint on the way to 4 M)
+#   SAMPLES=2600000 ./scripts/make_default_model.sh  # the bundled v2 (its 2.6 M-sample schedule)
 #   SAMPLES=6000000 ./scripts/make_default_model.sh  # a longer schedule (a finished run resumes into it)
 #
 # On this project's 2-core CPU: v1's dataset takes ~17 min and training ~2.5 h per 1M samples;
