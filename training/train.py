@@ -276,7 +276,9 @@ def _open_data(cfg: TrainConfig, data_dir, d: _Dist) -> tuple[CropDataset, CropS
     return data, train_split, val_split
 
 
-def _open_mix(cfg: TrainConfig, data: CropDataset, d: _Dist) -> tuple[CropDataset | None, CropSplit | None, CropSplit | None]:
+def _open_mix(
+    cfg: TrainConfig, data: CropDataset, d: _Dist
+) -> tuple[CropDataset | None, CropSplit | None, CropSplit | None]:
     """The ``mix_data`` crop dataset and its train / val splits (Nones without one), checked to
     share ``data``'s crop geometry and label threshold (the network's input and label contract)."""
     if not cfg.mix_data:
