@@ -54,7 +54,7 @@ def scene():
 @pytest.mark.parametrize("fx", [450.0, 615.0])
 def test_other_focal_lengths_score_like_the_native_camera(scene, fx):
     mesh, T_wg, T_wcs = scene
-    model = FastModel(MODEL_DIR, threads=1, head_precision="fp32")
+    model = FastModel(MODEL_DIR, threads=1, head_precision="fp32", encoder_precision="fp32")
     native = model.card.intrinsics
     # same field of view as the model's 300 px image: a 450 px camera sees it in 257 px, 615 in 351 px
     side = int(round(native.width * fx / native.fx))
@@ -90,7 +90,7 @@ def test_the_service_path_scores_other_cameras_like_the_native_one(scene):
     from service.scoring import Service
 
     mesh, T_wg, T_wcs = scene
-    svc = Service(Settings(threads=1, head_precision="fp32", model_dir=MODEL_DIR))
+    svc = Service(Settings(threads=1, head_precision="fp32", encoder_precision="fp32", model_dir=MODEL_DIR))
     svc.load()
     native = svc.model.card.intrinsics
     cams = {
