@@ -73,3 +73,13 @@ def test_int8_check_numbers_are_the_cards(card):
     )
     assert f"{q['decisions_changed']} of {q['n']} decisions" in PERFORMANCE
     assert f"~{q['mean_abs_diff_probability']:.3f} on average (at most ~{q['max_abs_diff_probability']:.2f}" in README
+
+
+def test_leave_family_out_numbers_are_the_cards(card):
+    m = card.metrics["leave_family_out"]
+    row = "| held-out families (mug + metaball), never seen"
+    assert percents(TRAINING, row) == [pct(m["balanced_accuracy"]), pct(m["tpr"]), pct(m["tnr"])]
+    assert f"{m['auc']:.3f}" in [line for line in TRAINING.splitlines() if line.startswith(row)][0]
+    assert f"it scores {pct(m['balanced_accuracy'])}%" in README
+    for family, r in m["by_family"].items():
+        assert percents(TRAINING, f"| {family} | {pct(r['balanced_accuracy'])}%")[0] == pct(r["balanced_accuracy"])
