@@ -117,7 +117,11 @@ def create_app(
 
     # Swagger UI and ReDoc from the fastapi-offline package's files: /docs works without a CDN
     app = FastAPIOffline(
-        title="VGQ-CNN grasp quality service", version="0.1.0", description=DESCRIPTION, lifespan=lifespan
+        title="VGQ-CNN grasp quality service",
+        version="0.1.0",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        telemetry=None if settings.otel else {"tracing": False, "metrics": False, "logs": False},
     )
     app.state.service = svc
     app.add_middleware(ScoringFastPath, fastapi_app=app)  # inside the limits (added after: outermost)

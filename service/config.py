@@ -57,6 +57,9 @@ class Settings:
     api_key: str = ""  # when set, upload and score need header X-API-Key
     log_level: str = "info"
     access_log: bool = False  # one structured line per request
+    # FastAPI's native OpenTelemetry (to the globally configured providers); off: its per-request
+    # check costs ~17 us even with no provider set, and /metrics has the service's own numbers
+    otel: bool = False
 
     def __post_init__(self) -> None:
         for name, lo in (

@@ -277,6 +277,8 @@ def test_overhead_benchmark_measures_every_row_against_a_real_service(model_dir)
         "steps cached score",
         "this: HTTP one-shot",
         "this: HTTP cached score",
+        "HTTP floor: one-shot",
+        "HTTP floor: cached score",
     }
     assert set(rep["median_ms"]) == rows and all(v > 0 for v in rep["median_ms"].values())
     assert all(v > 0 for v in rep["cpu_mean_ms"].values())
@@ -285,6 +287,7 @@ def test_overhead_benchmark_measures_every_row_against_a_real_service(model_dir)
     assert (
         r["one_shot_over_model"] == rep["median_ms"]["this: HTTP one-shot"] / rep["median_ms"]["model encoder + head"]
     )
+    assert rep["floor"]["cached_minus_head_ms"] == rep["median_ms"]["HTTP floor: cached score"]
 
 
 def test_wrk_driver_reads_its_summary_line_and_refuses_bad_settings():

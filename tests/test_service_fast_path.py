@@ -126,3 +126,13 @@ def test_fast_path_answers_exactly_as_the_router(clients):
         ):
             assert a.headers.get(h) == b.headers.get(h), (where, h)
     assert fast.get("/v1/cache").json()["windows_encoded"] == router.get("/v1/cache").json()["windows_encoded"]
+
+
+def test_fastapis_opentelemetry_is_off_unless_asked_for(monkeypatch):
+    """FastAPI's native OpenTelemetry checks the global providers on every request (~17 us):
+    the service turns it off unless ``otel`` is set, even where providers are configured."""
+    import fastapi.telemetry._asgi as otel
+
+    monkeypatch.setattr(otel, "_unconfigured", lambda provider: False)  # as if an SDK set providers
+    assert not create_app(Settings())._native_telemetry.enabled()
+    assert create_app(Settings(otel=True))._native_telemetry.enabled()

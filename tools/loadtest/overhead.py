@@ -16,6 +16,10 @@ Rows (k grasps, one onnxruntime thread unless ``--threads``):
   loopback, one sequential keep-alive client on a blocking socket. One-shot: a fresh image each
   call (.npz body, float32 answer), so the encoder runs; cached score: float32 grasps against an
   image uploaded and scored once before timing, so its windows are encoded (head only).
+* ``HTTP floor: one-shot`` / ``HTTP floor: cached score``: the same bodies and answer sizes sent to
+  ``tools.loadtest.floor_app`` (reads the body, answers zeros) on the same uvicorn stack: what
+  uvicorn and loopback cost with no app work. ``model + floor`` ratios: the best the service
+  could reach if its route did nothing but run the model.
 
 ``--service NAME=ROOT`` (repeatable; default ``this=`` this checkout) starts one service per
 source tree (its PYTHONPATH and working directory), e.g. the previous commit unpacked with
@@ -56,10 +60,12 @@ class BlockingHTTP:
         self.file = self.sock.makefile("rb")
         self.port = port
 
-    def post(self, path: str, body: bytes, content_type: str, accept: str = OCTET) -> tuple[int, bytes]:
+    def post(
+        self, path: str, body: bytes, content_type: str, accept: str = OCTET, extra: str = ""
+    ) -> tuple[int, bytes]:
         head = (
             f"POST {path} HTTP/1.1\r\nhost: 127.0.0.1:{self.port}\r\ncontent-type: {content_type}\r\n"
-            f"accept: {accept}\r\ncontent-length: {len(body)}\r\n\r\n"
+            f"accept: {accept}\r\n{extra}content-length: {len(body)}\r\n\r\n"
         ).encode()
         self.sock.sendall(head + body)
         status = int(self.file.readline().split()[1])
@@ -81,10 +87,15 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_service(root: Path, model_dir: str, threads: int, timeout: float = 120.0) -> tuple[subprocess.Popen, int]:
-    """``python -m service`` from source tree ``root`` on a free loopback port, once /readyz is 200."""
+def start_service(
+    root: Path, model_dir: str, threads: int, timeout: float = 120.0, cmd: list[str] | None = None
+) -> tuple[subprocess.Popen, int]:
+    """``python -m service`` from source tree ``root`` on a free loopback port, once /readyz is 200
+    (``cmd``: another server command line, ``--port`` appended, answering 200 to GET /readyz)."""
     port = _free_port()
-    cmd = [sys.executable, "-m", "service", "--port", str(port), "--threads", str(threads), "--model-dir", model_dir]
+    if cmd is None:
+        cmd = [sys.executable, "-m", "service", "--threads", str(threads), "--model-dir", model_dir]
+    cmd = [*cmd, "--port", str(port)]
     proc = subprocess.Popen(
         cmd, cwd=root, env={**os.environ, "PYTHONPATH": str(root)}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )
@@ -180,6 +191,23 @@ def http_calls(port: int, fresh: FreshImages, grasps: np.ndarray) -> dict:
     return {"HTTP one-shot": Task(one_shot, next_npz), "HTTP cached score": Task(cached)}, http
 
 
+def floor_calls(port: int, fresh: FreshImages, grasps: np.ndarray) -> dict:
+    """The floor rows: the one-shot and cached-score bodies and answer sizes against ``floor_app``."""
+    http = BlockingHTTP(port)
+    gbytes = np.ascontiguousarray(grasps, "<f4").tobytes()
+    answer = f"x-answer-bytes: {4 * len(grasps)}\r\n"
+
+    def call(body: bytes, content_type: str):
+        status, out = http.post("/", body, content_type, extra=answer)
+        if status != 200 or len(out) != 4 * len(grasps):
+            raise RuntimeError(f"floor answer {status} of {len(out)} bytes")
+
+    return {
+        "HTTP floor: one-shot": Task(lambda body: call(body, NPZ), lambda: fresh.next_npz(grasps)),
+        "HTTP floor: cached score": Task(lambda: call(gbytes, OCTET)),
+    }, http
+
+
 def in_process_calls(model_dir: str, threads: int, k: int) -> dict:
     """The model and route-step rows, in this process."""
     from export.benchmark import fast_preprocess
@@ -247,6 +275,12 @@ def report(times: dict[str, np.ndarray], services: list[str]) -> dict:
 
     out["steps"] = ratios("steps one-shot", "steps cached score")
     out["services"] = {s: ratios(f"{s}: HTTP one-shot", f"{s}: HTTP cached score") for s in services}
+    if "HTTP floor: one-shot" in ms:  # the model's time plus uvicorn's alone: the best reachable
+        floor_one, floor_cached = ms["HTTP floor: one-shot"], ms["HTTP floor: cached score"]
+        out["floor"] = {
+            "one_shot_over_model": (ms["model encoder + head"] + floor_one) / ms["model encoder + head"],
+            "cached_minus_head_ms": floor_cached,
+        }
     return out
 
 
@@ -280,6 +314,12 @@ def table(rep: dict, config: dict) -> str:
         )
     lines += ["", line("in process", rep["steps"], "steps")]
     lines += [line(name, r, "HTTP") for name, r in rep["services"].items()]
+    if "floor" in rep:
+        f = rep["floor"]
+        lines.append(
+            f"model + floor (uvicorn with no app work): one-shot {f['one_shot_over_model']:.2f}x, "
+            f"cached score {f['cached_minus_head_ms']:+.2f} ms"
+        )
     lines.append("targets (issue 14): HTTP one-shot <= 1.5x, HTTP cached score <= +0.5 ms")
     return "\n".join(lines)
 
@@ -327,6 +367,13 @@ def main(argv=None) -> dict:
             conns.append(http)
             cpu = functools.partial(process_cpu_seconds, proc.pid)
             tasks.update({f"{name}: {row}": dataclasses.replace(t, cpu=cpu) for row, t in calls.items()})
+        floor = [sys.executable, "-m", "uvicorn", "tools.loadtest.floor_app:app", "--loop", "uvloop"]
+        proc, port = start_service(ROOT, "", 1, cmd=[*floor, "--http", "httptools", "--log-level", "warning"])
+        procs.append(proc)
+        calls, http = floor_calls(port, FreshImages(work.depth, seed=99), work.grasps)
+        conns.append(http)
+        cpu = functools.partial(process_cpu_seconds, proc.pid)
+        tasks.update({row: dataclasses.replace(t, cpu=cpu) for row, t in calls.items()})
         before = [model_seconds(port) for port in ports]
         times = measure(tasks, a.rounds, a.calls)
         served = {}
