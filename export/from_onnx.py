@@ -49,7 +49,8 @@ def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, Mod
         raise ValueError(f"{model_dir}: architecture {card.architecture!r}, expected fast_vgqcnn")
     enc_path, head_path = model_dir / card.files["encoder"], model_dir / card.files["head"]
     (enc, enc_nodes), (head, _) = _load(enc_path), _load(head_path)
-    net = GraspQualityNet("fast_vgqcnn", image_size=card.geometry.out).eval()
+    channels = int(_get(enc, "net.conv2_1.weight", enc_path).shape[0])  # the paper's 64, or wider
+    net = GraspQualityNet("fast_vgqcnn", image_size=card.geometry.out, conv2_channels=channels).eval()
     norm = card.normalization
     net.set_normalization(norm)
     for layer in ("conv1_1", "conv1_2", "conv2_1", "conv2_2", "fc3"):
@@ -78,7 +79,7 @@ def vgq_net_like(fast: GraspQualityNet) -> GraspQualityNet:
     """A VGQ-CNN (pose z, q; one centred crop per grasp) with ``fast``'s image stream, fc4,
     fc5 and fc6, and pc1 restricted to the (z, q) columns. Same cost as the paper's VGQ-CNN;
     its scores are not a trained VGQ-CNN's."""
-    net = GraspQualityNet("vgqcnn", image_size=fast.image_size).eval()
+    net = GraspQualityNet("vgqcnn", image_size=fast.image_size, conv2_channels=fast.conv2_channels).eval()
     cols = [fast.pose_columns.index(c) for c in net.pose_columns]
     src = fast.state_dict()
     dst = net.state_dict()

@@ -89,3 +89,25 @@ def test_isa_flags_picks_the_precision_relevant_flags(tmp_path):
     f.write_text("processor\t: 0\nflags\t\t: fpu sse avx2 fma avx512f avx512_vnni amx_tile amx_int8\n")
     assert isa_flags(str(f)) == ["avx2", "fma", "avx512f", "avx512_vnni", "amx_tile", "amx_int8"]
     assert isa_flags(str(tmp_path / "none")) == []
+
+
+def test_wider_net_read_back_from_onnx(tmp_path):
+    from export.onnx_export import export_model
+    from training.networks import GraspQualityNet
+    from vgq.camera import DEFAULT_INTRINSICS
+    from vgq.crop import CropGeometry
+    from vgq.normalization import Normalization
+
+    imgs, poses, _ = synthetic_crops(32, np.random.default_rng(13))
+    torch.manual_seed(0)
+    net = GraspQualityNet("fast_vgqcnn", conv2_channels=80).eval()
+    net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns))
+    export_model(
+        net, tmp_path / "m", imgs, poses, CropGeometry(96, 32, 36.0), DEFAULT_INTRINSICS, dataset={}, training={}
+    )
+    back, _ = fast_net_from_model_dir(tmp_path / "m")
+    x, p = torch.from_numpy(imgs[:1, None]), torch.from_numpy(poses[:4])
+    with torch.no_grad():
+        assert back.conv2_channels == 80 and torch.allclose(
+            back.head(back.encode(x), p), net.head(net.encode(x), p), atol=1e-5
+        )

@@ -39,3 +39,16 @@ def test_fast_encode_head_equals_forward():
         one_piece = torch.softmax(net(depth.expand(5, -1, -1, -1), poses), 1)[:, 1]
         split = net.head(net.encode(depth), poses)  # one image term broadcast over 5 grasps
     torch.testing.assert_close(split, one_piece, rtol=1e-5, atol=1e-6)
+
+
+def test_wider_second_stage_keeps_the_encoder_contract():
+    net = GraspQualityNet("fast_vgqcnn", conv2_channels=96).eval()
+    assert net.conv2_2.weight.shape == (96, 96, 3, 3) and net.fc3.in_features == 96 * 8 * 8
+    assert count_parameters(net) > count_parameters(GraspQualityNet("fast_vgqcnn"))
+    with torch.no_grad():
+        assert net.encode(torch.rand(2, 1, 32, 32) + 0.5).shape == (2, 1024)  # the service's image term
+
+
+def test_conv2_channels_must_be_positive():
+    with pytest.raises(ValueError, match="conv2_channels"):
+        GraspQualityNet("fast_vgqcnn", conv2_channels=0)

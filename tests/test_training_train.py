@@ -220,3 +220,13 @@ def test_bf16_training_learns_and_resumes_in_fp32(data, tmp_path):
     assert info["precision"] == "fp32" and info["samples_seen"] == 160
     with pytest.raises(ValueError, match="precision"):
         TrainConfig(precision="fp16")
+
+
+def test_wider_second_stage_round_trips_and_guards_fine_tuning(data, tmp_path):
+    train(
+        TrainConfig(samples=32, val_every_samples=32, conv2_channels=24, **FAST), data, tmp_path / "w", progress=False
+    )
+    net, meta = load_trained(tmp_path / "w" / "checkpoints" / "best.pt")
+    assert net.conv2_channels == 24 and meta["training"]["config"]["conv2_channels"] == 24
+    with pytest.raises(CheckpointError, match="24 conv2 channels; this run trains 64"):
+        train(TrainConfig(samples=16, **FAST, init=str(tmp_path / "w")), data, tmp_path / "x", progress=False)

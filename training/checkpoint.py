@@ -93,7 +93,8 @@ def load_checkpoint(path: str | Path) -> dict:
 
 def net_from_checkpoint(ckpt: dict) -> GraspQualityNet:
     """A GraspQualityNet in eval mode with the checkpoint's weights and normalisation."""
-    net = GraspQualityNet(ckpt["arch"], image_size=int(ckpt["geometry"]["out"]))
+    channels = int(ckpt.get("config", {}).get("conv2_channels", 64))  # written before the option: 64
+    net = GraspQualityNet(ckpt["arch"], image_size=int(ckpt["geometry"]["out"]), conv2_channels=channels)
     net.load_state_dict(ckpt["model"])
     net.set_normalization(Normalization.from_dict(ckpt["normalization"]))  # same values; validates
     return net.eval()

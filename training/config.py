@@ -21,6 +21,10 @@ SELECT_ON = ("data", "mix", "mean")
 @dataclass
 class TrainConfig:
     arch: str = field(default="fast_vgqcnn", metadata={"choices": tuple(POSE_COLUMNS)})
+    conv2_channels: int = field(
+        default=64,
+        metadata={"help": "channels of the second conv stage (conv2_1, conv2_2; 16 x 16); the paper's 64"},
+    )
     samples: int = 10_000_000  # training samples to see in total (paper ablations: 10 M)
     batch_size: int = 64  # global batch (split evenly over DDP processes)
     optimizer: str = field(
@@ -89,6 +93,7 @@ class TrainConfig:
             "checkpoint_every_samples",
             "log_every_steps",
             "eval_batch_size",
+            "conv2_channels",
         ):
             if int(getattr(self, name)) <= 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")

@@ -49,8 +49,10 @@ class LocalResponseNorm(nn.Module):
 class GraspQualityNet(nn.Module):
     """VGQ-CNN / Fast-VGQ-CNN / GQ-CNN. ``forward`` returns logits (k, 2)."""
 
-    def __init__(self, arch: str = "fast_vgqcnn", image_size: int = 32):
+    def __init__(self, arch: str = "fast_vgqcnn", image_size: int = 32, conv2_channels: int = 64):
         super().__init__()
+        if conv2_channels < 1:
+            raise ValueError(f"conv2_channels must be >= 1, got {conv2_channels}")
         if arch not in POSE_COLUMNS:
             raise ValueError(f"unknown architecture {arch!r}; expected one of {ARCHITECTURES}")
         if image_size % 4:
@@ -61,10 +63,12 @@ class GraspQualityNet(nn.Module):
         n_pose = len(self.pose_columns)
         self.conv1_1 = nn.Conv2d(1, 64, 7, padding=3)
         self.conv1_2 = nn.Conv2d(64, 64, 5, padding=2)
-        self.conv2_1 = nn.Conv2d(64, 64, 3, padding=1)
-        self.conv2_2 = nn.Conv2d(64, 64, 3, padding=1)
+        self.conv2_channels = c2 = int(conv2_channels)
+        self.conv2_1 = nn.Conv2d(64, c2, 3, padding=1)
+        self.conv2_2 = nn.Conv2d(c2, c2, 3, padding=1)
         self.lrn = LocalResponseNorm(64)
-        self.fc3 = nn.Linear(64 * (image_size // 4) ** 2, 1024)
+        self.lrn2 = self.lrn if c2 == 64 else LocalResponseNorm(c2)
+        self.fc3 = nn.Linear(c2 * (image_size // 4) ** 2, 1024)
         self.pc1 = nn.Linear(n_pose, 16)
         self.fc4_image = nn.Linear(1024, 1024, bias=False)
         self.fc4_pose = nn.Linear(16, 1024, bias=True)  # carries fc4's bias
@@ -99,7 +103,7 @@ class GraspQualityNet(nn.Module):
         x = self.lrn(F.relu(self.conv1_2(x)))
         x = F.max_pool2d(x, 2)
         x = F.relu(self.conv2_1(x))
-        x = self.lrn(F.relu(self.conv2_2(x)))
+        x = self.lrn2(F.relu(self.conv2_2(x)))
         x = F.max_pool2d(x, 2)
         x = F.relu(self.fc3(torch.flatten(x, 1)))
         return self.fc4_image(x)

@@ -301,6 +301,11 @@ def _init_checkpoint(cfg: TrainConfig, data: CropDataset) -> dict:
     ckpt = load_checkpoint(path)
     if ckpt["arch"] != cfg.arch:
         raise CheckpointError(f"init checkpoint {path} is a {ckpt['arch']} network; this run trains {cfg.arch}")
+    init_channels = int(ckpt.get("config", {}).get("conv2_channels", 64))
+    if init_channels != cfg.conv2_channels:
+        raise CheckpointError(
+            f"init checkpoint {path} has {init_channels} conv2 channels; this run trains {cfg.conv2_channels}"
+        )
     if ckpt["geometry"] != data.geometry.to_dict():
         raise CheckpointError(
             f"init checkpoint {path} was trained on crops {ckpt['geometry']}; {data.path} has {data.geometry.to_dict()}"
@@ -332,7 +337,7 @@ def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit
     """(net with its normalisation, optimizer, Normalization, TrainState, last validation, best validation):
     fresh (normalisation from the training split) or as saved in ``ckpt``."""
     torch.manual_seed(cfg.seed)
-    net = GraspQualityNet(cfg.arch, image_size=data.geometry.out)
+    net = GraspQualityNet(cfg.arch, image_size=data.geometry.out, conv2_channels=cfg.conv2_channels)
     opt = _optimizer(cfg, net)
     best_val: dict = {}
     if ckpt is None and cfg.init:  # fine-tuning: the init's weights and its input normalisation, a fresh optimizer
