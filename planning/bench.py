@@ -181,19 +181,25 @@ def pose_only_model(model_dir: str, path: str | None = None):
     return None, None
 
 
-def _setup(args):
-    """(model, recipe config, planner params, held-out object ids drawn, rng) of a benchmark run:
-    the same seed draws the same objects for every benchmark."""
-    model = _model(args.model, args.threads)
-    config = _recipe_config(model)
-    params = dataclasses.replace(
+def plan_params(args) -> PlanParams:
+    """The planner settings a benchmark's command line asks for (the rest: ``PlanParams()``)."""
+    return dataclasses.replace(
         PlanParams(),
         cem_iterations=args.cem,
         windows=args.windows,
         max_centre_offset=args.centre_offset,
         min_width=args.min_width,
         table_margin=args.table_margin,
+        max_approach_tilt=np.radians(args.max_approach_tilt),
     )
+
+
+def _setup(args):
+    """(model, recipe config, planner params, held-out object ids drawn, rng) of a benchmark run:
+    the same seed draws the same objects for every benchmark."""
+    model = _model(args.model, args.threads)
+    config = _recipe_config(model)
+    params = plan_params(args)
     ids = heldout_object_ids(args.heldout)
     rng = np.random.default_rng(args.seed)
     picked = rng.choice(ids, size=args.scenes, replace=args.scenes > len(ids))
@@ -270,6 +276,7 @@ def run_precision(args) -> dict:
             "num_candidates": params.num_candidates,
             "max_centre_offset": args.centre_offset,
             "min_width": args.min_width,
+            "max_approach_tilt_deg": args.max_approach_tilt,
         },
         "seed": args.seed,
         "model": model.version,
@@ -580,6 +587,23 @@ def run_timing(args) -> dict:
 
 
 def main(argv=None) -> int:
+    args = parse_args(argv)
+    run = {
+        "timing": run_timing,
+        "precision": run_precision,
+        "trials": run_trials_bench,
+        "ranker": run_ranker,
+        "pool": run_pool,
+    }[args.what]
+    out = run(args)
+    if args.json:
+        from vgq import atomic
+
+        atomic.write_bytes(Path(args.json), json.dumps(out, indent=1).encode())
+    return 0
+
+
+def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="python -m planning.bench", description=__doc__.splitlines()[0])
     ap.add_argument("what", choices=["timing", "precision", "trials", "ranker", "pool"])
     ap.add_argument("--model", default=MODEL_DIR)
@@ -608,6 +632,12 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--min-width", type=float, default=PlanParams().min_width, help="min contact distance (m)")
     ap.add_argument(
+        "--max-approach-tilt",
+        type=float,
+        default=float(np.degrees(PlanParams().max_approach_tilt)),
+        help="approaches within this angle (deg) of straight down",
+    )
+    ap.add_argument(
         "--oracle",
         choices=ORACLES,
         default=None,
@@ -634,19 +664,9 @@ def main(argv=None) -> int:
         ap.error("--random-sample must be >= 1")
     if args.scenes is None:
         args.scenes = {"timing": 4, "precision": 20, "trials": 10, "ranker": 20, "pool": 60}[args.what]
-    run = {
-        "timing": run_timing,
-        "precision": run_precision,
-        "trials": run_trials_bench,
-        "ranker": run_ranker,
-        "pool": run_pool,
-    }[args.what]
-    out = run(args)
-    if args.json:
-        from vgq import atomic
-
-        atomic.write_bytes(Path(args.json), json.dumps(out, indent=1).encode())
-    return 0
+    if not 0 < args.max_approach_tilt <= 90:
+        ap.error(f"--max-approach-tilt must be in (0, 90] degrees, got {args.max_approach_tilt:g}")
+    return args
 
 
 if __name__ == "__main__":

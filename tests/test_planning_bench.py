@@ -8,6 +8,7 @@ import trimesh
 
 from datagen.config import DatagenConfig
 from planning.bench import BenchScene, _recipe_config, default_oracle, judge
+from planning.types import PlanParams
 
 
 class _Card:
@@ -91,3 +92,13 @@ def test_candidate_features_measure_the_grasp_against_the_true_scene():
     assert f["approach_tilt"][0] == pytest.approx(0.0, abs=1e-6)
     assert f["axis_tilt"][0] == pytest.approx(90.0)
     assert f["score"][0] == 0.7
+
+
+def test_command_line_sets_the_approach_tilt_and_refuses_nonsense(capsys):
+    from planning.bench import parse_args, plan_params
+
+    assert np.isclose(plan_params(parse_args(["precision", "--max-approach-tilt", "30"])).max_approach_tilt, np.pi / 6)
+    assert np.isclose(plan_params(parse_args(["precision"])).max_approach_tilt, PlanParams().max_approach_tilt)
+    with pytest.raises(SystemExit) as e:
+        parse_args(["precision", "--max-approach-tilt", "120"])
+    assert e.value.code == 2 and "--max-approach-tilt must be in (0, 90]" in capsys.readouterr().err
