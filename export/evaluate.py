@@ -63,10 +63,6 @@ def evaluate(labels: np.ndarray, scores: np.ndarray, family: np.ndarray) -> dict
     }
 
 
-def _pct(x) -> str:
-    return "n/a" if x is None else f"{100 * x:.1f}%"
-
-
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(
         prog="python -m export.evaluate", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -97,7 +93,7 @@ def main(argv=None) -> dict:
         for name, m in [("all", r["all"]), *r["by_family"].items()]:
             auc = "n/a" if m["auc"] is None else f"{m['auc']:.3f}"
             print(
-                f"| {name} | {m['n']} | {_pct(m['balanced_accuracy'])} | {_pct(m['tpr'])} | {_pct(m['tnr'])} | {auc} |"
+                f"| {name} | {m['n']} | {M.pct(m['balanced_accuracy'])} | {M.pct(m['tpr'])} | {M.pct(m['tnr'])} | {auc} |"
             )
     if a.json:
         from vgq import atomic

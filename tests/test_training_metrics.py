@@ -32,6 +32,16 @@ def test_metrics_by_group_are_the_metrics_of_each_groups_rows():
     assert (g["box"]["tp"], g["box"]["fn"], g["box"]["fp"]) == (1, 1, 1)
 
 
+def test_metrics_by_bin_split_rows_by_value_in_ascending_bins():
+    labels = np.array([1, 0, 1, 0, 1])
+    p = np.array([0.9, 0.1, 0.2, 0.8, 0.7])
+    d = np.array([0.42, 0.48, 0.71, 0.79, 0.44])  # metres: bins 0.4-0.5 and 0.7-0.8, none at 0.5-0.7
+    b = M.metrics_by_bin(labels, p, d, 0.1)
+    assert list(b) == ["0.4-0.5", "0.7-0.8"]
+    assert b["0.4-0.5"]["n"] == 3 and b["0.4-0.5"]["balanced_accuracy"] == 1.0
+    assert (b["0.7-0.8"]["fn"], b["0.7-0.8"]["fp"]) == (1, 1)
+
+
 def test_all_negative_predictor_has_half_balanced_accuracy():
     labels = np.array([1] * 19 + [0] * 81)
     m = M.binary_metrics(labels, np.zeros(100))

@@ -66,11 +66,17 @@ def evaluate(
     labels = np.asarray(sp.labels[rows])
     overall = M.nan_to_none({**M.binary_metrics(labels, p, threshold), "loss": loss})
     by_family, held_out = _family_metrics(data, np.asarray(sp.arrays["object_id"][rows]), labels, p, threshold)
+    cam_d, cam_phi = np.asarray(sp.arrays["camera_d"][rows]), np.asarray(sp.arrays["camera_phi"][rows])
+    # the camera grid's margins: does accuracy fall with distance (fewer pixels per object) or elevation?
+    by_distance = {k: M.nan_to_none(m) for k, m in M.metrics_by_bin(labels, p, cam_d, 0.1, threshold).items()}
+    by_elevation = {
+        k: M.nan_to_none(m) for k, m in M.metrics_by_bin(labels, p, np.degrees(cam_phi), 10.0, threshold).items()
+    }
     grid = M.grid_metrics(
         labels,
         p,
-        np.asarray(sp.arrays["camera_d"][rows]),
-        np.asarray(sp.arrays["camera_phi"][rows]),
+        cam_d,
+        cam_phi,
         d_step=d_step,
         phi_step_deg=phi_step_deg,
         threshold=threshold,
@@ -92,12 +98,14 @@ def evaluate(
         "by_family": by_family,
         # leave-family-out datasets: the rows of the families never seen in training, together
         "held_out_families": held_out,
+        "by_camera_distance_m": by_distance,
+        "by_camera_elevation_deg": by_elevation,
         "rows": {"evaluated": int(len(rows)), "of": int(len(sp)), "seed": int(seed) if len(rows) < len(sp) else None},
         "grid": {"d_step_m": d_step, "phi_step_deg": phi_step_deg, **M.grid_to_json(grid)},
         "inference_s": dt,
     }
     atomic.write_json(out_dir / f"metrics_{name}.json", rec)
-    title = f"{meta['arch']} on {split} split ({rec['sensor']} sensor): balanced accuracy {_pct(overall['balanced_accuracy'])}"
+    title = f"{meta['arch']} on {split} split ({rec['sensor']} sensor): balanced accuracy {M.pct(overall['balanced_accuracy'])}"
     plot_grid_heatmaps(grid, out_dir / f"heatmap_{name}.png", title=title)
     if run_dir is not None and RunPaths(run_dir).metrics.is_file():
         plot_training_curves(RunPaths(run_dir).metrics, out_dir / "curves.png", title=f"{meta['arch']} training")
@@ -122,7 +130,3 @@ def _family_metrics(data, object_id: np.ndarray, labels: np.ndarray, p: np.ndarr
         return by_family, None
     rows = np.isin(row_family, holdout)
     return by_family, M.nan_to_none({"families": holdout, **M.binary_metrics(labels[rows], p[rows], threshold)})
-
-
-def _pct(x) -> str:
-    return "n/a" if x is None else f"{100 * x:.1f}%"

@@ -67,6 +67,20 @@ def metrics_by_group(
     return {str(k): binary_metrics(y[g == k], p[g == k], threshold) for k in np.unique(g)}
 
 
+def metrics_by_bin(
+    labels: np.ndarray, p_success: np.ndarray, values: np.ndarray, step: float, threshold: float = 0.5
+) -> dict[str, dict[str, float]]:
+    """:func:`binary_metrics` of the rows in each ``step``-wide bin of ``values`` (e.g. camera
+    distance in metres), keyed "lo-hi" in ascending order; empty bins are left out."""
+    v = np.asarray(values, dtype=np.float64).ravel()
+    edges = bin_edges(v, step)
+    idx = np.clip(np.searchsorted(edges, v + 1e-9, side="right") - 1, 0, len(edges) - 2)
+    y, p = np.asarray(labels).ravel(), np.asarray(p_success).ravel()
+    return {
+        f"{edges[i]:g}-{edges[i + 1]:g}": binary_metrics(y[idx == i], p[idx == i], threshold) for i in np.unique(idx)
+    }
+
+
 def auc(score: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None) -> float:
     """Area under the ROC curve of ``score`` for binary ``y`` (ties count half); ``weight``
     per sample. NaN when only one class is present."""
@@ -150,6 +164,11 @@ def grid_to_json(grid: dict) -> dict:
         )
 
     return {k: conv(v) for k, v in grid.items()}
+
+
+def pct(x: float | None) -> str:
+    """A fraction as a percentage with one decimal ("81.2%"), "n/a" for None."""
+    return "n/a" if x is None else f"{100 * x:.1f}%"
 
 
 def nan_to_none(d: dict) -> dict:
