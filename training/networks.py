@@ -67,7 +67,7 @@ class GraspQualityNet(nn.Module):
         self.conv2_1 = nn.Conv2d(64, c2, 3, padding=1)
         self.conv2_2 = nn.Conv2d(c2, c2, 3, padding=1)
         self.lrn = LocalResponseNorm(64)
-        self.lrn2 = self.lrn if c2 == 64 else LocalResponseNorm(c2)
+        self.lrn2 = LocalResponseNorm(c2)  # no weights; its own module so that export swaps both
         self.fc3 = nn.Linear(c2 * (image_size // 4) ** 2, 1024)
         self.pc1 = nn.Linear(n_pose, 16)
         self.fc4_image = nn.Linear(1024, 1024, bias=False)
