@@ -10,7 +10,7 @@ import torch
 
 from training.checkpoint import CheckpointError, load_checkpoint, load_trained
 from training.config import TrainConfig
-from training.data import open_crop_dataset
+from training.data import DatasetError, open_crop_dataset
 from training.evaluate import evaluate
 from training.networks import GraspQualityNet
 from training.predict import predict_split
@@ -232,3 +232,34 @@ def test_wider_second_stage_round_trips_and_guards_fine_tuning(data, tmp_path):
     assert net.conv2_channels == 24 and meta["training"]["config"]["conv2_channels"] == 24
     with pytest.raises(CheckpointError, match="24 conv2 channels; this run trains 64"):
         train(TrainConfig(samples=16, **FAST, init=str(tmp_path / "w")), data, tmp_path / "x", progress=False)
+
+
+def test_success_rate_target_fits_the_trials_that_held(tmp_path):
+    from training.synthetic import synthetic_split, write_crop_dataset
+    from vgq.crop import CropGeometry
+
+    rng, geom = np.random.default_rng(3), CropGeometry(96, 32, 36.0)
+    splits = {
+        s: synthetic_split(32, rng, geom, "image", 0.5, first_object=10 * i)
+        for i, s in enumerate(("train", "val", "test"))
+    }
+    for arrays in splits.values():  # the physics label: quality = fraction of 8 trials held, label = quality > 0.5
+        arrays["quality"] = np.where(arrays["labels"] == 1, 0.875, 0.125).astype(np.float32)
+    physics = {"kind": "synthetic", "config": {"label": {"kind": "physics", "trials": 8, "success_threshold": 0.5}}}
+    write_crop_dataset(tmp_path / "d", splits, geom, "fast_vgqcnn", label_threshold=0.5, source=physics)
+    _, _, rate = open_crop_dataset(tmp_path / "d").split("train").batch(np.arange(8), "fast_vgqcnn", "success_rate")
+    labels = np.asarray(splits["train"]["labels"][:8])
+    assert rate.dtype == torch.float32 and np.array_equal(rate.numpy(), np.where(labels == 1, 0.875, 0.125))
+    train(
+        TrainConfig(samples=32, val_every_samples=32, target="success_rate", **FAST),
+        tmp_path / "d",
+        tmp_path / "r",
+        progress=False,
+    )
+    _, meta = load_trained(tmp_path / "r" / "checkpoints" / "last.pt")
+    assert meta["training"]["config"]["target"] == "success_rate"
+
+
+def test_success_rate_target_refuses_crops_without_trials(data, tmp_path):
+    with pytest.raises(DatasetError, match="needs crops with the physics label"):
+        train(TrainConfig(samples=16, target="success_rate", **FAST), data, tmp_path / "r", progress=False)

@@ -16,6 +16,7 @@ CLASS_BALANCE = ("none", "loss_weights")
 OPTIMIZERS = ("sgd", "adamw")
 PRECISIONS = ("fp32", "bf16", "auto")
 SELECT_ON = ("data", "mix", "mean")
+TARGETS = ("label", "success_rate")
 
 
 @dataclass
@@ -47,6 +48,14 @@ class TrainConfig:
     class_balance: str = field(
         default="none",
         metadata={"choices": CLASS_BALANCE, "help": "'loss_weights': cross-entropy weights n / (2 n_class) from train"},
+    )
+    target: str = field(
+        default="label",
+        metadata={
+            "choices": TARGETS,
+            "help": "what the loss fits: 'label' (the binary label) | 'success_rate' (the fraction of the "
+            "physics label's trials that held, as a soft two-class target; physics-label crops only)",
+        },
     )
     seed: int = 0
     num_threads: int = 0  # torch intra-op threads per process; 0: torch default
@@ -107,6 +116,8 @@ class TrainConfig:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
         if self.class_balance not in CLASS_BALANCE:
             raise ValueError(f"class_balance must be one of {CLASS_BALANCE}, got {self.class_balance!r}")
+        if self.target not in TARGETS:
+            raise ValueError(f"target must be one of {TARGETS}, got {self.target!r}")
         if self.select_on not in SELECT_ON:
             raise ValueError(f"select_on must be one of {SELECT_ON}, got {self.select_on!r}")
         if self.mix_data and not 0.0 < self.mix_share < 1.0:

@@ -52,8 +52,12 @@ class CropSplit:
         """Pose columns of ``arch`` for all rows (n, n_pose) float32 (read into memory)."""
         return np.ascontiguousarray(self.arrays["poses"][:, pose_column_indices(arch)], dtype=np.float32)
 
-    def batch(self, index: np.ndarray, arch: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Rows ``index`` as tensors: images (b, 1, S, S) metres, poses (b, n_pose), labels (b,) int64."""
+    def batch(
+        self, index: np.ndarray, arch: str, target: str = "label"
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Rows ``index`` as tensors: images (b, 1, S, S) metres, poses (b, n_pose), and labels (b,)
+        int64 (``target`` "label") or the physics label's success rates (b,) float32 in [0, 1]
+        (``target`` "success_rate": the crops' ``quality``)."""
         index = np.asarray(index, dtype=np.int64)
         order = np.argsort(index, kind="stable")  # sorted reads from the memory map are faster
         srt = index[order]
@@ -61,7 +65,10 @@ class CropSplit:
         inv[order] = np.arange(len(order))
         img = np.asarray(self.arrays["images"][srt], dtype=np.float32)[inv]
         pose = np.asarray(self.arrays["poses"][srt], dtype=np.float32)[inv][:, pose_column_indices(arch)]
-        lab = np.asarray(self.arrays["labels"][srt], dtype=np.int64)[inv]
+        if target == "success_rate":
+            lab = np.clip(np.asarray(self.arrays["quality"][srt], dtype=np.float32)[inv], 0.0, 1.0)
+        else:
+            lab = np.asarray(self.arrays["labels"][srt], dtype=np.int64)[inv]
         return torch.from_numpy(img[:, None]), torch.from_numpy(np.ascontiguousarray(pose)), torch.from_numpy(lab)
 
 

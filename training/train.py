@@ -257,10 +257,21 @@ def _check_resume_dataset(saved: dict, data: CropDataset, mix: CropDataset | Non
         )
 
 
+def _check_target(cfg: TrainConfig, data: CropDataset) -> None:
+    """``target`` "success_rate" needs crops whose ``quality`` is the physics label's success rate."""
+    kind = data.label_info().get("kind")
+    if cfg.target == "success_rate" and kind != "physics":
+        raise DatasetError(
+            f"target 'success_rate' needs crops with the physics label (trial success rates); {data.path} "
+            f"carries the {kind!r} label"
+        )
+
+
 def _open_data(cfg: TrainConfig, data_dir, d: _Dist) -> tuple[CropDataset, CropSplit, CropSplit]:
     """The crop dataset and its train / val splits, checked to suit ``cfg`` on ``d.world`` processes."""
     data = open_crop_dataset(data_dir)
     data.check_arch(cfg.arch)
+    _check_target(cfg, data)
     train_split, val_split = data.split("train"), data.split("val")
     if cfg.batch_size % d.world:
         raise ValueError(f"batch_size {cfg.batch_size} is not divisible by the {d.world} processes")
@@ -285,6 +296,7 @@ def _open_mix(
         return None, None, None
     mix = open_crop_dataset(cfg.mix_data)
     mix.check_arch(cfg.arch)
+    _check_target(cfg, mix)
     if mix.geometry != data.geometry:
         raise DatasetError(f"mix dataset {mix.path} has crop geometry {mix.geometry}; {data.path} has {data.geometry}")
     if mix.label_threshold != data.label_threshold:
@@ -398,6 +410,8 @@ def _sgd_step(
     img, pose, lab = batch
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
         logits = model(img, pose)
+    if lab.is_floating_point():  # success rates: a soft two-class target (1 - r, r)
+        lab = torch.stack([1.0 - lab, lab], dim=1)
     loss = F.cross_entropy(logits.float(), lab, weight=weights)
     opt.zero_grad(set_to_none=True)
     loss.backward()
@@ -493,9 +507,11 @@ def train(
             n_batches = len(order) // local_main  # BatchSampler(sampler, local_main, drop_last=True)
             for bi in range(state.batch_in_epoch, n_batches):
                 lr = cfg.lr_at(state.samples_seen)
-                batch = train_split.batch(order[bi * local_main : (bi + 1) * local_main], cfg.arch)
+                batch = train_split.batch(order[bi * local_main : (bi + 1) * local_main], cfg.arch, cfg.target)
                 if local_mix:
-                    extra = mix_train.batch(_mix_index(cfg, state.step, d.rank, len(mix_train), local_mix), cfg.arch)
+                    extra = mix_train.batch(
+                        _mix_index(cfg, state.step, d.rank, len(mix_train), local_mix), cfg.arch, cfg.target
+                    )
                     batch = tuple(torch.cat(pair) for pair in zip(batch, extra))
                 loss = _sgd_step(model, opt, batch, lr, weights, bf16)
                 state.advance(cfg.batch_size)
