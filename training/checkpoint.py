@@ -91,10 +91,15 @@ def load_checkpoint(path: str | Path) -> dict:
     return ckpt
 
 
+def conv2_channels(ckpt: dict) -> int:
+    """The second conv stage's width of a checkpoint's network (64, the paper's, for checkpoints
+    written before the option existed)."""
+    return int(ckpt.get("config", {}).get("conv2_channels", 64))
+
+
 def net_from_checkpoint(ckpt: dict) -> GraspQualityNet:
     """A GraspQualityNet in eval mode with the checkpoint's weights and normalisation."""
-    channels = int(ckpt.get("config", {}).get("conv2_channels", 64))  # written before the option: 64
-    net = GraspQualityNet(ckpt["arch"], image_size=int(ckpt["geometry"]["out"]), conv2_channels=channels)
+    net = GraspQualityNet(ckpt["arch"], image_size=int(ckpt["geometry"]["out"]), conv2_channels=conv2_channels(ckpt))
     net.load_state_dict(ckpt["model"])
     net.set_normalization(Normalization.from_dict(ckpt["normalization"]))  # same values; validates
     return net.eval()

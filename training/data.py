@@ -29,6 +29,8 @@ from vgq.crop import CropGeometry
 from vgq.pose import FULL_POSE_COLUMNS, POSE_COLUMNS, pose_column_indices
 from vgq.schema import CROP_FIELDS, CROP_FORMAT, SPLITS, check_fields, read_manifest
 
+from .config import TARGETS
+
 
 class DatasetError(ValueError):
     """The crop dataset is missing, malformed or unusable for the requested architecture."""
@@ -58,6 +60,8 @@ class CropSplit:
         """Rows ``index`` as tensors: images (b, 1, S, S) metres, poses (b, n_pose), and labels (b,)
         int64 (``target`` "label") or the physics label's success rates (b,) float32 in [0, 1]
         (``target`` "success_rate": the crops' ``quality``)."""
+        if target not in TARGETS:
+            raise ValueError(f"target must be one of {TARGETS}, got {target!r}")
         index = np.asarray(index, dtype=np.int64)
         order = np.argsort(index, kind="stable")  # sorted reads from the memory map are faster
         srt = index[order]

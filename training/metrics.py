@@ -74,7 +74,7 @@ def metrics_by_bin(
     distance in metres), keyed "lo-hi" in ascending order; empty bins are left out."""
     v = np.asarray(values, dtype=np.float64).ravel()
     edges = bin_edges(v, step)
-    idx = np.clip(np.searchsorted(edges, v + 1e-9, side="right") - 1, 0, len(edges) - 2)
+    idx = bin_index(v, edges)
     y, p = np.asarray(labels).ravel(), np.asarray(p_success).ravel()
     return {
         f"{edges[i]:g}-{edges[i + 1]:g}": binary_metrics(y[idx == i], p[idx == i], threshold) for i in np.unique(idx)
@@ -97,6 +97,12 @@ def auc(score: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None) -> f
     neg = np.add.reduceat(wn, start)
     neg_below = np.cumsum(neg) - neg
     return float(np.sum(pos * (neg_below + 0.5 * neg)) / (wp.sum() * wn.sum()))
+
+
+def bin_index(values: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Bin of each value among ``edges`` (as :func:`bin_edges` makes them; a value on an edge
+    falls in the bin above it, the last edge in the last bin)."""
+    return np.clip(np.searchsorted(edges, values + 1e-9, side="right") - 1, 0, len(edges) - 2)
 
 
 def bin_edges(values: np.ndarray, step: float) -> np.ndarray:
@@ -129,8 +135,7 @@ def grid_metrics(
     d = np.asarray(camera_d, dtype=np.float64).ravel()
     phi = np.degrees(np.asarray(camera_phi, dtype=np.float64).ravel())
     d_edges, phi_edges = bin_edges(d, d_step), bin_edges(phi, phi_step_deg)
-    di = np.clip(np.searchsorted(d_edges, d + 1e-9, side="right") - 1, 0, len(d_edges) - 2)
-    pj = np.clip(np.searchsorted(phi_edges, phi + 1e-9, side="right") - 1, 0, len(phi_edges) - 2)
+    di, pj = bin_index(d, d_edges), bin_index(phi, phi_edges)
     shape = (len(d_edges) - 1, len(phi_edges) - 1)
     cell = di * shape[1] + pj
     size = shape[0] * shape[1]

@@ -41,6 +41,7 @@ from .checkpoint import (
     CHECKPOINT_VERSION,
     CheckpointError,
     RunPaths,
+    conv2_channels,
     load_checkpoint,
     resolve_run,
     save_checkpoint,
@@ -313,7 +314,7 @@ def _init_checkpoint(cfg: TrainConfig, data: CropDataset) -> dict:
     ckpt = load_checkpoint(path)
     if ckpt["arch"] != cfg.arch:
         raise CheckpointError(f"init checkpoint {path} is a {ckpt['arch']} network; this run trains {cfg.arch}")
-    init_channels = int(ckpt.get("config", {}).get("conv2_channels", 64))
+    init_channels = conv2_channels(ckpt)
     if init_channels != cfg.conv2_channels:
         raise CheckpointError(
             f"init checkpoint {path} has {init_channels} conv2 channels; this run trains {cfg.conv2_channels}"
