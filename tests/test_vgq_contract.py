@@ -18,7 +18,13 @@ from vgq.crop import (
     window_origin,
 )
 from vgq.normalization import Normalization
-from vgq.pose import canonical_quaternion, matrix_from_quaternion, pose_column_indices, quaternion_from_matrix
+from vgq.pose import (
+    approach_angle,
+    canonical_quaternion,
+    matrix_from_quaternion,
+    pose_column_indices,
+    quaternion_from_matrix,
+)
 
 G = CropGeometry(96, 32, 36.0)
 
@@ -86,6 +92,14 @@ def test_quaternion_matrix_round_trip_matches_scipy():
     ref = canonical_quaternion(R.as_quat()[:, [3, 0, 1, 2]])
     assert np.allclose(q, ref, atol=1e-12)
     assert np.allclose(matrix_from_quaternion(q), R.as_matrix(), atol=1e-12)
+
+
+def test_approach_angle_is_the_angle_between_gripper_z_and_camera_z():
+    R = Rotation.random(50, random_state=3)
+    q = quaternion_from_matrix(R.as_matrix())
+    want = np.arccos(np.clip(R.apply([0.0, 0.0, 1.0])[:, 2], -1, 1))
+    np.testing.assert_allclose(approach_angle(q), want, atol=1e-7)
+    assert approach_angle(np.array([1.0, 0, 0, 0])) == 0.0  # identity: approaching along the view axis
 
 
 def test_pose_columns_select_from_the_full_row():

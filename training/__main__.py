@@ -135,7 +135,12 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps({"split": rec["split"], "name": rec["name"], "sensor": rec["sensor"], **rec["overall"]}))
             for fam, m in rec["by_family"].items():
                 print(json.dumps({"family": fam, **m}))
-            for key, what in (("by_camera_distance_m", "camera_d_m"), ("by_camera_elevation_deg", "camera_phi_deg")):
+            for key, what in (
+                ("by_camera_distance_m", "camera_d_m"),
+                ("by_camera_elevation_deg", "camera_phi_deg"),
+                ("by_approach_psi_deg", "approach_psi_deg"),
+                ("by_window_offset_px", "window_offset_px"),
+            ):
                 for b, m in rec[key].items():
                     print(json.dumps({what: b, **m}))
         elif args.command == "baseline":

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from vgq import atomic
+from vgq.pose import FULL_POSE_COLUMNS, approach_angle
 
 from . import metrics as M
 from .checkpoint import RunPaths, load_trained, resolve_run
@@ -72,6 +73,18 @@ def evaluate(
     by_elevation = {
         k: M.nan_to_none(m) for k, m in M.metrics_by_bin(labels, p, np.degrees(cam_phi), 10.0, threshold).items()
     }
+    # the grasp's margins: its offset from the window centre (max |u|, |v|, crop px; Fast-VGQ-CNN:
+    # how well the head finds the grasp in the shared window) and its approach angle psi to the view axis
+    pose = np.asarray(sp.arrays["poses"][rows], dtype=np.float64)
+    cols = list(FULL_POSE_COLUMNS)
+    by_psi = {
+        k: M.nan_to_none(m)
+        for k, m in M.metrics_by_bin(
+            labels, p, np.degrees(approach_angle(pose[:, cols.index("qw") : cols.index("qz") + 1])), 15.0, threshold
+        ).items()
+    }
+    offset = np.abs(pose[:, [cols.index("u"), cols.index("v")]]).max(axis=1)
+    by_offset = {k: M.nan_to_none(m) for k, m in M.metrics_by_bin(labels, p, offset, 2.0, threshold).items()}
     grid = M.grid_metrics(
         labels,
         p,
@@ -100,6 +113,8 @@ def evaluate(
         "held_out_families": held_out,
         "by_camera_distance_m": by_distance,
         "by_camera_elevation_deg": by_elevation,
+        "by_approach_psi_deg": by_psi,
+        "by_window_offset_px": by_offset,
         "rows": {"evaluated": int(len(rows)), "of": int(len(sp)), "seed": int(seed) if len(rows) < len(sp) else None},
         "grid": {"d_step_m": d_step, "phi_step_deg": phi_step_deg, **M.grid_to_json(grid)},
         "inference_s": dt,

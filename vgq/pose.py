@@ -107,6 +107,14 @@ def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
     return canonical_quaternion(q).reshape(*shape, 4)
 
 
+def approach_angle(q: np.ndarray) -> np.ndarray:
+    """(...,) angle psi (radians, 0..pi) between the approach axis (gripper z) and the camera's
+    optical axis (camera z) for unit quaternions (..., 4) (w, x, y, z): cos psi = R[2, 2] =
+    1 - 2 (x^2 + y^2). 0: approaching straight along the view direction; VG-dset keeps psi < 90 deg."""
+    q = np.asarray(q, dtype=np.float64)
+    return np.arccos(np.clip(1.0 - 2.0 * (q[..., 1] ** 2 + q[..., 2] ** 2), -1.0, 1.0))
+
+
 def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
     """Quaternions (..., 4) in (w, x, y, z) to rotation matrices (..., 3, 3)."""
     q = canonical_quaternion(q)
