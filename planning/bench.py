@@ -57,17 +57,17 @@ def _recipe_config(model):
         return DatagenConfig()
 
 
-def heldout_object_ids(path: str = HELDOUT) -> list[int]:
-    """Test object ids: those of a held-out crop file (.npz with ``object_id``), or the test split
-    of a crop dataset folder (e.g. data/v2/crops, whose ids index the recipe's objects, families
-    included)."""
+def heldout_object_ids(path: str = HELDOUT, split: str = "test") -> list[int]:
+    """Test object ids: those of a held-out crop file (.npz with ``object_id``), or the ``split``
+    (test by default; train or val to fit something on other objects) of a crop dataset folder
+    (e.g. data/v2/crops, whose ids index the recipe's objects, families included)."""
     p = Path(path)
     if p.is_dir():
         from vgq.schema import CROP_FORMAT, read_manifest
 
-        ids = read_manifest(p, CROP_FORMAT)["counts"]["test"].get("objects") or []
+        ids = read_manifest(p, CROP_FORMAT)["counts"].get(split, {}).get("objects") or []
         if not ids:
-            raise ValueError(f"{p}: its manifest lists no test objects")
+            raise ValueError(f"{p}: its manifest lists no {split} objects")
         return sorted(int(i) for i in ids)
     return sorted(int(i) for i in np.unique(np.load(p)["object_id"]))
 
@@ -200,7 +200,7 @@ def _setup(args):
     model = _model(args.model, args.threads)
     config = _recipe_config(model)
     params = plan_params(args)
-    ids = heldout_object_ids(args.heldout)
+    ids = heldout_object_ids(args.heldout, args.split)
     rng = np.random.default_rng(args.seed)
     picked = rng.choice(ids, size=args.scenes, replace=args.scenes > len(ids))
     return model, config, params, picked, rng
@@ -408,7 +408,7 @@ def run_pool(args) -> dict:
 
     model, config, params, picked, rng = _setup(args)
     feats: dict[str, list] = {k: [] for k in POOL_FEATURES}
-    held, reasons, scenes = [], [], 0
+    held, reasons, scenes, scene_of = [], [], 0, []
     with GraspSimulator(DatagenGripper(**dataclasses.asdict(config.gripper)), PhysicsParams()) as sim:
         for i, oid in enumerate(picked):
             scene = make_scene(int(oid), config, rng)
@@ -425,6 +425,7 @@ def run_pool(args) -> dict:
             tr = run_trials(sim, Tw, args.trials, np.random.default_rng(3000 + i))
             held.append(tr.held.mean(axis=1))
             reasons.append(tr.reason)
+            scene_of.append(np.full(len(pick), i))
             for k, v in candidate_features(scene, Tw, c["contacts"][pick], c["scores"][pick], params.gripper).items():
                 feats[k].append(v)
             print(f"scene {i:2d} object {oid:3d}: {len(pick)} candidates, held {held[-1].mean():.2f}", flush=True)
@@ -442,6 +443,13 @@ def run_pool(args) -> dict:
         "table_margin": params.table_margin,
         "auc": {k: auc(np.concatenate(v), y) if v else float("nan") for k, v in feats.items()},
         "seed": args.seed,
+        # one row per judged candidate: its scene (index into the drawn objects), features, trials held
+        "candidate_rows": {
+            "scene": np.concatenate(scene_of).tolist() if scene_of else [],
+            "object_id": [int(picked[j]) for j in np.concatenate(scene_of)] if scene_of else [],
+            "held": rate.tolist(),
+            **{k: np.concatenate(v).tolist() if v else [] for k, v in feats.items()},
+        },
     }
     print(
         f"\n{out['candidates']} candidates of {scenes} scenes, {args.trials} trials each (table margin "
@@ -608,6 +616,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("what", choices=["timing", "precision", "trials", "ranker", "pool"])
     ap.add_argument("--model", default=MODEL_DIR)
     ap.add_argument("--heldout", default=HELDOUT)
+    ap.add_argument(
+        "--split",
+        choices=["train", "val", "test"],
+        default="test",
+        help="the objects of this split when --heldout is a crop dataset folder (train / val: to fit on other objects)",
+    )
     ap.add_argument("--scenes", type=int, default=None, help="timing: 4, precision: 20")
     ap.add_argument("--repeats", type=int, default=26, help="timing: passes over the scenes (the first is warm-up)")
     ap.add_argument("--threads", type=int, default=2, help="onnxruntime intra-op threads")

@@ -70,9 +70,12 @@ def test_held_out_objects_come_from_a_crop_file_or_a_crop_datasets_test_split(tm
     assert heldout_object_ids(str(tmp_path / "crops.npz")) == [3, 7, 12]
     d = tmp_path / "crops"
     d.mkdir()
-    m = {"format": "vgq-crops", "format_version": 1, "counts": {"test": {"n": 5, "objects": [640, 12, 601]}}}
-    (d / "manifest.json").write_text(json.dumps(m))
+    counts = {"test": {"n": 5, "objects": [640, 12, 601]}, "train": {"n": 9, "objects": [5, 1]}}
+    (d / "manifest.json").write_text(json.dumps({"format": "vgq-crops", "format_version": 1, "counts": counts}))
     assert heldout_object_ids(str(d)) == [12, 601, 640]
+    assert heldout_object_ids(str(d), "train") == [1, 5]  # to fit something on objects the test never sees
+    with pytest.raises(ValueError, match="no val objects"):
+        heldout_object_ids(str(d), "val")
 
 
 def test_candidate_features_measure_the_grasp_against_the_true_scene():
