@@ -404,10 +404,13 @@ def run_pool(args) -> dict:
     from datagen.physics import REASONS, GraspSimulator, PhysicsParams, run_trials
     from training.metrics import auc
 
+    from .features import PLAN_FEATURES, plan_features
     from .policy import plan
+    from .sampler import Candidates
 
     model, config, params, picked, rng = _setup(args)
     feats: dict[str, list] = {k: [] for k in POOL_FEATURES}
+    planned: dict[str, list] = {k: [] for k in PLAN_FEATURES}  # what the planner itself knows (planning.features)
     held, reasons, scenes, scene_of = [], [], 0, []
     with GraspSimulator(DatagenGripper(**dataclasses.asdict(config.gripper)), PhysicsParams()) as sim:
         for i, oid in enumerate(picked):
@@ -428,6 +431,9 @@ def run_pool(args) -> dict:
             scene_of.append(np.full(len(pick), i))
             for k, v in candidate_features(scene, Tw, c["contacts"][pick], c["scores"][pick], params.gripper).items():
                 feats[k].append(v)
+            seen = Candidates(c["frames"][pick], c["contacts"][pick], c["widths"][pick], c["seen"][pick])
+            for k, v in plan_features(seen, c["scores"][pick], c["scene"], params.gripper).items():
+                planned[k].append(v)
             print(f"scene {i:2d} object {oid:3d}: {len(pick)} candidates, held {held[-1].mean():.2f}", flush=True)
     rate = np.concatenate(held) if held else np.zeros(0)
     outcome = np.concatenate(reasons) if reasons else np.zeros((0, args.trials), np.int8)
@@ -449,6 +455,7 @@ def run_pool(args) -> dict:
             "object_id": [int(picked[j]) for j in np.concatenate(scene_of)] if scene_of else [],
             "held": rate.tolist(),
             **{k: np.concatenate(v).tolist() if v else [] for k, v in feats.items()},
+            **{f"plan_{k}": np.concatenate(v).tolist() if v else [] for k, v in planned.items()},
         },
     }
     print(

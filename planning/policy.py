@@ -476,5 +476,8 @@ def plan_resampled(
         "contacts": cands.contacts,
         "scores": scores,
         "poses": np.concatenate(scorer.scored_poses),  # the head's pose rows (window-relative u, v)
+        "widths": cands.widths,
+        "seen": cands.seen,
+        "scene": scene,  # what the sampler estimated (table, points): planning.features reads it
     }
     return PlanResult(grasps, None, counts, seconds, version, everything)

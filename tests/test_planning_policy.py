@@ -168,6 +168,9 @@ def test_every_candidate_keeps_the_head_pose_it_was_scored_with(model, two_boxes
     assert np.allclose(c["poses"][:, 2:], rows[:, 2:], atol=1e-6)  # z, quaternion as given
     kappa = model.geometry.kappa_px
     assert np.abs(c["poses"][:, :2]).max() <= kappa / model.geometry.scale + 1e-3  # crop px from the window centre
+    # planning.features reads the rest: each candidate's width and seen flag, and the scene estimate
+    assert c["widths"].shape == c["seen"].shape == (len(c["frames"]),) and c["scene"].table is not None
+    assert np.allclose(c["widths"], np.linalg.norm(c["contacts"][:, 1] - c["contacts"][:, 0], axis=1))
 
 
 def test_missing_depth_is_filled_before_the_encoder_as_in_training(two_boxes):
