@@ -411,7 +411,7 @@ def run_pool(args) -> dict:
     model, config, params, picked, rng = _setup(args)
     feats: dict[str, list] = {k: [] for k in POOL_FEATURES}
     planned: dict[str, list] = {k: [] for k in PLAN_FEATURES}  # what the planner itself knows (planning.features)
-    held, reasons, scenes, scene_of = [], [], 0, []
+    held, reasons, scenes, scene_of, retest = [], [], 0, [], []
     with GraspSimulator(DatagenGripper(**dataclasses.asdict(config.gripper)), PhysicsParams()) as sim:
         for i, oid in enumerate(picked):
             scene = make_scene(int(oid), config, rng)
@@ -429,6 +429,10 @@ def run_pool(args) -> dict:
             held.append(tr.held.mean(axis=1))
             reasons.append(tr.reason)
             scene_of.append(np.full(len(pick), i))
+            if args.retest:  # the oracle's own best judged candidate, judged again on fresh trials
+                best = int(np.argmax(held[-1]))
+                again = run_trials(sim, Tw[best : best + 1], args.trials, np.random.default_rng(4000 + i))
+                retest.append((held[-1][best], float(again.held.mean())))
             for k, v in candidate_features(scene, Tw, c["contacts"][pick], c["scores"][pick], params.gripper).items():
                 feats[k].append(v)
             seen = Candidates(c["frames"][pick], c["contacts"][pick], c["widths"][pick], c["seen"][pick])
@@ -449,6 +453,13 @@ def run_pool(args) -> dict:
         "table_margin": params.table_margin,
         "auc": {k: auc(np.concatenate(v), y) if v else float("nan") for k, v in feats.items()},
         "seed": args.seed,
+        # --retest: per scene, the judged candidate that held most, and its share of fresh trials held
+        "retest": {
+            "first": [a for a, _ in retest],
+            "again": [b for _, b in retest],
+            "positive_again": float(np.mean([b > 0.5 for _, b in retest])) if retest else None,
+            "positive_first": float(np.mean([a > 0.5 for a, _ in retest])) if retest else None,
+        },
         # one row per judged candidate: its scene (index into the drawn objects), features, trials held
         "candidate_rows": {
             "scene": np.concatenate(scene_of).tolist() if scene_of else [],
@@ -464,6 +475,12 @@ def run_pool(args) -> dict:
         f"{100 * out['positive']:.1f}% held in more than half"
     )
     print("trial outcomes: " + ", ".join(f"{k} {100 * v:.1f}%" for k, v in out["outcomes"].items()))
+    if retest:
+        print(
+            f"retest: the candidate that held most in each scene held in more than half of {args.trials} "
+            f"fresh trials in {100 * out['retest']['positive_again']:.1f}% of {len(retest)} scenes "
+            f"(first judging: {100 * out['retest']['positive_first']:.1f}%)"
+        )
     print("ROC AUC of each feature for 'held in more than half':")
     for k, v in out["auc"].items():
         print(f"  {k:18s} {v:.3f}   ({POOL_FEATURES[k]})")
@@ -637,6 +654,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--trials", type=int, default=5, help="trials / pool: pybullet trials per grasp (with execution noise)"
     )
     ap.add_argument("--per-scene", type=int, default=24, help="pool: random candidates tried per scene")
+    ap.add_argument(
+        "--retest",
+        action="store_true",
+        help="pool: judge each scene's best judged candidate again on fresh trials (what a ranker that knew "
+        "the oracle's answer would score on a new judging)",
+    )
     ap.add_argument(
         "--table-margin",
         type=float,
