@@ -105,3 +105,11 @@ def test_command_line_sets_the_approach_tilt_and_refuses_nonsense(capsys):
     with pytest.raises(SystemExit) as e:
         parse_args(["precision", "--max-approach-tilt", "120"])
     assert e.value.code == 2 and "--max-approach-tilt must be in (0, 90]" in capsys.readouterr().err
+
+
+def test_pool_options_parse():
+    from planning.bench import parse_args
+
+    a = parse_args(["pool", "--retest", "--split", "train"])
+    assert a.retest and a.split == "train" and a.scenes == 60
+    assert not parse_args(["pool"]).retest and parse_args(["pool"]).split == "test"
