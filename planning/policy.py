@@ -454,6 +454,8 @@ def plan_resampled(
     rows = grasp_rows(top.frames, intr)
     flags = ood_flags(rows, d_model, z_training_range(model), missing[keep] > params.window_missing_fraction)
     uv = map_pixels(rows[:, :2], intr, cam) if intr != cam else rows[:, :2]
+    cal = getattr(model, "planner_calibration", None)
+    p_hold = cal.apply(scores[keep]) if cal is not None else [None] * len(keep)
     grasps = tuple(
         PlannedGrasp(
             u=float(uv[i, 0]),
@@ -466,6 +468,7 @@ def plan_resampled(
             score=float(scores[keep[i]]),
             ood_flags=int(flags[i]),
             ood=tuple(flag_names(int(flags[i]))),
+            p_hold=None if p_hold[i] is None else float(p_hold[i]),
         )
         for i in range(len(keep))
     )

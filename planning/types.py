@@ -124,7 +124,9 @@ class PlannedGrasp:
     ``row`` is the service's grasp row (u, v, z, qw, qx, qy, qz); ``pose`` the 4 x 4 grasp
     frame in the camera frame; ``contacts`` (2, 3) the observed contact points (contact 0,
     contact 1 along the jaw axis); ``width`` their distance; ``score`` the network's
-    P(success); ``ood_flags`` the :mod:`vgq.ood` bitmask, ``ood`` its names."""
+    P(success); ``ood_flags`` the :mod:`vgq.ood` bitmask, ``ood`` its names; ``p_hold`` the
+    probability that it survives the physics oracle's lift and shake, from the model's planner
+    calibration (:mod:`planning.calibration`; None without one)."""
 
     u: float
     v: float
@@ -136,6 +138,7 @@ class PlannedGrasp:
     score: float
     ood_flags: int
     ood: tuple[str, ...]
+    p_hold: float | None = None
 
     @property
     def row(self) -> np.ndarray:
@@ -154,6 +157,7 @@ class PlannedGrasp:
             "score": self.score,
             "ood_flags": self.ood_flags,
             "ood": list(self.ood),
+            "p_hold": self.p_hold,
         }
 
 

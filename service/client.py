@@ -42,8 +42,9 @@ def intrinsics_params(intrinsics) -> dict:
 class Plan:
     """The answer of ``POST /v1/plan`` (or ``/v1/images/{id}/plan``): ``grasps`` best first,
     each a dict with ``row`` (u, v, z, qw, qx, qy, qz), ``pose`` (4 x 4, camera frame,
-    metres), ``width`` (m), ``contacts`` (2 x 3, camera frame, m), ``score``, ``ood_flags``
-    and ``ood``; ``reason`` says why when there are none; ``intrinsics`` the camera planned
+    metres), ``width`` (m), ``contacts`` (2 x 3, camera frame, m), ``score``, ``ood_flags``,
+    ``ood`` and ``p_hold`` (the probability it holds through the oracle's lift and shake; None
+    when the model has no planner calibration); ``reason`` says why when there are none; ``intrinsics`` the camera planned
     with (px); ``answer`` the whole JSON."""
 
     grasps: list[dict]
@@ -67,6 +68,11 @@ class Plan:
     @property
     def scores(self) -> np.ndarray:
         return np.array([g["score"] for g in self.grasps], dtype=np.float64)
+
+    @property
+    def p_hold(self) -> np.ndarray:
+        """(n,) each grasp's p_hold, NaN where the model has no planner calibration."""
+        return np.array([np.nan if g.get("p_hold") is None else g["p_hold"] for g in self.grasps], dtype=np.float64)
 
 
 class ServiceClient:

@@ -373,6 +373,13 @@ _PLANNED_GRASP = {
         "score": {"type": "number", "minimum": 0, "maximum": 1, "description": "Fast-VGQ-CNN's P(success)"},
         "ood_flags": {"type": "integer", "minimum": 0, "description": "vgq.ood bitmask (0: in distribution)"},
         "ood": {"type": "array", "items": {"type": "string"}, "description": "names of the set ood flags"},
+        "p_hold": {
+            "type": ["number", "null"],
+            "minimum": 0,
+            "maximum": 1,
+            "description": "probability that the grasp holds through the physics oracle's lift and shake, from the "
+            "model's planner calibration (planner_calibration.json); null when the model has none",
+        },
     },
 }
 PLAN_EXAMPLE = {  # vgq-plan examples/depth_example.npy --k 1 on the bundled model (rounded)
@@ -394,6 +401,7 @@ PLAN_EXAMPLE = {  # vgq-plan examples/depth_example.npy --k 1 on the bundled mod
             "score": 0.931,
             "ood_flags": 0,
             "ood": [],
+            "p_hold": 0.356,
         }
     ],
     "reason": None,

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from planning import calibration as planner_calibration
 from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT, ModelCard
 
 from .config import ENCODER_PRECISIONS, HEAD_PRECISIONS
@@ -56,6 +57,10 @@ class FastModel:
             raise ModelError(f"cannot load model from {model_dir}: {e}") from e
         if self.card.architecture != "fast_vgqcnn":
             raise ModelError(f"{model_dir}: architecture {self.card.architecture!r}; the service serves fast_vgqcnn")
+        try:  # planned grasps' p_hold (planning.calibration); None: the folder has none
+            self.planner_calibration = planner_calibration.load(model_dir)
+        except ValueError as e:
+            raise ModelError(f"cannot load model from {model_dir}: {e}") from e
         if head_precision not in HEAD_PRECISIONS:
             raise ModelError(f"head_precision must be one of {HEAD_PRECISIONS}, got {head_precision!r}")
         has_int8 = "head_int8" in self.card.files
