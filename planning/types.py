@@ -172,8 +172,8 @@ class PlanResult:
     seconds: dict = field(default_factory=dict)
     model_version: str = ""
     #: every scored candidate (``frames`` (n, 4, 4), ``contacts`` (n, 2, 3), ``scores`` (n,),
-    #: ``poses`` (n, 7): the head's pose rows),
-    #: for benchmarks; not part of :meth:`to_dict`
+    #: ``poses`` (n, 7): the head's pose rows, ``widths`` (n,), ``seen`` (n,) bool) and the
+    #: sampler's ``scene`` estimate, for benchmarks (planning.features); not part of :meth:`to_dict`
     candidates: dict | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
