@@ -12,7 +12,7 @@ network's score alone and a random pick:
 * ``within_scene_auc``: each feature's ROC AUC for "held in more than half" inside a scene,
   averaged over scenes with both outcomes; ranking only ever compares grasps of one scene.
 
-Run: ``python -m planning.ranking_study FIT.json JUDGE.json``.
+Run: ``python -m planning.ranking_study FIT.json JUDGE.json [JUDGE2.json ...]``.
 """
 
 from __future__ import annotations
@@ -34,6 +34,18 @@ RANKERS: dict[str, tuple[str, ...]] = {
     "score + width": ("score", "width"),
     "all plan features": tuple(k for k in PLAN_FEATURES if k != "seen"),
 }
+
+
+def pools_rows(paths) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """:func:`pool_rows` of one pool JSON or several (their scenes numbered apart)."""
+    paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
+    parts, offset = [], 0
+    for p in paths:
+        f, h, sc = pool_rows(p)
+        parts.append((f, h, sc + offset))
+        offset += int(sc.max()) + 1 if len(sc) else 0
+    feats = {k: np.concatenate([f[k] for f, _, _ in parts]) for k in PLAN_FEATURES}
+    return feats, np.concatenate([h for _, h, _ in parts]), np.concatenate([sc for _, _, sc in parts])
 
 
 def pool_rows(path: str | Path) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
@@ -100,10 +112,11 @@ def within_scene_auc(x: np.ndarray, positive: np.ndarray, scene: np.ndarray) -> 
     return (float(np.mean(a)) if a else float("nan")), len(a)
 
 
-def study(fit_path: str | Path, judge_path: str | Path) -> dict:
-    """Each of :data:`RANKERS` fitted on ``fit_path``'s pool and judged on ``judge_path``'s."""
-    fa, ha, sa = pool_rows(fit_path)
-    fb, hb, sb = pool_rows(judge_path)
+def study(fit_path, judge_path) -> dict:
+    """Each of :data:`RANKERS` fitted on ``fit_path``'s pool and judged on ``judge_path``'s (a
+    path or a list of paths: their pools together)."""
+    fa, ha, sa = pools_rows(fit_path)
+    fb, hb, sb = pools_rows(judge_path)
     pos = hb > 0.5
     out = {
         "fit": {"candidates": int(len(ha)), "scenes": int(len(np.unique(sa)))},
@@ -135,7 +148,9 @@ def study(fit_path: str | Path, judge_path: str | Path) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m planning.ranking_study", description=__doc__.splitlines()[0])
     ap.add_argument("fit", help="pool JSON to fit on (planning.bench pool --split train --json ...)")
-    ap.add_argument("judge", help="pool JSON to judge on (planning.bench pool --split test --json ...)")
+    ap.add_argument(
+        "judge", nargs="+", help="pool JSON(s) to judge on, together (planning.bench pool --split test --json ...)"
+    )
     ap.add_argument("--json", help="write the results here")
     args = ap.parse_args(argv)
     try:

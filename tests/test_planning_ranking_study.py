@@ -30,6 +30,8 @@ def test_the_feature_that_decides_is_ranked_first(tmp_path):
     assert out["rankers"]["width"]["p_at_1"] == 1.0 and out["rankers"]["width"]["weights"][0] > 0
     assert out["random_p_at_1"] == 0.5 and out["ceiling_p_at_1"] == 1.0
     assert out["rankers"]["score"]["p_at_1"] < 1.0  # noise does not rank
+    two = study(tmp_path / "fit.json", [tmp_path / "judge.json", _pool(tmp_path / "judge2.json", 2)])
+    assert two["judge"] == {"candidates": 240, "scenes": 24}  # the pools' scenes kept apart
 
 
 def test_a_pool_without_plan_features_exits_2_naming_them(tmp_path, capsys):
