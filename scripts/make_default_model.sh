@@ -57,6 +57,12 @@ main() {
     export_model --leave-family-out "$RUN-lfo/eval/metrics_test.json"  # the same model, its card with the LFO result
   fi
   cp "$RUN/eval/heatmap_test.png" "$RUN/eval/curves.png" "$OUT/"
+  if [ "$VERSION" = v2 ]; then  # planned grasps' p_hold: the score mapped to how often planner candidates hold
+    # (~25 min: 150 scenes of training objects, 32 candidates each, 8 pybullet trials; docs/planning.md)
+    [ -f "$RUN/pool_train.json" ] || $PY -m planning.bench pool --model "$OUT" --heldout "$DATA/crops" --split train \
+      --scenes 150 --per-scene 32 --trials 8 --threads 1 --json "$RUN/pool_train.json"
+    $PY -m planning.calibration "$RUN/pool_train.json" --model "$OUT"
+  fi
   if [ "$OUT" = models/fast-vgqcnn-default ]; then
     # the held-out examples the tests score the bundled model on: test-split crops and whole images
     # of its own test objects, then the golden end-to-end scores (tests/test_golden_scores.py)
