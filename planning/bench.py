@@ -378,20 +378,18 @@ POOL_FEATURES = {
 
 def candidate_features(scene: BenchScene, frames_world: np.ndarray, contacts_cam: np.ndarray, scores, gripper) -> dict:
     """:data:`POOL_FEATURES` of grasp frames (n, 4, 4) in the world frame (table z = 0)."""
-    from vgq.gripper import box_corners, gripper_boxes
+    from .features import table_features
 
-    from .collision import lowest_corner_height
-
-    corners = box_corners(*gripper_boxes(gripper, swept=False))  # (24, 3) grasp frame
-    x, z, t = frames_world[:, :3, 0], frames_world[:, :3, 2], frames_world[:, :3, 3]
+    x, t = frames_world[:, :3, 0], frames_world[:, :3, 3]
     d = scene.T_world_object[:3, 3] - t  # meshes are centred on their centre of mass
+    f = table_features(frames_world, np.array([0.0, 0.0, 1.0]), 0.0, gripper)  # the true table
     return {
-        "fingertip_height": lowest_corner_height(frames_world, corners, np.array([0.0, 0.0, 1.0]), 0.0),
+        "fingertip_height": f["table_clearance"],
         "width": np.linalg.norm(contacts_cam[:, 1] - contacts_cam[:, 0], axis=1),
         "com_line_offset": np.linalg.norm(d - np.sum(d * x, axis=1, keepdims=True) * x, axis=1),
-        "tcp_height": t[:, 2],
-        "approach_tilt": np.degrees(np.arccos(np.clip(-z[:, 2], -1, 1))),
-        "axis_tilt": np.degrees(np.arccos(np.clip(np.abs(x[:, 2]), 0, 1))),
+        "tcp_height": f["tcp_height"],
+        "approach_tilt": f["approach_tilt"],
+        "axis_tilt": f["axis_tilt"],
         "score": np.asarray(scores, np.float64),
     }
 

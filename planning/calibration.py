@@ -25,6 +25,8 @@ import numpy as np
 from vgq import atomic
 from vgq.calibration import Calibration, expected_calibration_error
 
+from .features import read_pool
+
 #: the planner calibration's file name in a model folder
 FILE = "planner_calibration.json"
 
@@ -43,14 +45,11 @@ def load(model_dir: str | Path) -> Calibration | None:
 
 def pool_scores(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(score (n,), held in more than half of its trials (n,) bool) of a pool JSON."""
+    rows = read_pool(path)
     try:
-        rows = json.loads(Path(path).read_text())["candidate_rows"]
-        score, held = np.asarray(rows["plan_score"], np.float64), np.asarray(rows["held"], np.float64)
-    except (OSError, ValueError, KeyError, TypeError) as e:
+        return np.asarray(rows["plan_score"], np.float64), np.asarray(rows["held"], np.float64) > 0.5
+    except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"{path}: not a pool JSON of planning.bench pool --json ({e})") from None
-    if len(score) != len(held) or len(score) == 0:
-        raise ValueError(f"{path}: no judged candidates")
-    return score, held > 0.5
 
 
 def fit(path: str | Path) -> Calibration:
@@ -58,10 +57,11 @@ def fit(path: str | Path) -> Calibration:
     (the planner's candidates as they come: no resampling to undo)."""
     from export.calibrate import fit_platt
 
-    score, y = pool_scores(path)
-    if y.all() or not y.any():
-        raise ValueError(f"{path}: its candidates all held or all failed; nothing to calibrate")
-    return fit_platt(score, y)
+    score, held = pool_scores(path)
+    try:
+        return fit_platt(score, held)  # refuses an empty pool, or one where all held or all failed
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
 
 
 def report(cal: Calibration, path: str | Path) -> dict:

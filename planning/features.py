@@ -6,6 +6,9 @@ features are NaN (a ranker must treat them as missing)."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 
 from vgq.gripper import GripperGeometry, box_corners, gripper_boxes
@@ -25,26 +28,47 @@ PLAN_FEATURES: dict[str, str] = {
 }
 
 
+def table_features(frames: np.ndarray, up: np.ndarray, offset: float | None, gripper: GripperGeometry) -> dict:
+    """Grasp frames (n, 4, 4) against a table plane ``up . x + offset = 0`` given in their frame
+    (``up`` (3,) unit, away from the table): ``approach_tilt`` and ``axis_tilt`` (deg) against
+    ``up``, and, unless ``offset`` is None (no plane: NaN), ``table_clearance`` (lowest gripper
+    point) and ``tcp_height`` (m) above it."""
+    z, x = frames[:, :3, 2], frames[:, :3, 0]
+    out = {
+        "approach_tilt": np.degrees(np.arccos(np.clip(-(z @ up), -1.0, 1.0))),
+        "axis_tilt": np.degrees(np.arccos(np.clip(np.abs(x @ up), 0.0, 1.0))),
+    }
+    if offset is None:
+        out["table_clearance"] = out["tcp_height"] = np.full(len(frames), np.nan)
+    else:
+        corners = box_corners(*gripper_boxes(gripper, swept=False))
+        out["table_clearance"] = lowest_corner_height(frames, corners, up, offset)
+        out["tcp_height"] = frames[:, :3, 3] @ up + offset
+    return out
+
+
 def plan_features(
     cands: Candidates, scores: np.ndarray, scene: Scene, gripper: GripperGeometry
 ) -> dict[str, np.ndarray]:
     """:data:`PLAN_FEATURES` (each (n,) float64) of ``cands`` (camera frame) on ``scene``."""
-    f = cands.frames
-    n = len(f)
+    n = len(cands)
+    table = scene.table
     out = {
         "score": np.asarray(scores, np.float64).reshape(n),
         "width": np.asarray(cands.widths, np.float64),
         "seen": np.asarray(cands.seen, np.float64),
+        **table_features(cands.frames, scene.up, None if table is None else table.offset, gripper),
     }
-    up = scene.up
-    z, x = f[:, :3, 2], f[:, :3, 0]
-    out["approach_tilt"] = np.degrees(np.arccos(np.clip(-(z @ up), -1.0, 1.0)))
-    out["axis_tilt"] = np.degrees(np.arccos(np.clip(np.abs(x @ up), 0.0, 1.0)))
-    if scene.table is None:
-        out["table_clearance"] = np.full(n, np.nan)
-        out["tcp_height"] = np.full(n, np.nan)
-    else:
-        corners = box_corners(*gripper_boxes(gripper, swept=False))
-        out["table_clearance"] = lowest_corner_height(f, corners, scene.table.normal, scene.table.offset)
-        out["tcp_height"] = scene.table.height(f[:, :3, 3])
     return {k: out[k] for k in PLAN_FEATURES}
+
+
+def read_pool(path) -> dict:
+    """The ``candidate_rows`` of a pool JSON (``planning.bench pool --json``: one list per column,
+    one entry per judged candidate); ValueError naming a file that is not one."""
+    try:
+        rows = json.loads(Path(path).read_text())["candidate_rows"]
+        if not isinstance(rows, dict):
+            raise TypeError("candidate_rows is not an object")
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{path}: not a pool JSON of planning.bench pool --json ({e})") from None
+    return rows

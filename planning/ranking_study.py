@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize
 
-from .features import PLAN_FEATURES
+from .features import PLAN_FEATURES, read_pool
 
 #: the feature sets tried, by name (score: its logit)
 RANKERS: dict[str, tuple[str, ...]] = {
@@ -51,10 +51,7 @@ def pools_rows(paths) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
 def pool_rows(path: str | Path) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
     """(plan features by name, trials held (n,), scene (n,)) of a pool JSON; ValueError naming
     what is missing."""
-    try:
-        rows = json.loads(Path(path).read_text())["candidate_rows"]
-    except (OSError, ValueError, KeyError) as e:
-        raise ValueError(f"{path}: not a pool JSON of planning.bench pool --json ({e})") from None
+    rows = read_pool(path)
     missing = [f"plan_{k}" for k in PLAN_FEATURES if f"plan_{k}" not in rows]
     if missing:
         raise ValueError(f"{path}: its candidate rows lack {missing} (written by an older planning.bench pool)")
@@ -72,7 +69,9 @@ def design(feats: dict[str, np.ndarray], names: tuple[str, ...], fill: np.ndarra
             x = np.log(s / (1 - s))
         cols.append(x)
     X = np.stack(cols, axis=1)
-    fill = np.nanmean(X, axis=0) if fill is None else fill
+    if fill is None:  # column means of the finite values (0 for a column with none)
+        ok = np.isfinite(X)
+        fill = np.where(ok, X, 0.0).sum(axis=0) / np.maximum(ok.sum(axis=0), 1)
     return np.where(np.isfinite(X), X, fill)
 
 
@@ -127,9 +126,7 @@ def study(fit_path, judge_path) -> dict:
         "rankers": {},
     }
     for k in PLAN_FEATURES:
-        a, n = within_scene_auc(
-            np.nan_to_num(fb[k], nan=np.nanmean(fb[k]) if np.isfinite(fb[k]).any() else 0.0), pos, sb
-        )
+        a, n = within_scene_auc(design(fb, (k,))[:, 0], pos, sb)  # NaN filled; the score's logit ranks alike
         out["within_scene_auc"][k] = {"auc": a, "scenes": n}
     for name, names in RANKERS.items():
         Xa = design(fa, names)
