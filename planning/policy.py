@@ -22,6 +22,7 @@ from vgq.ood import flag_names, ood_flags
 from vgq.pose import quaternion_from_matrix
 
 from .cloud import valid_mask
+from .features import plan_features
 from .sampler import Candidates, analyse_scene, collision_checker, feasible_approach, frames_about_axis, sample_grasps
 from .types import MAX_K, PlannedGrasp, PlanningError, PlanParams, PlanResult
 
@@ -262,9 +263,9 @@ class WindowScorer:
 
 
 def nms(frames: np.ndarray, scores: np.ndarray, k: int, distance: float, angle: float) -> np.ndarray:
-    """Indices of at most ``k`` grasps, best score first, none of which is within
-    ``distance`` (TCP, metres) and ``angle`` (jaw axis, radians, sign ignored) of a better
-    kept one."""
+    """Indices of at most ``k`` grasps, highest ``scores`` (any ranking value) first, none of
+    which is within ``distance`` (TCP, metres) and ``angle`` (jaw axis, radians, sign ignored)
+    of a better kept one."""
     order = np.argsort(-scores, kind="stable")
     c, a = frames[:, :3, 3], frames[:, :3, 0]
     cos_lim = np.cos(angle)
@@ -410,6 +411,8 @@ def plan_resampled(
         raise PlanningError("roi", "the region of interest has no valid depth")
     rng = np.random.default_rng(seed)
     seconds = {"resample": time.perf_counter() - t0}
+    ranker = getattr(model, "planner_ranker", None)  # planning.ranker: None orders by the score
+    ranked_by = "score" if ranker is None else "ranker"
 
     t = time.perf_counter()
     scene = analyse_scene(d_model, intr, params, rng, roi_m)
@@ -418,7 +421,7 @@ def plan_resampled(
     version = getattr(model, "version", "")
     if counts["object_pixels"] == 0:
         where = " in the region of interest" if roi_m is not None else ""
-        return PlanResult((), f"no object points above the table{where}", counts, seconds, version)
+        return PlanResult((), f"no object points above the table{where}", counts, seconds, version, ranked_by=ranked_by)
 
     t = time.perf_counter()
     checker = collision_checker(scene, params, rng)
@@ -433,7 +436,7 @@ def plan_resampled(
             if c["approaches"] == 0
             else "every candidate grasp collides with the table or the observed points"
         )
-        return PlanResult((), reason, counts, seconds, version)
+        return PlanResult((), reason, counts, seconds, version, ranked_by=ranked_by)
 
     scorer = WindowScorer(model, d_model, params.windows, windows)
     scores, missing = scorer.score(grasp_rows(cands.frames, intr))
@@ -449,7 +452,8 @@ def plan_resampled(
         counts["windows_reused"] = scorer.reused
 
     t = time.perf_counter()
-    keep = nms(cands.frames, scores, k, params.nms_distance, params.nms_angle)
+    utility = ranker.utility(plan_features(cands, scores, scene, params.gripper)) if ranker is not None else None
+    keep = nms(cands.frames, scores if utility is None else utility, k, params.nms_distance, params.nms_angle)
     top = cands[keep]
     rows = grasp_rows(top.frames, intr)
     flags = ood_flags(rows, d_model, z_training_range(model), missing[keep] > params.window_missing_fraction)
@@ -482,5 +486,6 @@ def plan_resampled(
         "widths": cands.widths,
         "seen": cands.seen,
         "scene": scene,  # what the sampler estimated (table, points): planning.features reads it
+        "utility": utility,  # the model's planner ranker's (None: the planner ranked by the score)
     }
-    return PlanResult(grasps, None, counts, seconds, version, everything)
+    return PlanResult(grasps, None, counts, seconds, version, everything, ranked_by)

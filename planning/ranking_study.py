@@ -23,84 +23,17 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import minimize
 
-from .features import PLAN_FEATURES, read_pool
+from .features import PLAN_FEATURES
+from .ranker import FEATURES, design, fit, pool_rows, precision_at_1
 
 #: the feature sets tried, by name (score: its logit)
 RANKERS: dict[str, tuple[str, ...]] = {
     "score": ("score",),
     "width": ("width",),
     "score + width": ("score", "width"),
-    "all plan features": tuple(k for k in PLAN_FEATURES if k != "seen"),
+    "all plan features": FEATURES,  # the planner's ranker (planning.ranker)
 }
-
-
-def pools_rows(paths) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
-    """:func:`pool_rows` of one pool JSON or several (their scenes numbered apart)."""
-    paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
-    parts, offset = [], 0
-    for p in paths:
-        f, h, sc = pool_rows(p)
-        parts.append((f, h, sc + offset))
-        offset += int(sc.max()) + 1 if len(sc) else 0
-    feats = {k: np.concatenate([f[k] for f, _, _ in parts]) for k in PLAN_FEATURES}
-    return feats, np.concatenate([h for _, h, _ in parts]), np.concatenate([sc for _, _, sc in parts])
-
-
-def pool_rows(path: str | Path) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
-    """(plan features by name, trials held (n,), scene (n,)) of a pool JSON; ValueError naming
-    what is missing."""
-    rows = read_pool(path)
-    missing = [f"plan_{k}" for k in PLAN_FEATURES if f"plan_{k}" not in rows]
-    if missing:
-        raise ValueError(f"{path}: its candidate rows lack {missing} (written by an older planning.bench pool)")
-    feats = {k: np.asarray(rows[f"plan_{k}"], dtype=np.float64) for k in PLAN_FEATURES}
-    return feats, np.asarray(rows["held"], dtype=np.float64), np.asarray(rows["scene"])
-
-
-def design(feats: dict[str, np.ndarray], names: tuple[str, ...], fill: np.ndarray | None = None) -> np.ndarray:
-    """(n, len(names)) columns; the score as a logit; NaN (no table estimate) -> ``fill`` (column means)."""
-    cols = []
-    for k in names:
-        x = feats[k]
-        if k == "score":
-            s = np.clip(x, 1e-6, 1 - 1e-6)
-            x = np.log(s / (1 - s))
-        cols.append(x)
-    X = np.stack(cols, axis=1)
-    if fill is None:  # column means of the finite values (0 for a column with none)
-        ok = np.isfinite(X)
-        fill = np.where(ok, X, 0.0).sum(axis=0) / np.maximum(ok.sum(axis=0), 1)
-    return np.where(np.isfinite(X), X, fill)
-
-
-def fit_conditional_logit(X: np.ndarray, held: np.ndarray, scene: np.ndarray, l2: float = 0.05) -> np.ndarray:
-    """Weights (d,) of a softmax over each scene's rows (X standardised by the caller) fitted by
-    cross-entropy to the scene's distribution of trials held; scenes where nothing held are left out."""
-    groups = [np.flatnonzero(scene == s) for s in np.unique(scene)]
-    groups = [g for g in groups if held[g].sum() > 0]
-    if not groups:
-        raise ValueError("no scene has a candidate that held: nothing to fit")
-
-    def loss(w):
-        total, grad = 0.0, np.zeros_like(w)
-        for g in groups:
-            t = X[g] @ w
-            t = t - t.max()
-            p = np.exp(t)
-            p /= p.sum()
-            q = held[g] / held[g].sum()
-            total -= q @ np.log(p + 1e-12)
-            grad -= X[g].T @ (q - p)
-        return total / len(groups) + l2 * w @ w, grad / len(groups) + 2 * l2 * w
-
-    return minimize(loss, np.zeros(X.shape[1]), jac=True, method="L-BFGS-B").x
-
-
-def precision_at_1(rank: np.ndarray, positive: np.ndarray, scene: np.ndarray) -> float:
-    """Mean over scenes of ``positive`` at the scene's highest ``rank``."""
-    return float(np.mean([positive[scene == s][np.argmax(rank[scene == s])] for s in np.unique(scene)]))
 
 
 def within_scene_auc(x: np.ndarray, positive: np.ndarray, scene: np.ndarray) -> tuple[float, int]:
@@ -114,8 +47,8 @@ def within_scene_auc(x: np.ndarray, positive: np.ndarray, scene: np.ndarray) -> 
 def study(fit_path, judge_path) -> dict:
     """Each of :data:`RANKERS` fitted on ``fit_path``'s pool and judged on ``judge_path``'s (a
     path or a list of paths: their pools together)."""
-    fa, ha, sa = pools_rows(fit_path)
-    fb, hb, sb = pools_rows(judge_path)
+    _, ha, sa = pool_rows(fit_path)
+    fb, hb, sb = pool_rows(judge_path)
     pos = hb > 0.5
     out = {
         "fit": {"candidates": int(len(ha)), "scenes": int(len(np.unique(sa)))},
@@ -129,13 +62,11 @@ def study(fit_path, judge_path) -> dict:
         a, n = within_scene_auc(design(fb, (k,))[:, 0], pos, sb)  # NaN filled; the score's logit ranks alike
         out["within_scene_auc"][k] = {"auc": a, "scenes": n}
     for name, names in RANKERS.items():
-        Xa = design(fa, names)
-        mu, sd = Xa.mean(axis=0), Xa.std(axis=0) + 1e-12
-        w = fit_conditional_logit((Xa - mu) / sd, ha, sa)
-        r = ((design(fb, names, fill=mu) - mu) / sd) @ w
+        ranker = fit(fit_path, names)
+        r = ranker.utility(fb)
         out["rankers"][name] = {
             "features": list(names),
-            "weights": w.tolist(),
+            "weights": ranker.weights.tolist(),
             "p_at_1": precision_at_1(r, pos, sb),
             "mean_held_of_top": precision_at_1(r, hb, sb),
         }

@@ -164,7 +164,8 @@ class PlannedGrasp:
 @dataclass(frozen=True)
 class PlanResult:
     """The top grasps, best first (possibly none, then ``reason`` says why), with counts
-    of each stage and its seconds."""
+    of each stage and its seconds. ``ranked_by``: "ranker" when the model's planner ranker
+    (:mod:`planning.ranker`) ordered them, "score" when the network's score did."""
 
     grasps: tuple[PlannedGrasp, ...]
     reason: str | None = None
@@ -175,6 +176,7 @@ class PlanResult:
     #: ``poses`` (n, 7): the head's pose rows, ``widths`` (n,), ``seen`` (n,) bool) and the
     #: sampler's ``scene`` estimate, for benchmarks (planning.features); not part of :meth:`to_dict`
     candidates: dict | None = field(default=None, repr=False, compare=False)
+    ranked_by: str = "score"
 
     def to_dict(self) -> dict:
         return {
@@ -183,4 +185,5 @@ class PlanResult:
             "counts": dict(self.counts),
             "seconds": {k: round(float(v), 6) for k, v in self.seconds.items()},
             "model_version": self.model_version,
+            "ranked_by": self.ranked_by,
         }

@@ -57,11 +57,13 @@ main() {
     export_model --leave-family-out "$RUN-lfo/eval/metrics_test.json"  # the same model, its card with the LFO result
   fi
   cp "$RUN/eval/heatmap_test.png" "$RUN/eval/curves.png" "$OUT/"
-  if [ "$VERSION" = v2 ]; then  # planned grasps' p_hold: the score mapped to how often planner candidates hold
+  if [ "$VERSION" = v2 ]; then  # planned grasps' p_hold (the score mapped to how often planner candidates
+    # hold) and their order (a ranker on the score, the jaw width and the gripper's pose against the table)
     # (~25 min: 150 scenes of training objects, 32 candidates each, 8 pybullet trials; docs/planning.md)
     [ -f "$RUN/pool_train.json" ] || $PY -m planning.bench pool --model "$OUT" --heldout "$DATA/crops" --split train \
       --scenes 150 --per-scene 32 --trials 8 --threads 1 --json "$RUN/pool_train.json"
     $PY -m planning.calibration "$RUN/pool_train.json" --model "$OUT"
+    $PY -m planning.ranker "$RUN/pool_train.json" --model "$OUT"  # the planner's order (score, width, table pose)
   fi
   if [ "$OUT" = models/fast-vgqcnn-default ]; then
     # the held-out examples the tests score the bundled model on: test-split crops and whole images

@@ -45,7 +45,8 @@ class Plan:
     metres), ``width`` (m), ``contacts`` (2 x 3, camera frame, m), ``score``, ``ood_flags``,
     ``ood`` and ``p_hold`` (the probability it holds through the oracle's lift and shake; None
     when the model has no planner calibration); ``reason`` says why when there are none; ``intrinsics`` the camera planned
-    with (px); ``answer`` the whole JSON."""
+    with (px); ``ranked_by`` "ranker" (the model's planner ranker ordered the grasps) or "score";
+    ``answer`` the whole JSON."""
 
     grasps: list[dict]
     reason: str | None
@@ -68,6 +69,10 @@ class Plan:
     @property
     def scores(self) -> np.ndarray:
         return np.array([g["score"] for g in self.grasps], dtype=np.float64)
+
+    @property
+    def ranked_by(self) -> str:
+        return self.answer.get("ranked_by", "score")
 
     @property
     def p_hold(self) -> np.ndarray:

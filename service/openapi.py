@@ -424,6 +424,7 @@ PLAN_EXAMPLE = {  # vgq-plan examples/depth_example.npy --k 1 on the bundled mod
         "total": 0.025,
     },
     "model_version": "fast_vgqcnn-60b272a5a797",
+    "ranked_by": "ranker",
     "k": 1,
     "seed": 0,
     "cem": 0,
@@ -441,6 +442,7 @@ PLAN_RESPONSE = {
                     "counts",
                     "seconds",
                     "model_version",
+                    "ranked_by",
                     "k",
                     "seed",
                     "cem",
@@ -459,6 +461,13 @@ PLAN_RESPONSE = {
                         "description": "time of each stage",
                     },
                     "model_version": {"type": "string"},
+                    "ranked_by": {
+                        "type": "string",
+                        "enum": ["ranker", "score"],
+                        "description": "what ordered the grasps: the model's planner ranker (planner_ranker.json: "
+                        "the score with the jaw width and the gripper's pose against the estimated table) or, for a "
+                        "model without one, the score alone",
+                    },
                     "k": {"type": "integer"},
                     "seed": {"type": "integer"},
                     "cem": {"type": "integer"},

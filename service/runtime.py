@@ -9,6 +9,7 @@ import numpy as np
 import onnxruntime as ort
 
 from planning import calibration as planner_calibration
+from planning import ranker as planner_ranker
 from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT, ModelCard
 
 from .config import ENCODER_PRECISIONS, HEAD_PRECISIONS
@@ -57,8 +58,9 @@ class FastModel:
             raise ModelError(f"cannot load model from {model_dir}: {e}") from e
         if self.card.architecture != "fast_vgqcnn":
             raise ModelError(f"{model_dir}: architecture {self.card.architecture!r}; the service serves fast_vgqcnn")
-        try:  # planned grasps' p_hold (planning.calibration); None: the folder has none
+        try:  # planned grasps' p_hold (planning.calibration) and order (planning.ranker); None: none there
             self.planner_calibration = planner_calibration.load(model_dir)
+            self.planner_ranker = planner_ranker.load(model_dir)
         except ValueError as e:
             raise ModelError(f"cannot load model from {model_dir}: {e}") from e
         if head_precision not in HEAD_PRECISIONS:

@@ -31,8 +31,12 @@ def test_plan_returns_k_distinct_scored_grasps_in_the_service_row_convention(mod
     depth, _, _ = two_boxes
     res = plan(depth, DEFAULT_INTRINSICS, model, k=5, seed=0, params=FAST)
     assert res.reason is None and len(res.grasps) == 5
-    scores = [g.score for g in res.grasps]
-    assert scores == sorted(scores, reverse=True) and all(0 <= s <= 1 for s in scores)
+    assert all(0 <= g.score <= 1 for g in res.grasps)
+    assert res.ranked_by == "ranker"  # the bundled model's planner ranker orders them (tests/test_planning_ranker.py)
+    cand = res.candidates
+    kept = [int(np.flatnonzero(np.all(np.isclose(cand["frames"], g.pose), axis=(1, 2)))[0]) for g in res.grasps]
+    utility = cand["utility"][kept]
+    assert list(utility) == sorted(utility, reverse=True) and utility[0] == cand["utility"].max()
     for g in res.grasps:
         row = g.row
         assert row.shape == (7,) and np.allclose(row[3:], canonical_quaternion(row[3:])) and row[3] >= 0

@@ -1,0 +1,200 @@
+"""The planner's ordering: a within-scene ranker on what the planner knows of each candidate.
+
+The network's score alone picks, among one scene's candidates, the one that survives the
+physics oracle's lift and shake only a little more often than a random pick (docs/planning.md).
+A conditional logit (a softmax over one scene's candidates, fitted to the share of each scene's
+trials that held) on the plan features of :mod:`planning.features` (the score's logit, the
+contact distance, the gripper's clearance above the estimated table, the TCP's height, the
+approach and jaw-axis tilts) ranks them better. Fitted on a judged pool of candidates of
+training objects (``python -m planning.bench pool --split train --json``), it lives beside the
+model (:data:`FILE` in the model folder); a model without one plans by the score.
+
+Fit: ``python -m planning.ranker FIT.json --model DIR [--judge TEST.json ...]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vgq import atomic
+
+from .features import PLAN_FEATURES, read_pool
+
+#: the ranker's file name in a model folder
+FILE = "planner_ranker.json"
+#: the features the shipped ranker combines ("seen" is almost always 1: left out)
+FEATURES: tuple[str, ...] = tuple(k for k in PLAN_FEATURES if k != "seen")
+
+
+def design(feats: dict[str, np.ndarray], names: tuple[str, ...], fill: np.ndarray | None = None) -> np.ndarray:
+    """(n, len(names)) columns; the score as a logit; NaN (no table estimate) -> ``fill`` (column means)."""
+    cols = []
+    for k in names:
+        x = np.asarray(feats[k], dtype=np.float64)
+        if k == "score":
+            s = np.clip(x, 1e-6, 1 - 1e-6)
+            x = np.log(s / (1 - s))
+        cols.append(x)
+    X = np.stack(cols, axis=1)
+    if fill is None:  # column means of the finite values (0 for a column with none)
+        ok = np.isfinite(X)
+        fill = np.where(ok, X, 0.0).sum(axis=0) / np.maximum(ok.sum(axis=0), 1)
+    return np.where(np.isfinite(X), X, fill)
+
+
+def fit_conditional_logit(X: np.ndarray, held: np.ndarray, scene: np.ndarray, l2: float = 0.05) -> np.ndarray:
+    """Weights (d,) of a softmax over each scene's rows (X standardised by the caller) fitted by
+    cross-entropy to the scene's distribution of trials held; scenes where nothing held are left out."""
+    from scipy.optimize import minimize  # fitting only: the service loads a fitted ranker without scipy
+
+    groups = [np.flatnonzero(scene == s) for s in np.unique(scene)]
+    groups = [g for g in groups if held[g].sum() > 0]
+    if not groups:
+        raise ValueError("no scene has a candidate that held: nothing to fit")
+
+    def loss(w):
+        total, grad = 0.0, np.zeros_like(w)
+        for g in groups:
+            t = X[g] @ w
+            t = t - t.max()
+            p = np.exp(t)
+            p /= p.sum()
+            q = held[g] / held[g].sum()
+            total -= q @ np.log(p + 1e-12)
+            grad -= X[g].T @ (q - p)
+        return total / len(groups) + l2 * w @ w, grad / len(groups) + 2 * l2 * w
+
+    return minimize(loss, np.zeros(X.shape[1]), jac=True, method="L-BFGS-B").x
+
+
+@dataclass(frozen=True)
+class Ranker:
+    """utility = sum_j weights[j] (x_j - mean[j]) / std[j] over ``features`` (the score as its
+    logit; a missing value, NaN, counts as the mean). Higher ranks first; only differences
+    within one scene mean anything."""
+
+    features: tuple[str, ...]
+    mean: np.ndarray
+    std: np.ndarray
+    weights: np.ndarray
+
+    def utility(self, feats: dict[str, np.ndarray]) -> np.ndarray:
+        """(n,) utilities of the candidates whose plan features (each (n,)) are ``feats``."""
+        X = design(feats, self.features, fill=self.mean)
+        return ((X - self.mean) / self.std) @ self.weights
+
+    def to_dict(self) -> dict:
+        return {
+            "features": list(self.features),
+            "mean": self.mean.tolist(),
+            "std": self.std.tolist(),
+            "weights": self.weights.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Ranker:
+        feats = tuple(d["features"])
+        unknown = [k for k in feats if k not in PLAN_FEATURES]
+        if unknown or not feats:
+            raise ValueError(f"features must be some of {list(PLAN_FEATURES)}, got {list(feats)}")
+        arrs = [np.asarray(d[k], dtype=np.float64) for k in ("mean", "std", "weights")]
+        if any(a.shape != (len(feats),) or not np.isfinite(a).all() for a in arrs) or (arrs[1] <= 0).any():
+            raise ValueError("mean, std (> 0) and weights must be finite, one per feature")
+        return cls(feats, *arrs)
+
+
+def pool_rows(paths) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """(plan features by name, trials held (n,), scene (n,)) of one pool JSON or several (their
+    scenes numbered apart); ValueError naming a pool that lacks the plan features."""
+    paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
+    parts, offset = [], 0
+    for p in paths:
+        rows = read_pool(p)
+        missing = [f"plan_{k}" for k in PLAN_FEATURES if f"plan_{k}" not in rows]
+        if missing:
+            raise ValueError(f"{p}: its candidate rows lack {missing} (written by an older planning.bench pool)")
+        f = {k: np.asarray(rows[f"plan_{k}"], dtype=np.float64) for k in PLAN_FEATURES}
+        sc = np.asarray(rows["scene"])
+        parts.append((f, np.asarray(rows["held"], dtype=np.float64), sc + offset))
+        offset += int(sc.max()) + 1 if len(sc) else 0
+    feats = {k: np.concatenate([f[k] for f, _, _ in parts]) for k in PLAN_FEATURES}
+    return feats, np.concatenate([h for _, h, _ in parts]), np.concatenate([sc for _, _, sc in parts])
+
+
+def fit(paths, features: tuple[str, ...] = FEATURES) -> Ranker:
+    """The conditional logit on ``features`` fitted to a pool (or pools) of judged candidates."""
+    feats, held, scene = pool_rows(paths)
+    X = design(feats, features)
+    mu, sd = X.mean(axis=0), X.std(axis=0) + 1e-12
+    return Ranker(tuple(features), mu, sd, fit_conditional_logit((X - mu) / sd, held, scene))
+
+
+def precision_at_1(rank: np.ndarray, positive: np.ndarray, scene: np.ndarray) -> float:
+    """Mean over scenes of ``positive`` at the scene's highest ``rank``."""
+    return float(np.mean([positive[scene == s][np.argmax(rank[scene == s])] for s in np.unique(scene)]))
+
+
+def judge(ranker: Ranker, paths) -> dict:
+    """Precision@1 among a pool's judged candidates (held in more than half of the trials) of the
+    ranker, of the score alone and of a random pick."""
+    feats, held, scene = pool_rows(paths)
+    pos = held > 0.5
+    return {
+        "candidates": int(len(held)),
+        "scenes": int(len(np.unique(scene))),
+        "p_at_1_ranker": precision_at_1(ranker.utility(feats), pos, scene),
+        "p_at_1_score": precision_at_1(feats["score"], pos, scene),
+        "p_at_1_random": float(np.mean([pos[scene == s].mean() for s in np.unique(scene)])),
+    }
+
+
+def load(model_dir: str | Path) -> Ranker | None:
+    """The ranker in ``model_dir``, or None when it has none; ValueError naming a malformed file."""
+    p = Path(model_dir) / FILE
+    if not p.is_file():
+        return None
+    try:
+        return Ranker.from_dict(json.loads(p.read_text())["ranker"])
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{p}: not a planner ranker ({e})") from None
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m planning.ranker", description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "fit", nargs="+", help="pool JSON(s) of training objects (planning.bench pool --split train --json)"
+    )
+    ap.add_argument("--model", required=True, help="model folder to write planner_ranker.json into")
+    ap.add_argument("--judge", nargs="+", help="pool JSON(s) of test objects to measure the ranker on, together")
+    args = ap.parse_args(argv)
+    try:
+        if not (Path(args.model) / "model_card.json").is_file():
+            raise ValueError(f"{args.model}: not a model folder (no model_card.json)")
+        ranker = fit(args.fit)
+        rec = {"ranker": ranker.to_dict(), "fitted_on": judge(ranker, args.fit)}
+        if args.judge:
+            rec["judged_on"] = judge(ranker, args.judge)
+    except ValueError as e:
+        print(f"planning.ranker: {e}", file=sys.stderr)
+        return 2
+    atomic.write_bytes(Path(args.model) / FILE, json.dumps(rec, indent=1).encode())
+    w = ", ".join(f"{k} {x:+.3f}" for k, x in zip(ranker.features, ranker.weights))
+    print(f"utility weights (standardised): {w} -> {Path(args.model) / FILE}")
+    for k in ("fitted_on", "judged_on"):
+        if k in rec:
+            r = rec[k]
+            print(
+                f"{k}: {r['candidates']} candidates of {r['scenes']} scenes; precision@1 among judged: ranker "
+                f"{100 * r['p_at_1_ranker']:.1f}%, score {100 * r['p_at_1_score']:.1f}%, random {100 * r['p_at_1_random']:.1f}%"
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
