@@ -16,15 +16,14 @@ Fit: ``python -m planning.calibration FIT.json --model DIR [--judge TEST.json]``
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from vgq import atomic
 from vgq.calibration import Calibration, expected_calibration_error
 
+from . import model_files
 from .features import read_pool
 
 #: the planner calibration's file name in a model folder
@@ -34,13 +33,7 @@ FILE = "planner_calibration.json"
 def load(model_dir: str | Path) -> Calibration | None:
     """The planner calibration in ``model_dir``, or None when it has none; ValueError naming a
     malformed file."""
-    p = Path(model_dir) / FILE
-    if not p.is_file():
-        return None
-    try:
-        return Calibration.from_dict(json.loads(p.read_text())["calibration"])
-    except (ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"{p}: not a planner calibration ({e})") from None
+    return model_files.read(model_dir, FILE, "calibration", Calibration.from_dict, "a planner calibration")
 
 
 def pool_scores(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -85,8 +78,7 @@ def main(argv=None) -> int:
     ap.add_argument("--judge", help="pool JSON of test objects to measure the calibration on")
     args = ap.parse_args(argv)
     try:
-        if not (Path(args.model) / "model_card.json").is_file():
-            raise ValueError(f"{args.model}: not a model folder (no model_card.json)")
+        model_files.check_model_folder(args.model)
         cal = fit(args.fit)
         rec = {"calibration": cal.to_dict(), "fitted_on": report(cal, args.fit)}
         if args.judge:
@@ -94,8 +86,8 @@ def main(argv=None) -> int:
     except ValueError as e:
         print(f"planning.calibration: {e}", file=sys.stderr)
         return 2
-    atomic.write_bytes(Path(args.model) / FILE, json.dumps(rec, indent=1).encode())
-    print(f"p_hold = sigmoid({cal.slope:.4g} logit(score) + {cal.intercept:.4g}) -> {Path(args.model) / FILE}")
+    path = model_files.write(args.model, FILE, rec)
+    print(f"p_hold = sigmoid({cal.slope:.4g} logit(score) + {cal.intercept:.4g}) -> {path}")
     for k in ("fitted_on", "judged_on"):
         if k in rec:
             r = rec[k]

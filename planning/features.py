@@ -14,7 +14,7 @@ import numpy as np
 from vgq.gripper import GripperGeometry, box_corners, gripper_boxes
 
 from .collision import lowest_corner_height
-from .sampler import Candidates, Scene
+from .sampler import Candidates, Scene, lookup_pixels, object_centres
 
 #: name -> meaning, in column order
 PLAN_FEATURES: dict[str, str] = {
@@ -25,6 +25,7 @@ PLAN_FEATURES: dict[str, str] = {
     "tcp_height": "grasp centre above the estimated table (m)",
     "approach_tilt": "approach direction from straight down onto the table (deg)",
     "axis_tilt": "jaw axis from the table normal (deg): 90 = jaws close parallel to the table",
+    "centre_offset": "TCP from its object's estimated centre of mass, along the table (m): the lever of its weight",
 }
 
 
@@ -47,6 +48,21 @@ def table_features(frames: np.ndarray, up: np.ndarray, offset: float | None, gri
     return out
 
 
+def centre_offsets(contacts: np.ndarray, tcp: np.ndarray, scene: Scene) -> np.ndarray:
+    """(n,) distance (m) in the table plane (normal ``scene.up``) from each TCP (n, 3) to the
+    estimated centre of mass of the object region its first contact (``contacts`` (n, 2, 3))
+    lies on (:func:`planning.sampler.object_centres`); NaN when that contact is on no region."""
+    if scene.centres is not None:
+        labels, centres = scene.labels, scene.centres
+    else:
+        labels, centres = object_centres(scene.points, scene.objects, scene.table)
+    r, c, inside = lookup_pixels(scene, contacts[:, 0])
+    lab = np.where(inside, labels[r, c], 0)
+    d = centres[lab] - tcp
+    d -= (d @ scene.up)[:, None] * scene.up
+    return np.where(lab > 0, np.linalg.norm(d, axis=1), np.nan)
+
+
 def plan_features(
     cands: Candidates, scores: np.ndarray, scene: Scene, gripper: GripperGeometry
 ) -> dict[str, np.ndarray]:
@@ -58,6 +74,7 @@ def plan_features(
         "width": np.asarray(cands.widths, np.float64),
         "seen": np.asarray(cands.seen, np.float64),
         **table_features(cands.frames, scene.up, None if table is None else table.offset, gripper),
+        "centre_offset": centre_offsets(cands.contacts, cands.frames[:, :3, 3], scene),
     }
     return {k: out[k] for k in PLAN_FEATURES}
 

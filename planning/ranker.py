@@ -15,15 +15,13 @@ Fit: ``python -m planning.ranker FIT.json --model DIR [--judge TEST.json ...]``.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from vgq import atomic
-
+from . import model_files
 from .features import PLAN_FEATURES, read_pool
 
 #: the ranker's file name in a model folder
@@ -146,6 +144,7 @@ def judge(ranker: Ranker, paths) -> dict:
     feats, held, scene = pool_rows(paths)
     pos = held > 0.5
     return {
+        "pools": [Path(p).name for p in ([paths] if isinstance(paths, (str, Path)) else paths)],
         "candidates": int(len(held)),
         "scenes": int(len(np.unique(scene))),
         "p_at_1_ranker": precision_at_1(ranker.utility(feats), pos, scene),
@@ -156,13 +155,7 @@ def judge(ranker: Ranker, paths) -> dict:
 
 def load(model_dir: str | Path) -> Ranker | None:
     """The ranker in ``model_dir``, or None when it has none; ValueError naming a malformed file."""
-    p = Path(model_dir) / FILE
-    if not p.is_file():
-        return None
-    try:
-        return Ranker.from_dict(json.loads(p.read_text())["ranker"])
-    except (ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"{p}: not a planner ranker ({e})") from None
+    return model_files.read(model_dir, FILE, "ranker", Ranker.from_dict, "a planner ranker")
 
 
 def main(argv=None) -> int:
@@ -172,20 +165,28 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--model", required=True, help="model folder to write planner_ranker.json into")
     ap.add_argument("--judge", nargs="+", help="pool JSON(s) of test objects to measure the ranker on, together")
+    ap.add_argument(
+        "--features",
+        default=",".join(FEATURES),
+        help=f"comma-separated plan features to combine (planning.features; default {','.join(FEATURES)})",
+    )
     args = ap.parse_args(argv)
     try:
-        if not (Path(args.model) / "model_card.json").is_file():
-            raise ValueError(f"{args.model}: not a model folder (no model_card.json)")
-        ranker = fit(args.fit)
+        model_files.check_model_folder(args.model)
+        features = tuple(k.strip() for k in args.features.split(",") if k.strip())
+        unknown = [k for k in features if k not in PLAN_FEATURES]
+        if unknown or not features:
+            raise ValueError(f"--features: {unknown or 'none given'}; choose from {', '.join(PLAN_FEATURES)}")
+        ranker = fit(args.fit, features)
         rec = {"ranker": ranker.to_dict(), "fitted_on": judge(ranker, args.fit)}
         if args.judge:
             rec["judged_on"] = judge(ranker, args.judge)
     except ValueError as e:
         print(f"planning.ranker: {e}", file=sys.stderr)
         return 2
-    atomic.write_bytes(Path(args.model) / FILE, json.dumps(rec, indent=1).encode())
+    path = model_files.write(args.model, FILE, rec)
     w = ", ".join(f"{k} {x:+.3f}" for k, x in zip(ranker.features, ranker.weights))
-    print(f"utility weights (standardised): {w} -> {Path(args.model) / FILE}")
+    print(f"utility weights (standardised): {w} -> {path}")
     for k in ("fitted_on", "judged_on"):
         if k in rec:
             r = rec[k]

@@ -136,7 +136,7 @@ def object_centres(points: np.ndarray, objects: np.ndarray, table: TablePlane | 
     return labels, centres
 
 
-def _lookup(scene: Scene, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def lookup_pixels(scene: Scene, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Nearest pixel of points x (..., 3): (rows, cols, inside the image and in front)."""
     z = x[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -182,7 +182,7 @@ def sample_contact_pairs(scene: Scene, n_seeds: int, params: PlanParams, rng: np
     step = params.march_step
     ts = step * np.arange(1, int(np.ceil(params.max_opening / step)) + 2)
     x = p1[:, None, :] + ts[None, :, None] * axes[:, None, :]  # (S, T, 3)
-    rows, cols, inside = _lookup(scene, x)
+    rows, cols, inside = lookup_pixels(scene, x)
     d = scene.depth[rows, cols]
     tol = params.surface_tolerance
     occupied = inside & (d > 0) & (x[..., 2] >= d - tol)
@@ -198,7 +198,7 @@ def sample_contact_pairs(scene: Scene, n_seeds: int, params: PlanParams, rng: np
     ok = occupied[:, 0] & has_exit & ~hits_table & (width >= params.min_width) & (width <= params.max_opening)
     p2 = p1 + width[:, None] * axes
     # contact 1 on a visible surface: its normal must hold the push (friction cone)
-    r2, c2, in2 = _lookup(scene, p2)
+    r2, c2, in2 = lookup_pixels(scene, p2)
     d2 = scene.depth[r2, c2]
     seen = in2 & (d2 > 0) & (np.abs(p2[:, 2] - d2) <= tol) & scene.normal_ok[r2, c2] & scene.objects[r2, c2]
     cos_lim = np.cos(np.arctan(mu))

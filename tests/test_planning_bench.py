@@ -113,3 +113,20 @@ def test_pool_options_parse():
     a = parse_args(["pool", "--retest", "--split", "train"])
     assert a.retest and a.split == "train" and a.scenes == 60
     assert not parse_args(["pool"]).retest and parse_args(["pool"]).split == "test"
+
+
+def test_trials_judge_the_plan_the_score_alone_and_a_random_pick_on_the_same_scenes(tmp_path, capsys):
+    import json
+
+    from planning.bench import main
+
+    out = tmp_path / "trials.json"
+    assert main(["trials", "--scenes", "2", "--trials", "2", "--threads", "1", "--json", str(out)]) == 0
+    s = json.loads(out.read_text())
+    assert s["ranked_by"] == "ranker" and s["scenes"] == 2 and s["trials"] == 2 * (2 - s["scenes_without_grasp"])
+    for r in s["rows"]:
+        assert all(0 <= r[f"{k}_held"] <= r["trials"] for k in ("top1", "score_top1", "random"))
+    for k in ("top1", "score_top1", "random"):
+        assert s[f"{k}_success"] == pytest.approx(s[f"{k}_held"] / max(s["trials"], 1))
+        assert 0 <= s[f"{k}_precision"] <= 1
+    assert "the network's score alone" in capsys.readouterr().out

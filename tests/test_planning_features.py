@@ -15,11 +15,11 @@ from vgq.camera import DEFAULT_INTRINSICS
 from vgq.gripper import GripperGeometry, box_corners, gripper_boxes
 
 
-def _top_down(T_wc, height: float, width: float = 0.03):
-    """A grasp straight down onto the table at world (0, 0, height), jaws along world x, in the camera frame."""
+def _top_down(T_wc, height: float, width: float = 0.03, at=(0.0, 0.0)):
+    """A grasp straight down onto the table at world (x, y, height), jaws along world x, in the camera frame."""
     T = np.eye(4)
     T[:3, :3] = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # x = world x, z = down
-    T[:3, 3] = [0.0, 0.0, height]
+    T[:3, 3] = [*at, height]
     F = np.linalg.inv(T_wc) @ T
     c = F[:3, 3] + np.outer([-0.5, 0.5], width * F[:3, 0])
     return Candidates(F[None], c[None], np.array([width]), np.array([True]))
@@ -47,3 +47,16 @@ def test_without_a_table_the_table_features_are_missing():
     )
     assert np.isnan(f["table_clearance"][0]) and np.isnan(f["tcp_height"][0])
     assert np.isfinite(f["approach_tilt"][0])  # measured against the camera's up instead
+
+
+def test_centre_offset_is_the_tcp_distance_from_the_object_centre_along_the_table():
+    depth, T_wc, _ = boxes_scene()  # the box's centre of mass is above world (0, 0)
+    scene = analyse_scene(depth, DEFAULT_INTRINSICS, PlanParams(), np.random.default_rng(0))
+    g = GripperGeometry()
+    off = [
+        plan_features(_top_down(T_wc, 0.035, at=(0.0, y)), np.array([0.5]), scene, g)["centre_offset"][0]
+        for y in (0.0, 0.015)
+    ]
+    assert off[0] < 0.006 and off[1] == pytest.approx(0.015, abs=0.006)  # the visible sides bias the centre a little
+    # a grasp whose first contact lies on no object (the bare table) has no object centre
+    assert np.isnan(plan_features(_top_down(T_wc, 0.0, at=(0.15, 0.0)), np.array([0.5]), scene, g)["centre_offset"][0])

@@ -57,6 +57,10 @@ def test_bad_inputs_exit_2_naming_them(tmp_path, capsys):
     assert pr.main([str(tmp_path / "old.json"), "--model", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "plan_score" in err and "old.json" in err and not (tmp_path / pr.FILE).exists()
+    assert pr.main([str(fit), "--model", str(tmp_path), "--features", "score,grip"]) == 2
+    assert "--features: ['grip']" in capsys.readouterr().err and not (tmp_path / pr.FILE).exists()
+    assert pr.main([str(fit), "--model", str(tmp_path), "--features", "width, approach_tilt"]) == 0
+    assert pr.load(tmp_path).features == ("width", "approach_tilt")
 
 
 def test_the_model_folder_decides_the_planner_order(tmp_path):
