@@ -4,6 +4,8 @@
   network's raw probabilities over a labelled split (the validation split), by Newton's
   method; a weak Gaussian prior (one pseudo-observation) keeps the fit finite when the split
   is separable.
+* :func:`fit_logistic`: the same Newton fit of a logistic regression on any columns (the
+  planner's ``p_hold`` on its plan features uses it, ``planning.calibration``).
 * :func:`native_positivity`: the positivity the deployed model meets, from the crop
   manifest's ``native_counts`` (or the sampled grasp dataset's statistics it was cut from).
 * :func:`calibration_report`: fit on validation, ECE on test (re-weighted to the target
@@ -46,7 +48,9 @@ def _labelled(p: np.ndarray, labels: np.ndarray, what: str) -> tuple[np.ndarray,
     return p, y
 
 
-def _newton(x: np.ndarray, y: np.ndarray, offset: np.ndarray, prior_mean: np.ndarray, iters: int = 100) -> np.ndarray:
+def fit_logistic(
+    x: np.ndarray, y: np.ndarray, offset: np.ndarray, prior_mean: np.ndarray, iters: int = 100
+) -> np.ndarray:
     """argmax_w of sum log-likelihood of y ~ Bernoulli(sigmoid(x @ w + offset)) - |w - prior_mean|^2 / 2."""
     w = prior_mean.astype(np.float64).copy()
 
@@ -77,7 +81,7 @@ def fit_platt(p_raw: np.ndarray, labels: np.ndarray, target_positivity: float | 
     ``target_positivity`` (default: the labels' own positivity)."""
     p, y = _labelled(p_raw, labels, "Platt fit")
     x = np.stack([logit(p), np.ones_like(p)], axis=1)
-    a, b = _newton(x, y, np.zeros_like(p), np.array([1.0, 0.0]))
+    a, b = fit_logistic(x, y, np.zeros_like(p), np.array([1.0, 0.0]))
     if not a > 0:
         raise CalibrationError(
             f"Platt fit: slope {a:.3g} <= 0 (the network's scores do not rank successes above failures)"
@@ -96,7 +100,7 @@ def fit_temperature(
     pos = float(y.mean())
     b0 = float(logit(pos) - logit(model_positivity))
     z = logit(p)
-    (a,) = _newton(z[:, None], y, np.full_like(z, b0), np.array([1.0]))
+    (a,) = fit_logistic(z[:, None], y, np.full_like(z, b0), np.array([1.0]))
     if not a > 0:
         raise CalibrationError(
             f"temperature fit: 1/T = {a:.3g} <= 0 (the network's scores do not rank successes above failures)"

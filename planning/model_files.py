@@ -13,14 +13,16 @@ from vgq import atomic
 T = TypeVar("T")
 
 
-def read(model_dir: str | Path, name: str, key: str, parse: Callable[[dict], T], what: str) -> T | None:
-    """``parse(file[key])`` of the JSON file ``name`` in ``model_dir``, or None when the folder has
-    none; ValueError naming the file when it is not ``what``."""
+def read(model_dir: str | Path, name: str, key: str | None, parse: Callable[[dict], T], what: str) -> T | None:
+    """``parse(file[key])`` (``key`` None: the whole file) of the JSON file ``name`` in
+    ``model_dir``, or None when the folder has none; ValueError naming the file when it is not
+    ``what``."""
     p = Path(model_dir) / name
     if not p.is_file():
         return None
     try:
-        return parse(json.loads(p.read_text())[key])
+        data = json.loads(p.read_text())
+        return parse(data if key is None else data[key])
     except (ValueError, KeyError, TypeError) as e:
         raise ValueError(f"{p}: not {what} ({e})") from None
 

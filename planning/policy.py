@@ -21,6 +21,7 @@ from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTP
 from vgq.ood import flag_names, ood_flags
 from vgq.pose import quaternion_from_matrix
 
+from .calibration import p_hold as hold_probability
 from .cloud import valid_mask
 from .features import plan_features
 from .sampler import Candidates, analyse_scene, collision_checker, feasible_approach, frames_about_axis, sample_grasps
@@ -452,14 +453,15 @@ def plan_resampled(
         counts["windows_reused"] = scorer.reused
 
     t = time.perf_counter()
-    utility = ranker.utility(plan_features(cands, scores, scene, params.gripper)) if ranker is not None else None
+    cal = getattr(model, "planner_calibration", None)  # planning.calibration: p_hold; None: no p_hold
+    feats = plan_features(cands, scores, scene, params.gripper) if ranker is not None or cal is not None else None
+    utility = ranker.value(feats) if ranker is not None else None
     keep = nms(cands.frames, scores if utility is None else utility, k, params.nms_distance, params.nms_angle)
     top = cands[keep]
     rows = grasp_rows(top.frames, intr)
     flags = ood_flags(rows, d_model, z_training_range(model), missing[keep] > params.window_missing_fraction)
     uv = map_pixels(rows[:, :2], intr, cam) if intr != cam else rows[:, :2]
-    cal = getattr(model, "planner_calibration", None)
-    p_hold = cal.apply(scores[keep]) if cal is not None else [None] * len(keep)
+    p_hold = hold_probability(cal, {k: v[keep] for k, v in feats.items()}) if cal is not None else [None] * len(keep)
     grasps = tuple(
         PlannedGrasp(
             u=float(uv[i, 0]),

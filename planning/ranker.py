@@ -5,7 +5,8 @@ physics oracle's lift and shake only a little more often than a random pick (doc
 A conditional logit (a softmax over one scene's candidates, fitted to the share of each scene's
 trials that held) on the plan features of :mod:`planning.features` (the score's logit, the
 contact distance, the gripper's clearance above the estimated table, the TCP's height, the
-approach and jaw-axis tilts) ranks them better. Fitted on a judged pool of candidates of
+approach and jaw-axis tilts, the TCP's distance from the object's estimated centre of mass)
+ranks them better: a :class:`planning.linear.LinearModel` whose value is the utility. Fitted on a judged pool of candidates of
 training objects (``python -m planning.bench pool --split train --json``), it lives beside the
 model (:data:`FILE` in the model folder); a model without one plans by the score.
 
@@ -15,35 +16,18 @@ Fit: ``python -m planning.ranker FIT.json --model DIR [--judge TEST.json ...]``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from . import model_files
 from .features import PLAN_FEATURES, read_pool
+from .linear import FEATURES, LinearModel, design, parse_features
 
 #: the ranker's file name in a model folder
 FILE = "planner_ranker.json"
-#: the features the shipped ranker combines ("seen" is almost always 1: left out)
-FEATURES: tuple[str, ...] = tuple(k for k in PLAN_FEATURES if k != "seen")
-
-
-def design(feats: dict[str, np.ndarray], names: tuple[str, ...], fill: np.ndarray | None = None) -> np.ndarray:
-    """(n, len(names)) columns; the score as a logit; NaN (no table estimate) -> ``fill`` (column means)."""
-    cols = []
-    for k in names:
-        x = np.asarray(feats[k], dtype=np.float64)
-        if k == "score":
-            s = np.clip(x, 1e-6, 1 - 1e-6)
-            x = np.log(s / (1 - s))
-        cols.append(x)
-    X = np.stack(cols, axis=1)
-    if fill is None:  # column means of the finite values (0 for a column with none)
-        ok = np.isfinite(X)
-        fill = np.where(ok, X, 0.0).sum(axis=0) / np.maximum(ok.sum(axis=0), 1)
-    return np.where(np.isfinite(X), X, fill)
 
 
 def fit_conditional_logit(X: np.ndarray, held: np.ndarray, scene: np.ndarray, l2: float = 0.05) -> np.ndarray:
@@ -71,42 +55,6 @@ def fit_conditional_logit(X: np.ndarray, held: np.ndarray, scene: np.ndarray, l2
     return minimize(loss, np.zeros(X.shape[1]), jac=True, method="L-BFGS-B").x
 
 
-@dataclass(frozen=True)
-class Ranker:
-    """utility = sum_j weights[j] (x_j - mean[j]) / std[j] over ``features`` (the score as its
-    logit; a missing value, NaN, counts as the mean). Higher ranks first; only differences
-    within one scene mean anything."""
-
-    features: tuple[str, ...]
-    mean: np.ndarray
-    std: np.ndarray
-    weights: np.ndarray
-
-    def utility(self, feats: dict[str, np.ndarray]) -> np.ndarray:
-        """(n,) utilities of the candidates whose plan features (each (n,)) are ``feats``."""
-        X = design(feats, self.features, fill=self.mean)
-        return ((X - self.mean) / self.std) @ self.weights
-
-    def to_dict(self) -> dict:
-        return {
-            "features": list(self.features),
-            "mean": self.mean.tolist(),
-            "std": self.std.tolist(),
-            "weights": self.weights.tolist(),
-        }
-
-    @classmethod
-    def from_dict(cls, d: dict) -> Ranker:
-        feats = tuple(d["features"])
-        unknown = [k for k in feats if k not in PLAN_FEATURES]
-        if unknown or not feats:
-            raise ValueError(f"features must be some of {list(PLAN_FEATURES)}, got {list(feats)}")
-        arrs = [np.asarray(d[k], dtype=np.float64) for k in ("mean", "std", "weights")]
-        if any(a.shape != (len(feats),) or not np.isfinite(a).all() for a in arrs) or (arrs[1] <= 0).any():
-            raise ValueError("mean, std (> 0) and weights must be finite, one per feature")
-        return cls(feats, *arrs)
-
-
 def pool_rows(paths) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
     """(plan features by name, trials held (n,), scene (n,)) of one pool JSON or several (their
     scenes numbered apart); ValueError naming a pool that lacks the plan features."""
@@ -125,12 +73,13 @@ def pool_rows(paths) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
     return feats, np.concatenate([h for _, h, _ in parts]), np.concatenate([sc for _, _, sc in parts])
 
 
-def fit(paths, features: tuple[str, ...] = FEATURES) -> Ranker:
-    """The conditional logit on ``features`` fitted to a pool (or pools) of judged candidates."""
+def fit(paths, features: tuple[str, ...] = FEATURES) -> LinearModel:
+    """The conditional logit on ``features`` fitted to a pool (or pools) of judged candidates:
+    its value is the candidates' utility (higher ranks first; only differences within one scene
+    mean anything)."""
     feats, held, scene = pool_rows(paths)
-    X = design(feats, features)
-    mu, sd = X.mean(axis=0), X.std(axis=0) + 1e-12
-    return Ranker(tuple(features), mu, sd, fit_conditional_logit((X - mu) / sd, held, scene))
+    m = LinearModel.standardising(design(feats, features), features)
+    return dataclasses.replace(m, weights=fit_conditional_logit(m.standardised(feats), held, scene))
 
 
 def precision_at_1(rank: np.ndarray, positive: np.ndarray, scene: np.ndarray) -> float:
@@ -138,7 +87,7 @@ def precision_at_1(rank: np.ndarray, positive: np.ndarray, scene: np.ndarray) ->
     return float(np.mean([positive[scene == s][np.argmax(rank[scene == s])] for s in np.unique(scene)]))
 
 
-def judge(ranker: Ranker, paths) -> dict:
+def judge(ranker: LinearModel, paths) -> dict:
     """Precision@1 among a pool's judged candidates (held in more than half of the trials) of the
     ranker, of the score alone and of a random pick."""
     feats, held, scene = pool_rows(paths)
@@ -147,15 +96,15 @@ def judge(ranker: Ranker, paths) -> dict:
         "pools": [Path(p).name for p in ([paths] if isinstance(paths, (str, Path)) else paths)],
         "candidates": int(len(held)),
         "scenes": int(len(np.unique(scene))),
-        "p_at_1_ranker": precision_at_1(ranker.utility(feats), pos, scene),
+        "p_at_1_ranker": precision_at_1(ranker.value(feats), pos, scene),
         "p_at_1_score": precision_at_1(feats["score"], pos, scene),
         "p_at_1_random": float(np.mean([pos[scene == s].mean() for s in np.unique(scene)])),
     }
 
 
-def load(model_dir: str | Path) -> Ranker | None:
+def load(model_dir: str | Path) -> LinearModel | None:
     """The ranker in ``model_dir``, or None when it has none; ValueError naming a malformed file."""
-    return model_files.read(model_dir, FILE, "ranker", Ranker.from_dict, "a planner ranker")
+    return model_files.read(model_dir, FILE, "ranker", LinearModel.from_dict, "a planner ranker")
 
 
 def main(argv=None) -> int:
@@ -173,11 +122,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     try:
         model_files.check_model_folder(args.model)
-        features = tuple(k.strip() for k in args.features.split(",") if k.strip())
-        unknown = [k for k in features if k not in PLAN_FEATURES]
-        if unknown or not features:
-            raise ValueError(f"--features: {unknown or 'none given'}; choose from {', '.join(PLAN_FEATURES)}")
-        ranker = fit(args.fit, features)
+        ranker = fit(args.fit, parse_features(args.features))
         rec = {"ranker": ranker.to_dict(), "fitted_on": judge(ranker, args.fit)}
         if args.judge:
             rec["judged_on"] = judge(ranker, args.judge)

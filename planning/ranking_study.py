@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from .features import PLAN_FEATURES
-from .ranker import FEATURES, design, fit, pool_rows, precision_at_1
+from .linear import FEATURES, design
+from .ranker import fit, pool_rows, precision_at_1
 
 #: the feature sets tried, by name (score: its logit)
 RANKERS: dict[str, tuple[str, ...]] = {
@@ -63,7 +64,7 @@ def study(fit_path, judge_path) -> dict:
         out["within_scene_auc"][k] = {"auc": a, "scenes": n}
     for name, names in RANKERS.items():
         ranker = fit(fit_path, names)
-        r = ranker.utility(fb)
+        r = ranker.value(fb)
         out["rankers"][name] = {
             "features": list(names),
             "weights": ranker.weights.tolist(),

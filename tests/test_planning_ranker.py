@@ -8,6 +8,7 @@ import pytest
 
 from planning import ranker as pr
 from planning.features import PLAN_FEATURES
+from planning.linear import LinearModel
 from service.runtime import FastModel, ModelError
 
 MODEL_DIR = "models/fast-vgqcnn-default"
@@ -44,7 +45,7 @@ def test_fit_finds_what_decides_and_writes_it_beside_the_model(tmp_path, capsys)
     assert "precision@1" in capsys.readouterr().out
     feats = {k: np.array([0.5, 0.5]) for k in PLAN_FEATURES} | {"approach_tilt": np.array([10.0, 50.0])}
     feats["table_clearance"] = np.array([np.nan, np.nan])  # missing: counts as the mean
-    u = ranker.utility(feats)
+    u = ranker.value(feats)
     assert np.isfinite(u).all() and u[0] > u[1]
 
 
@@ -79,7 +80,7 @@ def test_the_model_folder_decides_the_planner_order(tmp_path):
     assert bare.planner_ranker is None and res.ranked_by == "score" and res.to_dict()["ranked_by"] == "score"
     assert [g.score for g in res.grasps] == sorted((g.score for g in res.grasps), reverse=True)
     # a ranker that only wants wide grasps: the widest candidate comes first
-    wide = pr.Ranker(("width",), np.array([0.03]), np.array([0.01]), np.array([1.0]))
+    wide = LinearModel(("width",), np.array([0.03]), np.array([0.01]), np.array([1.0]))
     (model / pr.FILE).write_text(json.dumps({"ranker": wide.to_dict()}))
     m = FastModel(model, threads=1, head_precision="fp32", encoder_precision="fp32")
     res = plan(depth, DEFAULT_INTRINSICS, m, k=3, params=params)
