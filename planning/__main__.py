@@ -133,7 +133,9 @@ def main(argv=None) -> int:
     n = len(result.grasps)
     best = result.grasps[0] if n else None
     hold = f", p_hold {best.p_hold:.2f}" if best is not None and best.p_hold is not None else ""
-    msg = f"{n} grasps" + (f" (best score {best.score:.3f}{hold})" if n else f": {result.reason}")
+    msg = f"{n} grasps ranked by {result.ranked_by}" + (
+        f" (first: score {best.score:.3f}{hold})" if n else f": {result.reason}"
+    )
     print(f"vgq-plan: {msg} in {1e3 * result.seconds.get('total', 0):.0f} ms", file=sys.stderr)
     return 0
 
