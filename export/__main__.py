@@ -161,6 +161,18 @@ def main(argv=None) -> None:
     )
     p.add_argument("--int8-check-n", type=int, default=4096, help="labelled crops for the int8 check (default 4096)")
     p.add_argument(
+        "--no-prune-head",
+        action="store_true",
+        help="quantise the whole head; by default its dead ReLU units (never active on --prune-calibration-n "
+        "train crops) are removed first and the pruned head is checked against the unpruned one (export.prune_head)",
+    )
+    p.add_argument(
+        "--prune-calibration-n",
+        type=int,
+        default=50000,
+        help="train crops that find the head's dead units (default 50000)",
+    )
+    p.add_argument(
         "--int8-encoder",
         action="store_true",
         help="also write encoder_int8.onnx (static int8, calibrated on up to 2048 train crops) if it scores "
@@ -188,6 +200,8 @@ def main(argv=None) -> None:
         p.error("--verify-n must be >= 1")
     if a.int8_check_n < 100:
         p.error("--int8-check-n must be >= 100")
+    if a.prune_calibration_n < 16:
+        p.error("--prune-calibration-n must be >= 16")
     if a.native_positivity is not None and not 0 < a.native_positivity < 1:
         p.error("--native-positivity must be a fraction in (0, 1)")
     if a.calibration_n < 0:
@@ -205,11 +219,13 @@ def main(argv=None) -> None:
         net, meta = load_trained(a.run)
         ds = open_crop_dataset(a.data)
         split, crops, poses, _ = _sample(ds, ("test", "val", "train"), a.verify_n, a.seed, meta["arch"])
-        int8 = None
+        int8 = prune_calibration = None
         if a.int8_head:
             chk, *labelled = _sample(ds, ("val", "test", "train"), a.int8_check_n, a.seed, meta["arch"])
             int8 = tuple(labelled)
             logging.info("int8 head check on %d %s crops", len(labelled[0]), chk.name)
+            if not a.no_prune_head:
+                prune_calibration = tuple(_sample(ds, ("train",), a.prune_calibration_n, a.seed, meta["arch"])[1:3])
         if a.recipe:
             meta["dataset"]["recipe"] = a.recipe
         meta["metrics"].update(_baselines(a.baseline, ds.path))
@@ -234,6 +250,7 @@ def main(argv=None) -> None:
             tolerance=a.tolerance,
             int8_check=int8,
             calibration=calibration,
+            prune_calibration=prune_calibration,
         )
         _copy_baseline_models(a.baseline, a.out)
         if a.int8_encoder:
@@ -264,6 +281,16 @@ def main(argv=None) -> None:
             q["decisions_changed"],
             q["n"],
         )
+        if "pruning" in q:
+            pr = q["pruning"]
+            logging.info(
+                "int8 head pruned: fc4 keeps %d, fc5 keeps %d of %d units; max |p_pruned - p_full| = %.2e on %d pairs",
+                pr["units"]["fc4_units_kept"],
+                pr["units"]["fc5_units_kept"],
+                pr["units"]["units"],
+                pr["max_abs_diff_probability"],
+                pr["n_pairs"],
+            )
     if card.calibration:
         k = card.calibration
         logging.info(

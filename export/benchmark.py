@@ -19,7 +19,9 @@ For k grasps (default 32, 64, 96, 128, 512), all in one run, median and p99 (ms)
 * speed-up VGQ / Fast (how many times faster Fast-VGQ-CNN is), and the FLOP floor of Fast:
   FLOPs of encoder + head (2 per multiply-add of Conv, Gemm, MatMul) divided by the peak
   of a 1024^3 MatMul measured in the same onnxruntime with the same threads, interleaved
-  with the runs of each k (best of its runs).
+  with the runs of each k (best of its runs). The FLOPs are the fp32 graphs' (``head.onnx``
+  whole): an int8 head with dead units removed (``export.prune_head``) does less work than
+  that floor counts, and the head row says how many units it kept.
 
 Calls of the different models are interleaved in time, so load from other processes hits
 them alike. VGQ-CNN is slow: it gets fewer runs (``--vgq-budget-s`` per k), said in the output.
@@ -41,6 +43,13 @@ import numpy as np
 DEFAULT_KS = (32, 64, 96, 128, 512)
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_MODEL_DIR = ROOT / "models" / "fast-vgqcnn-default"
+
+
+def _head_label(config: dict) -> str:
+    """The served head's precision, and its pruning when the int8 head is pruned."""
+    units = config.get("head_pruning")
+    label = config.get("head_precision", "fp32")
+    return f"{label}, fc5 {units['fc5_units_kept']} of {units['units']} units" if units else label
 
 
 # ---- FLOPs and the machine's peak ---------------------------------------------------------
@@ -286,6 +295,10 @@ def run_benchmark(
             "model_dir": str(model_dir),
             "model_version": fast.version,
             "head_precision": fast.head_precision,
+            # the int8 head's pruning (export.prune_head), when it has one: units kept of fc4 and fc5
+            "head_pruning": fast.card.export.get("int8_head", {}).get("pruning", {}).get("units")
+            if fast.head_precision == "int8"
+            else None,
             "encoder_precision": fast.encoder_precision,
             "encoder_selection": fast.encoder_info,
             "runs": runs,
@@ -371,7 +384,7 @@ def markdown(report: dict) -> str:
         "|---|" + "---:|" * len(ks),
         line("VGQ-CNN prediction, ms (median / p99)", ms("vgq")),
         line("Fast-VGQ-CNN prediction (encoder + head), ms", ms("fast")),
-        line(f"Fast-VGQ-CNN head only (cached image, {c.get('head_precision', 'fp32')}), ms", ms("head")),
+        line(f"Fast-VGQ-CNN head only (cached image, {_head_label(c)}), ms", ms("head")),
         *([line("Fast-VGQ-CNN head only, fp32 graph, ms", ms("head_fp32"))] if "head_fp32" in rows[ks[0]] else []),
         line("Fast-VGQ-CNN encoder only, ms", ms("encoder")),
         line("VGQ-CNN preprocessing (k crops), ms", ms("vgq_pre")),

@@ -36,7 +36,8 @@ from vgq.model_card import (
 
 from .calibrate import DIAGRAM, CalibrationReport, plot_reliability
 from .graphs import EncoderGraph, HeadGraph, OnePieceGraph
-from .quantize import QuantizationError, check_int8_head, quantize_head
+from .prune_head import build_int8_head
+from .quantize import QuantizationError
 
 log = logging.getLogger(__name__)
 OPSET = 17
@@ -164,13 +165,16 @@ def export_model(
     tolerance: float = DEFAULT_TOLERANCE,
     int8_check: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     calibration: CalibrationReport | None = None,
+    prune_calibration: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> ModelCard:
     """Export ``net`` to ``out_dir`` after verifying ONNX against torch on ``crops`` (n, S, S)
     metres and raw ``poses`` (n, n_pose) in the net's pose columns. Returns the model card.
 
     ``int8_check`` (Fast-VGQ-CNN only): labelled (crops, poses, labels) on which an int8 head
     (``export.quantize``) must score like the fp32 one; it is then added as ``head_int8.onnx``
-    and its check recorded in the card (``export.int8_head``).
+    and its check recorded in the card (``export.int8_head``). ``prune_calibration`` (crops, poses),
+    e.g. of the train split: the int8 head is quantised from the head with its dead units removed
+    (``export.prune_head``; the pruned graph is checked against the unpruned one on ``int8_check``).
 
     ``calibration`` (``export.calibrate.calibration_report``): recorded in the card's
     ``calibration``, its reliability diagram written beside the graphs."""
@@ -232,14 +236,14 @@ def export_model(
             log.info("quantising the head to int8 and checking it on %d labelled crops", len(int8_check[0]))
             files["head_int8"] = "head_int8.onnx"
             try:
-                nodes = quantize_head(tmp / files["head"], tmp / files["head_int8"])
-                extra["int8_head"] = check_int8_head(
+                extra["int8_head"] = build_int8_head(
                     tmp / files["encoder"],
                     tmp / files["head"],
                     tmp / files["head_int8"],
-                    *int8_check,
-                    quantized_nodes=nodes,
-                ).to_dict()
+                    prune_calibration,
+                    int8_check,
+                    prune=prune_calibration is not None,
+                )
             except QuantizationError as e:
                 raise ExportError(str(e)) from e
         digest = _sha(tmp / f for f in files.values())

@@ -1,0 +1,379 @@
+"""Drop the head's dead ReLU units before it is quantised: the served int8 head does less work.
+
+Fast-VGQ-CNN's head is pc1 (7 -> 16) -> fc4 (image term + pose, 1024) -> fc5 (1024 x 1024) ->
+out (1). fc5 is nearly all of its work, and many of its ReLU units never fire: in the bundled
+v2 model 42% of fc5's units and 5% of fc4's stay at zero on every calibration crop, trained into
+that state ("dead" units get no gradient). A unit that is zero contributes nothing downstream,
+so removing it (its row of fc5 and its weight in ``out``; for fc4 its image-term column, its
+pose-layer row and its column of fc5) leaves every probability unchanged wherever it stays dead.
+
+Which units are dead is measured, not proved: the maximum pre-activation of every unit over
+calibration crops (a crop dataset's train split, objects the check does not see), over their
+own (crop, pose) pairs and over pairs of one crop's image term with another crop's pose (the
+service scores many grasps against one window). fc4's maximum over *every* such pairing is exact
+(its pre-activation is image term + pose part); fc5's is sampled (``cross_pairs``). The pruned
+graph is then checked against the unpruned one on other objects' crops, own and crossed pairs:
+it is refused (``PruningError``) when a probability moves by more than ``max_abs_diff`` or more
+than ``max_flip_fraction`` of the decisions change. The int8 head is quantised from the pruned
+graph and checked against the exact fp32 head as before (export.quantize). ``head.onnx``, the
+fp32 reference, is never pruned.
+
+    python -m export.prune_head --model-dir models/fast-vgqcnn-default \\
+        --calibration data/calib/crops --check examples/heldout_test_crops.npz
+
+rebuilds a model folder's ``head_int8.onnx`` this way (atomic; the card's ``export.int8_head``
+records both checks and the units kept). ``python -m export --int8-head`` does the same at
+export time (``--no-prune-head`` keeps every unit).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import logging
+import os
+import sys
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+from onnx import helper, numpy_helper
+
+from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT, ModelCard
+
+from .quantize import QuantizationError, check_int8_head, quantize_head
+
+#: initialiser names of the head graph as export.onnx_export writes it (export.graphs.HeadGraph)
+WEIGHTS = {
+    "pc1_w": "head.pc1.weight",
+    "pc1_b": "head.pc1.bias",
+    "fc4_w": "head.fc4_pose.weight",
+    "fc4_b": "head.fc4_pose.bias",
+    "fc5_w": "head.fc5.weight",
+    "fc5_b": "head.fc5.bias",
+    "out_w": "head.out.weight",
+}
+MAX_ABS_DIFF = 0.02
+MAX_FLIP_FRACTION = 0.001
+CROSS_PAIRS = 200_000
+INT8_HEAD_FILE = "head_int8.onnx"
+
+
+class PruningError(QuantizationError):
+    """The pruned head does not score like the unpruned one (or the graph is not a head)."""
+
+
+@dataclass(frozen=True)
+class HeadWeights:
+    """The head's fc weights (torch layout: (out, in)), float64."""
+
+    pc1_w: np.ndarray
+    pc1_b: np.ndarray
+    fc4_w: np.ndarray
+    fc4_b: np.ndarray
+    fc5_w: np.ndarray
+    fc5_b: np.ndarray
+    out_w: np.ndarray
+
+    @classmethod
+    def from_onnx(cls, path: str | Path) -> HeadWeights:
+        inits = {t.name: t for t in onnx.load(str(path)).graph.initializer}
+        missing = [n for n in WEIGHTS.values() if n not in inits]
+        if missing:
+            raise PruningError(f"{path}: not a Fast-VGQ-CNN head graph (no {', '.join(missing)})")
+        return cls(**{k: numpy_helper.to_array(inits[n]).astype(np.float64) for k, n in WEIGHTS.items()})
+
+    def pose_part(self, poses: np.ndarray) -> np.ndarray:
+        """(k, 7) pose rows -> (k, 1024): fc4's pose contribution plus its bias."""
+        pc1 = np.maximum(np.asarray(poses, np.float64) @ self.pc1_w.T + self.pc1_b, 0)
+        return pc1 @ self.fc4_w.T + self.fc4_b
+
+    def fc5_pre(self, terms: np.ndarray, pose_part: np.ndarray) -> np.ndarray:
+        """fc5's pre-activations (n, 1024) of n (image term, pose part) pairs, row by row."""
+        return np.maximum(np.asarray(terms, np.float64) + pose_part, 0) @ self.fc5_w.T + self.fc5_b
+
+
+@dataclass(frozen=True)
+class DeadUnits:
+    """Units kept (indices into 1024) and the calibration they were measured on."""
+
+    fc4_kept: np.ndarray
+    fc5_kept: np.ndarray
+    n_units: int  # of fc4 and of fc5 before pruning
+    n_calibration: int
+    n_cross_pairs: int
+
+    def summary(self) -> dict:
+        return {
+            "units": self.n_units,
+            "fc4_units_kept": int(len(self.fc4_kept)),
+            "fc5_units_kept": int(len(self.fc5_kept)),
+            "n_calibration": self.n_calibration,
+            "n_cross_pairs": self.n_cross_pairs,
+        }
+
+
+def dead_units(
+    w: HeadWeights, terms: np.ndarray, poses: np.ndarray, cross_pairs: int = CROSS_PAIRS, seed: int = 0
+) -> DeadUnits:
+    """The units of fc4 and fc5 that fire (pre-activation > 0) for some calibration pair: the
+    (n, 1024) image terms with their own (n, 7) pose rows, and for fc5 also ``cross_pairs``
+    random (term i, pose j) pairs. fc4's maximum over all n x n pairs is exact: max(term) + max(pose
+    part). A unit that fires nowhere is dead; the kept units are returned (sorted)."""
+    terms = np.asarray(terms, np.float64)
+    if terms.ndim != 2 or len(terms) != len(poses) or len(terms) == 0:
+        raise PruningError(f"calibration needs n image terms and n pose rows, got {terms.shape} and {np.shape(poses)}")
+    part = w.pose_part(poses)
+    fc4_max = terms.max(0) + part.max(0)
+    fc5_max = np.full(len(w.fc5_b), -np.inf)
+    rng = np.random.default_rng(seed)
+    n, chunk = len(terms), 4096
+    for start in range(0, n + cross_pairs, chunk):
+        if start < n:  # own pairs first
+            i = np.arange(start, min(start + chunk, n))
+            j = i
+        else:
+            m = min(chunk, n + cross_pairs - start)
+            i, j = rng.integers(0, n, m), rng.integers(0, n, m)
+        fc5_max = np.maximum(fc5_max, w.fc5_pre(terms[i], part[j]).max(0))
+    return DeadUnits(np.flatnonzero(fc4_max > 0), np.flatnonzero(fc5_max > 0), len(fc5_max), n, int(cross_pairs))
+
+
+def prune_head_graph(head_path: str | Path, out_path: str | Path, units: DeadUnits) -> None:
+    """Write ``out_path``: the head graph with only ``units`` kept. Same inputs and output; the
+    image term's kept columns are gathered before fc4's bias is added."""
+    g = onnx.load(str(head_path))
+    w = {t.name: numpy_helper.to_array(t) for t in g.graph.initializer}
+    k4, k5 = units.fc4_kept, units.fc5_kept
+    new = {
+        WEIGHTS["fc4_w"]: w[WEIGHTS["fc4_w"]][k4],
+        WEIGHTS["fc4_b"]: w[WEIGHTS["fc4_b"]][k4],
+        WEIGHTS["fc5_w"]: w[WEIGHTS["fc5_w"]][k5][:, k4],
+        WEIGHTS["fc5_b"]: w[WEIGHTS["fc5_b"]][k5],
+        WEIGHTS["out_w"]: w[WEIGHTS["out_w"]][:, k5],
+    }
+    for t in g.graph.initializer:
+        if t.name in new:
+            t.CopyFrom(numpy_helper.from_array(np.ascontiguousarray(new[t.name], np.float32), t.name))
+    users = [n for n in g.graph.node if HEAD_INPUTS[0] in n.input]
+    if len(users) != 1 or users[0].op_type != "Add":
+        raise PruningError(f"{head_path}: expected one Add on {HEAD_INPUTS[0]}, found {[n.op_type for n in users]}")
+    kept_name, term_kept = "head.prune.fc4_kept", "/head/prune/term_kept"
+    g.graph.initializer.append(numpy_helper.from_array(k4.astype(np.int64), kept_name))
+    add = users[0]
+    add.input[list(add.input).index(HEAD_INPUTS[0])] = term_kept
+    gather = helper.make_node("Gather", [HEAD_INPUTS[0], kept_name], [term_kept], axis=1, name="/head/prune/Gather")
+    g.graph.node.insert(list(g.graph.node).index(add), gather)
+    onnx.checker.check_model(g)
+    onnx.save(g, str(out_path))
+
+
+@dataclass(frozen=True)
+class PruneCheck:
+    """The pruned fp32 head against the unpruned one on check crops (own and crossed pairs)."""
+
+    n_pairs: int
+    max_abs_diff_probability: float
+    mean_abs_diff_probability: float
+    decisions_changed: int
+    check_data: str
+    units: dict
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _session(path) -> ort.InferenceSession:
+    from service.runtime import session_options
+
+    return ort.InferenceSession(str(path), session_options(1), providers=["CPUExecutionProvider"])
+
+
+def image_terms(encoder_path: str | Path, crops: np.ndarray) -> np.ndarray:
+    """(n, 1024) image terms of (n, S, S) or (n, 1, S, S) crops (metres) through the encoder graph."""
+    enc = _session(encoder_path)
+    x = np.ascontiguousarray(crops, np.float32).reshape(len(crops), 1, *np.shape(crops)[-2:])
+    return np.concatenate(
+        [enc.run([ENCODER_OUTPUT], {ENCODER_INPUT: x[i : i + 256]})[0] for i in range(0, len(x), 256)]
+    )
+
+
+def check_pruned_head(
+    head_path,
+    pruned_path,
+    terms: np.ndarray,
+    poses: np.ndarray,
+    units: DeadUnits,
+    check_data: str = "",
+    max_abs_diff: float | None = None,
+    max_flip_fraction: float | None = None,
+    seed: int = 1,
+) -> PruneCheck:
+    """Score the check crops' own (term, pose) pairs and as many crossed pairs (term i, pose of a
+    random other crop) through both graphs, 128 grasps per call; raise PruningError when the
+    pruned head is off (thresholds: MAX_ABS_DIFF, MAX_FLIP_FRACTION unless given)."""
+    max_abs_diff = MAX_ABS_DIFF if max_abs_diff is None else max_abs_diff
+    max_flip_fraction = MAX_FLIP_FRACTION if max_flip_fraction is None else max_flip_fraction
+    full, pruned = _session(head_path), _session(pruned_path)
+    terms, poses = np.ascontiguousarray(terms, np.float32), np.ascontiguousarray(poses, np.float32)
+    cross = np.random.default_rng(seed).permutation(len(poses))
+    diffs, flips = [], 0
+    for p in (poses, poses[cross]):
+        for i in range(0, len(p), 128):
+            feed = {HEAD_INPUTS[0]: terms[i : i + 128], HEAD_INPUTS[1]: p[i : i + 128]}
+            a, b = (s.run([HEAD_OUTPUT], feed)[0] for s in (full, pruned))
+            diffs.append(np.abs(a - b))
+            flips += int(((a > 0.5) != (b > 0.5)).sum())
+    d = np.concatenate(diffs)
+    check = PruneCheck(len(d), float(d.max()), float(d.mean()), flips, check_data, units.summary())
+    if check.max_abs_diff_probability > max_abs_diff or flips > max_flip_fraction * len(d):
+        raise PruningError(
+            f"the pruned head scores unlike the unpruned one: {check.to_dict()} "
+            f"(allowed: |dp| {max_abs_diff}, decisions changed {max_flip_fraction:.2%})"
+        )
+    return check
+
+
+def build_int8_head(
+    encoder_path,
+    head_path,
+    out_path,
+    calibration: tuple[np.ndarray, np.ndarray],
+    check: tuple[np.ndarray, np.ndarray, np.ndarray],
+    check_data: str = "",
+    cross_pairs: int = CROSS_PAIRS,
+    prune: bool = True,
+) -> dict:
+    """Write the served int8 head to ``out_path``: ``head_path`` with its dead units removed
+    (measured on ``calibration`` = (crops, poses), checked on ``check`` = labelled (crops, poses,
+    labels)) and then fc5 quantised; the int8 graph is checked against the exact fp32 head on
+    ``check``. Returns the card's ``export.int8_head`` record; raises QuantizationError (or
+    PruningError) when a check fails."""
+    record: dict = {}
+    source = Path(head_path)
+    with tempfile.TemporaryDirectory(prefix=".prune-", dir=Path(out_path).parent) as tmp:
+        if prune:
+            units = dead_units(
+                HeadWeights.from_onnx(head_path), image_terms(encoder_path, calibration[0]), calibration[1], cross_pairs
+            )
+            logging.info(
+                "dead units: fc4 keeps %d, fc5 keeps %d of %d (%d calibration crops)",
+                len(units.fc4_kept),
+                len(units.fc5_kept),
+                units.n_units,
+                units.n_calibration,
+            )
+            source = Path(tmp) / "head_pruned.onnx"
+            prune_head_graph(head_path, source, units)
+            record["pruning"] = check_pruned_head(
+                head_path, source, image_terms(encoder_path, check[0]), check[1], units, check_data
+            ).to_dict()
+        nodes = quantize_head(source, out_path)
+        result = check_int8_head(encoder_path, head_path, out_path, *check, quantized_nodes=nodes)
+    return {**result.to_dict(), **record}
+
+
+def rebuild_int8_head(
+    model_dir: str | Path,
+    calibration: tuple[np.ndarray, np.ndarray],
+    check: tuple[np.ndarray, np.ndarray, np.ndarray],
+    check_data: str = "",
+    calibration_data: str = "",
+    cross_pairs: int = CROSS_PAIRS,
+) -> dict:
+    """Replace a Fast-VGQ-CNN folder's int8 head by a pruned one (:func:`build_int8_head`); the
+    file and the card are only written once both checks pass (each write atomic)."""
+    model_dir = Path(model_dir)
+    card = ModelCard.load(model_dir)
+    if card.architecture != "fast_vgqcnn":
+        raise PruningError(f"{model_dir}: a pruned head exists for fast_vgqcnn only, not {card.architecture}")
+    fd, tmp = tempfile.mkstemp(prefix=f".{INT8_HEAD_FILE}.", suffix=".tmp", dir=model_dir)
+    os.close(fd)
+    try:
+        record = build_int8_head(
+            model_dir / card.files["encoder"],
+            model_dir / card.files["head"],
+            tmp,
+            calibration,
+            check,
+            check_data,
+            cross_pairs,
+        )
+        record["pruning"]["calibration_data"] = calibration_data
+        record["sha256"] = hashlib.sha256(Path(tmp).read_bytes()).hexdigest()
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, model_dir / INT8_HEAD_FILE)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+    card.files["head_int8"] = INT8_HEAD_FILE
+    card.export["int8_head"] = record
+    card.save(model_dir)
+    return record
+
+
+def main(argv=None) -> dict:
+    from .int8_encoder import crop_split
+
+    p = argparse.ArgumentParser(
+        prog="python -m export.prune_head", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument("--model-dir", required=True, help="exported Fast-VGQ-CNN model folder (its int8 head is replaced)")
+    p.add_argument(
+        "--calibration", required=True, help="crop dataset (its train split) or .npz whose crops find the dead units"
+    )
+    p.add_argument(
+        "--check", required=True, help="crop dataset (its val + test splits) or .npz of labelled crops of other objects"
+    )
+    p.add_argument("--calibration-n", type=int, default=50000, help="calibration crops (default 50000)")
+    p.add_argument(
+        "--cross-pairs", type=int, default=CROSS_PAIRS, help=f"crossed (term, pose) pairs (default {CROSS_PAIRS})"
+    )
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="[prune-head] %(message)s")
+    if a.calibration_n < 16:
+        p.error("--calibration-n must be >= 16")
+    if a.cross_pairs < 0:
+        p.error("--cross-pairs must be >= 0")
+    if not (Path(a.model_dir) / "model_card.json").is_file():
+        p.error(f"--model-dir {a.model_dir!r} holds no model_card.json")
+    if Path(a.check).resolve() == Path(a.calibration).resolve() and Path(a.check).suffix == ".npz":
+        p.error("--check must not be the calibration crops")
+    try:
+        crops, poses, _ = crop_split(a.calibration, ("train",), a.calibration_n)
+        check = crop_split(a.check, ("val", "test"))
+        check_data = f"{a.check} (val + test)" if Path(a.check).is_dir() else a.check
+        record = rebuild_int8_head(
+            a.model_dir,
+            (crops, poses),
+            check,
+            check_data=check_data,
+            calibration_data=f"{a.calibration} ({len(crops)} crops)",
+            cross_pairs=a.cross_pairs,
+        )
+    except (QuantizationError, ValueError, FileNotFoundError) as e:
+        print(f"prune-head: {e}", file=sys.stderr)
+        sys.exit(2)
+    pr = record["pruning"]
+    logging.info(
+        "int8 head rebuilt: fc4 keeps %d, fc5 keeps %d of %d units; pruned vs unpruned on %d pairs: max |dp| %.2e, "
+        "%d decisions changed; int8 vs fp32: balanced accuracy %.4f (fp32 %.4f), max |dp| %.4f, %d of %d decisions changed",
+        pr["units"]["fc4_units_kept"],
+        pr["units"]["fc5_units_kept"],
+        pr["units"]["units"],
+        pr["n_pairs"],
+        pr["max_abs_diff_probability"],
+        pr["decisions_changed"],
+        record["balanced_accuracy_int8"],
+        record["balanced_accuracy_fp32"],
+        record["max_abs_diff_probability"],
+        record["decisions_changed"],
+        record["n"],
+    )
+    return record
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,168 @@
+"""export.prune_head: the head's dead ReLU units removed before it is quantised, checked against
+the unpruned head, and written as the model folder's int8 head."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+from conftest import synthetic_crops
+from onnx import numpy_helper
+
+from export.prune_head import (
+    WEIGHTS,
+    DeadUnits,
+    HeadWeights,
+    PruningError,
+    check_pruned_head,
+    dead_units,
+    image_terms,
+    main,
+    prune_head_graph,
+    rebuild_int8_head,
+)
+from service.runtime import FastModel
+from vgq.model_card import HEAD_INPUTS, HEAD_OUTPUT, ModelCard
+
+DEAD4, DEAD5 = np.arange(0, 1024, 9), np.arange(0, 1024, 3)  # units the fixture kills
+
+
+@pytest.fixture(scope="module")
+def dead_model(tmp_path_factory, model_dir):
+    """A copy of the test model whose head has known dead units: a very negative bias on every
+    9th fc4 unit and every 3rd fc5 unit (as training leaves some units, never active)."""
+    out = tmp_path_factory.mktemp("prune") / "m"
+    shutil.copytree(model_dir, out)
+    g = onnx.load(str(out / "head.onnx"))
+    for t in g.graph.initializer:
+        if t.name in (WEIGHTS["fc4_b"], WEIGHTS["fc5_b"]):
+            b = numpy_helper.to_array(t).copy()
+            b[DEAD4 if t.name == WEIGHTS["fc4_b"] else DEAD5] = -100.0
+            t.CopyFrom(numpy_helper.from_array(b, t.name))
+    onnx.save(g, str(out / "head.onnx"))
+    return out
+
+
+def _score(path, terms, poses):
+    s = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    return s.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: terms, HEAD_INPUTS[1]: poses})[0]
+
+
+def _calibration(model, n=64, seed=31):
+    crops, poses, _ = synthetic_crops(n, np.random.default_rng(seed))
+    return image_terms(model / "encoder.onnx", crops), poses
+
+
+def test_dead_units_are_the_units_that_never_fire(dead_model):
+    terms, poses = _calibration(dead_model)
+    w = HeadWeights.from_onnx(dead_model / "head.onnx")
+    units = dead_units(w, terms, poses, cross_pairs=500)
+    assert not set(DEAD4) & set(units.fc4_kept) and not set(DEAD5) & set(units.fc5_kept)
+    # fc4's maximum is over every (term, pose) pairing: brute force agrees
+    every = terms[:, None, :] + w.pose_part(poses)[None, :, :]
+    assert np.array_equal(units.fc4_kept, np.flatnonzero(every.max((0, 1)) > 0))
+    # fc5: every kept unit fires on some calibration pair
+    assert (w.fc5_pre(terms, w.pose_part(poses))[:, units.fc5_kept].max(0) > 0).mean() > 0.5
+    assert units.summary()["units"] == 1024 and units.n_calibration == 64
+
+
+def test_removing_dead_units_leaves_every_probability_unchanged(dead_model, tmp_path):
+    keep = DeadUnits(np.setdiff1d(np.arange(1024), DEAD4), np.setdiff1d(np.arange(1024), DEAD5), 1024, 0, 0)
+    prune_head_graph(dead_model / "head.onnx", tmp_path / "p.onnx", keep)
+    w = {t.name: t.dims for t in onnx.load(str(tmp_path / "p.onnx")).graph.initializer}
+    assert list(w[WEIGHTS["fc5_w"]]) == [1024 - len(DEAD5), 1024 - len(DEAD4)]
+    terms, poses = _calibration(dead_model, 40, seed=32)
+    for t in (terms[:1], terms):  # one window's term broadcast over k grasps, and one per grasp
+        full, pruned = _score(dead_model / "head.onnx", t, poses), _score(tmp_path / "p.onnx", t, poses)
+        assert pruned.shape == full.shape == (40,) and np.abs(pruned - full).max() < 1e-6
+
+
+def test_check_refuses_a_head_pruned_of_live_units(dead_model, tmp_path):
+    terms, poses = _calibration(dead_model)
+    units = dead_units(HeadWeights.from_onnx(dead_model / "head.onnx"), terms, poses, cross_pairs=0)
+    too_many = DeadUnits(units.fc4_kept, units.fc5_kept[:5], 1024, 64, 0)
+    prune_head_graph(dead_model / "head.onnx", tmp_path / "bad.onnx", too_many)
+    check_terms, check_poses = _calibration(dead_model, 100, seed=33)
+    with pytest.raises(PruningError, match="unlike the unpruned"):
+        check_pruned_head(dead_model / "head.onnx", tmp_path / "bad.onnx", check_terms, check_poses, too_many)
+    prune_head_graph(dead_model / "head.onnx", tmp_path / "ok.onnx", units)
+    ok = check_pruned_head(dead_model / "head.onnx", tmp_path / "ok.onnx", check_terms, check_poses, units)
+    assert ok.n_pairs == 200 and ok.decisions_changed == 0  # own pairs and as many crossed pairs
+
+
+def test_not_a_head_graph_is_refused(model_dir):
+    with pytest.raises(PruningError, match="not a Fast-VGQ-CNN head graph"):
+        HeadWeights.from_onnx(model_dir / "encoder.onnx")
+
+
+def test_rebuild_writes_a_smaller_int8_head_the_service_serves(dead_model, tmp_path):
+    out = tmp_path / "m"
+    shutil.copytree(dead_model, out)
+    calib = synthetic_crops(64, np.random.default_rng(31))[:2]
+    check = synthetic_crops(300, np.random.default_rng(34))
+    rec = rebuild_int8_head(out, calib, check, check_data="synthetic", calibration_data="synthetic", cross_pairs=500)
+    card = ModelCard.load(out)
+    assert card.files["head_int8"] == "head_int8.onnx" and card.export["int8_head"] == rec
+    assert rec["pruning"]["units"]["fc5_units_kept"] <= 1024 - len(DEAD5) and rec["quantized_nodes"] == [
+        "/head/fc5/Gemm"
+    ]
+    q = {t.name: t.dims for t in onnx.load(str(out / "head_int8.onnx")).graph.initializer}
+    assert q["head.fc5.weight_Transposed_quantized"][1] == rec["pruning"]["units"]["fc5_units_kept"]
+    m8, m32 = FastModel(out), FastModel(out, head_precision="fp32")
+    term = m32.encode(check[0][0])
+    assert np.abs(m8.score(term, check[1][:64]) - m32.score(term, check[1][:64])).max() <= 0.05
+    assert not list(out.glob(".*tmp")) and not list(out.glob(".prune-*"))
+
+
+def test_refused_pruning_leaves_the_folder_unchanged(dead_model, tmp_path, monkeypatch):
+    import export.prune_head as ph
+
+    out = tmp_path / "m"
+    shutil.copytree(dead_model, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    monkeypatch.setattr(ph, "MAX_ABS_DIFF", -1.0)
+    with pytest.raises(PruningError, match="unlike the unpruned"):
+        rebuild_int8_head(
+            out, synthetic_crops(32, np.random.default_rng(1))[:2], synthetic_crops(200, np.random.default_rng(2))
+        )
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--calibration-n", "3"], "--calibration-n must be >= 16"),
+        (["--cross-pairs", "-1"], "--cross-pairs must be >= 0"),
+    ],
+)
+def test_cli_refuses_bad_numbers(dead_model, tmp_path, capsys, args, message):
+    with pytest.raises(SystemExit) as e:
+        main(["--model-dir", str(dead_model), "--calibration", "c", "--check", "k", *args])
+    assert e.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_cli_names_a_missing_calibration_file(dead_model, tmp_path, capsys):
+    out = tmp_path / "m"
+    shutil.copytree(dead_model, out)
+    with pytest.raises(SystemExit) as e:
+        main(["--model-dir", str(out), "--calibration", str(tmp_path / "none.npz"), "--check", str(tmp_path / "k.npz")])
+    assert e.value.code == 2 and "none.npz" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("prune", [True, False])
+def test_export_cli_prunes_the_int8_head_unless_told_not_to(tmp_path, prune):
+    from test_export import _tiny_run
+
+    from export.__main__ import main as export_main
+
+    data, run = _tiny_run(tmp_path)
+    args = ["--run", str(run), "--data", str(data), "--out", str(tmp_path / "m"), "--verify-n", "4"]
+    args += ["--no-calibration", "--int8-head", "--int8-check-n", "100", "--prune-calibration-n", "16"]
+    export_main(args + ([] if prune else ["--no-prune-head"]))
+    rec = ModelCard.load(tmp_path / "m").export["int8_head"]
+    assert ("pruning" in rec) == prune
+    if prune:
+        assert rec["pruning"]["units"]["units"] == 1024 and rec["pruning"]["units"]["n_calibration"] == 16
