@@ -166,3 +166,20 @@ def test_export_cli_prunes_the_int8_head_unless_told_not_to(tmp_path, prune):
     assert ("pruning" in rec) == prune
     if prune:
         assert rec["pruning"]["units"]["units"] == 1024 and rec["pruning"]["units"]["n_calibration"] == 16
+
+
+def test_head_ab_times_two_folders_and_reports_their_agreement(dead_model, tmp_path, capsys):
+    from export.head_ab import main as head_ab
+
+    out = tmp_path / "m"
+    shutil.copytree(dead_model, out)
+    rebuild_int8_head(
+        out, synthetic_crops(64, np.random.default_rng(31))[:2], synthetic_crops(300, np.random.default_rng(34))
+    )
+    r = head_ab([str(dead_model), str(out), "--rounds", "2", "--calls", "3", "--k", "16"])
+    assert r["n_heldout"] == 256 and r["a"]["head_ms"] > 0 and r["b"]["head_ms"] > 0
+    assert r["a"]["head_precision"] == "fp32" and r["b"]["head_precision"] == "int8"  # the copy gained an int8 head
+    assert 0 < r["max_abs_diff"] <= 0.05 and "decisions changed" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        head_ab([str(dead_model), str(tmp_path / "none")])
+    assert e.value.code == 2
