@@ -91,9 +91,10 @@ def _sample(ds, order: tuple[str, ...], n: int, seed: int, arch: str):
     return (split, *(t.numpy() for t in split.batch(idx, arch)))
 
 
-def _add_int8_encoder(out: str, ds, arch: str, n_check: int, seed: int) -> None:
+def _add_int8_encoder(out: str, ds, arch: str, n_check: int, seed: int, prune_n: int | None) -> None:
     """Calibrate an int8 encoder on train crops, check it on val (else test) crops, add it to
-    ``out`` when it passes (``export.int8_encoder``); a refusal is logged, not an error."""
+    ``out`` when it passes (``export.int8_encoder``); a refusal is logged, not an error.
+    ``prune_n``: train crops that find the dead channels removed first (None: no pruning)."""
     from .int8_encoder import add_int8_encoder
     from .quantize import QuantizationError
 
@@ -113,6 +114,8 @@ def _add_int8_encoder(out: str, ds, arch: str, n_check: int, seed: int) -> None:
             tuple(labelled),
             check_data=f"{ds.path} ({chk.name}, {len(labelled[0])} crops)",
             calibration=f"{ds.path} ({calib[0].name}, {len(calib[1])} crops)",
+            prune=prune_n is not None,
+            prune_crops=None if prune_n is None else _sample(ds, ("train",), prune_n, seed, arch)[1],
         )
     except QuantizationError as e:
         logging.warning("int8 encoder refused, not written: %s", e)
@@ -161,16 +164,17 @@ def main(argv=None) -> None:
     )
     p.add_argument("--int8-check-n", type=int, default=4096, help="labelled crops for the int8 check (default 4096)")
     p.add_argument(
-        "--no-prune-head",
+        "--no-prune",
         action="store_true",
-        help="quantise the whole head; by default its dead ReLU units (never active on --prune-calibration-n "
-        "train crops) are removed first and the pruned head is checked against the unpruned one (export.prune_head)",
+        help="quantise the whole head and encoder; by default their dead ReLU units and channels (never active "
+        "on --prune-calibration-n train crops) are removed first, and each pruned graph is checked against the "
+        "unpruned one (export.prune_head, export.prune_encoder)",
     )
     p.add_argument(
         "--prune-calibration-n",
         type=int,
         default=50000,
-        help="train crops that find the head's dead units (default 50000)",
+        help="train crops that find the dead units and channels (default 50000)",
     )
     p.add_argument(
         "--int8-encoder",
@@ -224,7 +228,7 @@ def main(argv=None) -> None:
             chk, *labelled = _sample(ds, ("val", "test", "train"), a.int8_check_n, a.seed, meta["arch"])
             int8 = tuple(labelled)
             logging.info("int8 head check on %d %s crops", len(labelled[0]), chk.name)
-            if not a.no_prune_head:
+            if not a.no_prune:
                 prune_calibration = tuple(_sample(ds, ("train",), a.prune_calibration_n, a.seed, meta["arch"])[1:3])
         if a.recipe:
             meta["dataset"]["recipe"] = a.recipe
@@ -254,7 +258,8 @@ def main(argv=None) -> None:
         )
         _copy_baseline_models(a.baseline, a.out)
         if a.int8_encoder:
-            _add_int8_encoder(a.out, ds, meta["arch"], a.int8_check_n, a.seed)
+            prune_n = None if a.no_prune else a.prune_calibration_n
+            _add_int8_encoder(a.out, ds, meta["arch"], a.int8_check_n, a.seed, prune_n)
         if calibration is not None and a.reliability_png:
             atomic.write_bytes(a.reliability_png, (Path(a.out) / DIAGRAM).read_bytes())
     except CalibrationError as e:

@@ -63,21 +63,39 @@ def add_int8_encoder(
     check: tuple[np.ndarray, np.ndarray, np.ndarray],
     check_data: str = "",
     calibration: str = "",
+    prune: bool = True,
+    prune_crops: np.ndarray | None = None,
 ) -> EncoderCheck:
     """Quantise the folder's encoder, check it, and only then move ``encoder_int8.onnx`` into the
-    folder and record it in the card (both writes atomic). Raises QuantizationError when refused."""
+    folder and record it in the card (both writes atomic). Raises QuantizationError when refused.
+
+    ``prune``: the quantised encoder loses its dead channels (``export.prune_encoder``, measured on
+    ``prune_crops``, default the calibration crops); the pruned graph must score like the whole
+    int8 graph on ``check`` within the tighter PRUNE_* bounds, then like fp32 as usual."""
+    from .prune_encoder import prune_encoder
+
     model_dir = Path(model_dir)
     card = ModelCard.load(model_dir)
     if card.architecture != "fast_vgqcnn":
         raise QuantizationError(f"{model_dir}: an int8 encoder exists for fast_vgqcnn only, not {card.architecture}")
+    encoder, head = model_dir / card.files["encoder"], model_dir / card.files["head"]
     fd, tmp = tempfile.mkstemp(prefix=f".{INT8_ENCODER_FILE}.", suffix=".tmp", dir=model_dir)
     os.close(fd)
+    pruning = None
     try:
-        nodes = quantize_encoder(model_dir / card.files["encoder"], tmp, calibration_crops)
+        with tempfile.TemporaryDirectory(prefix=".prune-", dir=model_dir) as work:
+            if prune:  # quantise the whole encoder, then drop the channels dead in the int8 graph
+                whole = Path(work) / "encoder_int8_whole.onnx"
+                nodes = quantize_encoder(encoder, whole, calibration_crops)
+                crops = calibration_crops if prune_crops is None else prune_crops
+                pruning = prune_encoder(whole, tmp, head, crops, check, check_data)
+                logging.info("dead channels removed (kept / total per ReLU): %s", pruning["kept"])
+            else:
+                nodes = quantize_encoder(encoder, tmp, calibration_crops)
         result = check_encoder_variant(
-            model_dir / card.files["encoder"],
+            encoder,
             tmp,
-            model_dir / card.files["head"],
+            head,
             *check,
             precision="int8",
             quantized_nodes=nodes,
@@ -97,6 +115,7 @@ def add_int8_encoder(
         "sha256": digest,
         "onnxruntime": ort.__version__,
         "n_calibration": int(len(calibration_crops)),
+        **({"pruning": pruning} if pruning else {}),
     }
     card.save(model_dir)
     return result
@@ -114,14 +133,22 @@ def main(argv=None) -> EncoderCheck:
         "--check", required=True, help="crop dataset (val + test splits) or .npz of labelled crops for the check"
     )
     p.add_argument("--calibration-n", type=int, default=2048, help="calibration crops (default 2048)")
+    p.add_argument(
+        "--prune-n",
+        type=int,
+        default=50000,
+        help="train crops that find the dead channels (default 50000); the encoder is quantised with them removed",
+    )
+    p.add_argument("--no-prune", action="store_true", help="quantise every channel (export.prune_encoder not applied)")
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[int8-encoder] %(message)s")
-    if a.calibration_n < 16:
-        p.error("--calibration-n must be >= 16")
+    if a.calibration_n < 16 or a.prune_n < 16:
+        p.error("--calibration-n and --prune-n must be >= 16")
     if not (Path(a.model_dir) / "model_card.json").is_file():
         p.error(f"--model-dir {a.model_dir!r} holds no model_card.json")
     try:
+        prune_crops = None if a.no_prune else crop_split(a.calibration, ("train",), a.prune_n, a.seed)[0]
         calib = crop_split(a.calibration, ("train",), a.calibration_n, a.seed)[0]
         check = crop_split(a.check, ("val", "test"))
         if Path(a.check).resolve() == Path(a.calibration).resolve() and Path(a.check).suffix == ".npz":
@@ -139,6 +166,8 @@ def main(argv=None) -> EncoderCheck:
             check,
             check_data=f"{a.check} (val + test)",
             calibration=f"{a.calibration} (train, {len(calib)} crops)",
+            prune=not a.no_prune,
+            prune_crops=prune_crops,
         )
     except (QuantizationError, ValueError, FileNotFoundError) as e:
         print(f"int8-encoder: {e}", file=sys.stderr)

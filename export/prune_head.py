@@ -23,7 +23,7 @@ fp32 reference, is never pruned.
 
 rebuilds a model folder's ``head_int8.onnx`` this way (atomic; the card's ``export.int8_head``
 records both checks and the units kept). ``python -m export --int8-head`` does the same at
-export time (``--no-prune-head`` keeps every unit).
+export time (``--no-prune`` keeps every unit).
 """
 
 from __future__ import annotations
@@ -167,6 +167,7 @@ def prune_head_graph(head_path: str | Path, out_path: str | Path, units: DeadUni
     add.input[list(add.input).index(HEAD_INPUTS[0])] = term_kept
     gather = helper.make_node("Gather", [HEAD_INPUTS[0], kept_name], [term_kept], axis=1, name="/head/prune/Gather")
     g.graph.node.insert(list(g.graph.node).index(add), gather)
+    del g.graph.value_info[:]  # intermediate shapes, if any were recorded: stale after pruning
     onnx.checker.check_model(g)
     onnx.save(g, str(out_path))
 

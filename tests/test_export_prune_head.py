@@ -161,7 +161,7 @@ def test_export_cli_prunes_the_int8_head_unless_told_not_to(tmp_path, prune):
     data, run = _tiny_run(tmp_path)
     args = ["--run", str(run), "--data", str(data), "--out", str(tmp_path / "m"), "--verify-n", "4"]
     args += ["--no-calibration", "--int8-head", "--int8-check-n", "100", "--prune-calibration-n", "16"]
-    export_main(args + ([] if prune else ["--no-prune-head"]))
+    export_main(args + ([] if prune else ["--no-prune"]))
     rec = ModelCard.load(tmp_path / "m").export["int8_head"]
     assert ("pruning" in rec) == prune
     if prune:
@@ -169,7 +169,7 @@ def test_export_cli_prunes_the_int8_head_unless_told_not_to(tmp_path, prune):
 
 
 def test_head_ab_times_two_folders_and_reports_their_agreement(dead_model, tmp_path, capsys):
-    from export.head_ab import main as head_ab
+    from export.model_ab import main as head_ab
 
     out = tmp_path / "m"
     shutil.copytree(dead_model, out)
