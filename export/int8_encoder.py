@@ -57,6 +57,37 @@ def crop_split(path: str | Path, splits: tuple[str, ...], n: int | None = None, 
     return crops.astype(np.float32), poses.astype(np.float32), labels
 
 
+def variant_parser(prog: str, doc: str, model_help: str, calibration_help: str, calibration_n: int):
+    """The shared command line of the tools that rebuild a folder's graph from calibration and
+    check crops (export.int8_encoder, export.prune_head, export.prune_encoder)."""
+    p = argparse.ArgumentParser(prog=prog, description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model-dir", required=True, help=model_help)
+    p.add_argument("--calibration", required=True, help=f"crop dataset (its train split) or .npz: {calibration_help}")
+    p.add_argument("--check", required=True, help="crop dataset (its val + test splits) or .npz of labelled crops")
+    p.add_argument(
+        "--calibration-n", type=int, default=calibration_n, help=f"calibration crops (default {calibration_n})"
+    )
+    return p
+
+
+def parse_variant_args(p: argparse.ArgumentParser, argv, log_name: str) -> argparse.Namespace:
+    """Parse and check ``variant_parser``'s arguments (exit 2 naming the problem); logging on."""
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format=f"[{log_name}] %(message)s")
+    if a.calibration_n < 16:
+        p.error("--calibration-n must be >= 16")
+    if not (Path(a.model_dir) / "model_card.json").is_file():
+        p.error(f"--model-dir {a.model_dir!r} holds no model_card.json")
+    if Path(a.check).resolve() == Path(a.calibration).resolve() and Path(a.check).suffix == ".npz":
+        p.error("--check must not be the calibration crops")
+    return a
+
+
+def check_crops(path: str) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], str]:
+    """The labelled check crops of ``path`` (a dataset's val + test splits, or a .npz) and their label."""
+    return crop_split(path, ("val", "test")), f"{path} (val + test)" if Path(path).is_dir() else path
+
+
 def add_int8_encoder(
     model_dir: str | Path,
     calibration_crops: np.ndarray,
@@ -122,17 +153,13 @@ def add_int8_encoder(
 
 
 def main(argv=None) -> EncoderCheck:
-    p = argparse.ArgumentParser(
-        prog="python -m export.int8_encoder", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    p = variant_parser(
+        "python -m export.int8_encoder",
+        __doc__,
+        "exported Fast-VGQ-CNN model folder (updated in place)",
+        "calibrates the activation ranges",
+        2048,
     )
-    p.add_argument("--model-dir", required=True, help="exported Fast-VGQ-CNN model folder (updated in place)")
-    p.add_argument(
-        "--calibration", required=True, help="crop dataset whose train split calibrates the activation ranges"
-    )
-    p.add_argument(
-        "--check", required=True, help="crop dataset (val + test splits) or .npz of labelled crops for the check"
-    )
-    p.add_argument("--calibration-n", type=int, default=2048, help="calibration crops (default 2048)")
     p.add_argument(
         "--prune-n",
         type=int,
@@ -141,18 +168,13 @@ def main(argv=None) -> EncoderCheck:
     )
     p.add_argument("--no-prune", action="store_true", help="quantise every channel (export.prune_encoder not applied)")
     p.add_argument("--seed", type=int, default=0)
-    a = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="[int8-encoder] %(message)s")
-    if a.calibration_n < 16 or a.prune_n < 16:
-        p.error("--calibration-n and --prune-n must be >= 16")
-    if not (Path(a.model_dir) / "model_card.json").is_file():
-        p.error(f"--model-dir {a.model_dir!r} holds no model_card.json")
+    a = parse_variant_args(p, argv, "int8-encoder")
+    if a.prune_n < 16:
+        p.error("--prune-n must be >= 16")
     try:
         prune_crops = None if a.no_prune else crop_split(a.calibration, ("train",), a.prune_n, a.seed)[0]
         calib = crop_split(a.calibration, ("train",), a.calibration_n, a.seed)[0]
-        check = crop_split(a.check, ("val", "test"))
-        if Path(a.check).resolve() == Path(a.calibration).resolve() and Path(a.check).suffix == ".npz":
-            raise ValueError("--check must not be the calibration crops")
+        check, check_data = check_crops(a.check)
         logging.info(
             "calibrating on %d crops of %s, checking on %d crops of %s",
             len(calib),
@@ -164,7 +186,7 @@ def main(argv=None) -> EncoderCheck:
             a.model_dir,
             calib,
             check,
-            check_data=f"{a.check} (val + test)",
+            check_data=check_data,
             calibration=f"{a.calibration} (train, {len(calib)} crops)",
             prune=not a.no_prune,
             prune_crops=prune_crops,

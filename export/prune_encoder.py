@@ -19,7 +19,6 @@ encoder and then prunes the int8 graph, so the calibrated ranges are those of th
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import logging
 import os
@@ -271,31 +270,20 @@ def prune_folder_encoder(
 
 
 def main(argv=None) -> dict:
-    from .int8_encoder import crop_split
+    from .int8_encoder import check_crops, crop_split, parse_variant_args, variant_parser
     from .quantize import QuantizationError
 
-    p = argparse.ArgumentParser(
-        prog="python -m export.prune_encoder",
-        description="Remove the dead channels of a model folder's int8 encoder in place (module doc: export/prune_encoder.py).",
+    p = variant_parser(
+        "python -m export.prune_encoder",
+        __doc__,
+        "exported Fast-VGQ-CNN folder with an int8 encoder (pruned in place)",
+        "finds the dead channels",
+        50000,
     )
-    p.add_argument("--model-dir", required=True, help="exported Fast-VGQ-CNN folder with an int8 encoder")
-    p.add_argument(
-        "--calibration", required=True, help="crop dataset (its train split) or .npz: finds the dead channels"
-    )
-    p.add_argument("--check", required=True, help="crop dataset (val + test splits) or .npz of labelled crops")
-    p.add_argument("--calibration-n", type=int, default=50000, help="calibration crops (default 50000)")
-    a = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="[prune-encoder] %(message)s")
-    if a.calibration_n < 16:
-        p.error("--calibration-n must be >= 16")
-    if not (Path(a.model_dir) / "model_card.json").is_file():
-        p.error(f"--model-dir {a.model_dir!r} holds no model_card.json")
-    if Path(a.check).resolve() == Path(a.calibration).resolve() and Path(a.check).suffix == ".npz":
-        p.error("--check must not be the calibration crops")
+    a = parse_variant_args(p, argv, "prune-encoder")
     try:
         crops = crop_split(a.calibration, ("train",), a.calibration_n)[0]
-        check = crop_split(a.check, ("val", "test"))
-        check_data = f"{a.check} (val + test)" if Path(a.check).is_dir() else a.check
+        check, check_data = check_crops(a.check)
         record = prune_folder_encoder(
             a.model_dir, crops, check, check_data, calibration_data=f"{a.calibration} ({len(crops)} crops)"
         )

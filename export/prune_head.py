@@ -28,7 +28,6 @@ export time (``--no-prune`` keeps every unit).
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import logging
 import os
@@ -316,36 +315,24 @@ def rebuild_int8_head(
 
 
 def main(argv=None) -> dict:
-    from .int8_encoder import crop_split
+    from .int8_encoder import check_crops, crop_split, parse_variant_args, variant_parser
 
-    p = argparse.ArgumentParser(
-        prog="python -m export.prune_head", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    p = variant_parser(
+        "python -m export.prune_head",
+        __doc__,
+        "exported Fast-VGQ-CNN model folder (its int8 head is replaced)",
+        "finds the dead units",
+        50000,
     )
-    p.add_argument("--model-dir", required=True, help="exported Fast-VGQ-CNN model folder (its int8 head is replaced)")
-    p.add_argument(
-        "--calibration", required=True, help="crop dataset (its train split) or .npz whose crops find the dead units"
-    )
-    p.add_argument(
-        "--check", required=True, help="crop dataset (its val + test splits) or .npz of labelled crops of other objects"
-    )
-    p.add_argument("--calibration-n", type=int, default=50000, help="calibration crops (default 50000)")
     p.add_argument(
         "--cross-pairs", type=int, default=CROSS_PAIRS, help=f"crossed (term, pose) pairs (default {CROSS_PAIRS})"
     )
-    a = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="[prune-head] %(message)s")
-    if a.calibration_n < 16:
-        p.error("--calibration-n must be >= 16")
+    a = parse_variant_args(p, argv, "prune-head")
     if a.cross_pairs < 0:
         p.error("--cross-pairs must be >= 0")
-    if not (Path(a.model_dir) / "model_card.json").is_file():
-        p.error(f"--model-dir {a.model_dir!r} holds no model_card.json")
-    if Path(a.check).resolve() == Path(a.calibration).resolve() and Path(a.check).suffix == ".npz":
-        p.error("--check must not be the calibration crops")
     try:
         crops, poses, _ = crop_split(a.calibration, ("train",), a.calibration_n)
-        check = crop_split(a.check, ("val", "test"))
-        check_data = f"{a.check} (val + test)" if Path(a.check).is_dir() else a.check
+        check, check_data = check_crops(a.check)
         record = rebuild_int8_head(
             a.model_dir,
             (crops, poses),
