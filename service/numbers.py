@@ -117,12 +117,15 @@ INTRINSICS = (FX, FY, CX, CY)
 UPLOAD_NUMBERS = (CENTER_U, CENTER_V, WIDTH, HEIGHT, *INTRINSICS)
 ONE_SHOT_NUMBERS = UPLOAD_NUMBERS
 
-TRUE, FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off", "")
+TRUE, FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 
 
 def parse_flag(name: str, raw) -> bool:
-    """A boolean query parameter (true / false / 1 / 0; absent = false); 422 naming it otherwise."""
-    text = "" if raw is None else str(raw).strip().lower()
+    """A boolean query parameter (true / false / 1 / 0; absent = false); 422 naming it otherwise,
+    an empty value (``?strict=``) included: the schema types it boolean."""
+    if raw is None:
+        return False
+    text = str(raw).strip().lower()
     if text in TRUE:
         return True
     if text in FALSE:

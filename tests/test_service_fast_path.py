@@ -72,6 +72,8 @@ def _requests(image_id: str) -> list[tuple[str, str, dict, bytes | None, dict | 
             None,
         ),
         ("POST", scores + "?strict=maybe", {**KEY, "content-type": OCTET}, gb, None),
+        ("POST", scores + "?strict=", {**KEY, "content-type": OCTET}, gb, None),  # empty: 422, not false
+        ("POST", "/v1/score?strict=", {**KEY, "content-type": NPZ}, _npz(depth=depth, grasps=g), None),
         ("POST", scores, {"content-type": OCTET}, gb, None),  # no API key
         ("POST", scores, {**KEY, "content-type": "text/plain"}, gb, None),
         ("POST", scores, {**KEY, "content-type": OCTET}, np.ascontiguousarray(nan, "<f4").tobytes(), None),

@@ -386,3 +386,20 @@ def test_coalescing_transport_sends_one_step_s_writes_together_in_order():
         assert t.get_extra_info("peername") == ("127.0.0.1", 1)  # the rest is the transport's
 
     asyncio.run(run())
+
+
+@pytest.mark.parametrize("raw, expected", [(None, False), ("true", True), ("1", True), (" Off ", False), ("0", False)])
+def test_strict_flag_reads_true_false_and_absent(raw, expected):
+    from service.numbers import parse_flag
+
+    assert parse_flag("strict", raw) is expected
+
+
+@pytest.mark.parametrize("raw", ["", "maybe", "2"])
+def test_strict_flag_refuses_anything_else_even_empty(raw):
+    """``?strict=`` is a value the schema's boolean does not allow (schemathesis sends it): 422."""
+    from service.numbers import parse_flag
+
+    with pytest.raises(ApiError) as e:
+        parse_flag("strict", raw)
+    assert e.value.status == 422 and "field strict must be true or false" in e.value.message
