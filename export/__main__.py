@@ -91,10 +91,10 @@ def _sample(ds, order: tuple[str, ...], n: int, seed: int, arch: str):
     return (split, *(t.numpy() for t in split.batch(idx, arch)))
 
 
-def _add_int8_encoder(out: str, ds, arch: str, n_check: int, seed: int, prune_n: int | None) -> None:
+def _add_int8_encoder(out: str, ds, arch: str, n_check: int, seed: int, prune_crops) -> None:
     """Calibrate an int8 encoder on train crops, check it on val (else test) crops, add it to
     ``out`` when it passes (``export.int8_encoder``); a refusal is logged, not an error.
-    ``prune_n``: train crops that find the dead channels removed first (None: no pruning)."""
+    ``prune_crops``: train crops that find the dead channels removed first (None: no pruning)."""
     from .int8_encoder import add_int8_encoder
     from .quantize import QuantizationError
 
@@ -114,8 +114,8 @@ def _add_int8_encoder(out: str, ds, arch: str, n_check: int, seed: int, prune_n:
             tuple(labelled),
             check_data=f"{ds.path} ({chk.name}, {len(labelled[0])} crops)",
             calibration=f"{ds.path} ({calib[0].name}, {len(calib[1])} crops)",
-            prune=prune_n is not None,
-            prune_crops=None if prune_n is None else _sample(ds, ("train",), prune_n, seed, arch)[1],
+            prune=prune_crops is not None,
+            prune_crops=prune_crops,
         )
     except QuantizationError as e:
         logging.warning("int8 encoder refused, not written: %s", e)
@@ -224,12 +224,12 @@ def main(argv=None) -> None:
         ds = open_crop_dataset(a.data)
         split, crops, poses, _ = _sample(ds, ("test", "val", "train"), a.verify_n, a.seed, meta["arch"])
         int8 = prune_calibration = None
+        if not a.no_prune and (a.int8_head or a.int8_encoder):  # (crops, poses) that find the dead units, once
+            prune_calibration = tuple(_sample(ds, ("train",), a.prune_calibration_n, a.seed, meta["arch"])[1:3])
         if a.int8_head:
             chk, *labelled = _sample(ds, ("val", "test", "train"), a.int8_check_n, a.seed, meta["arch"])
             int8 = tuple(labelled)
             logging.info("int8 head check on %d %s crops", len(labelled[0]), chk.name)
-            if not a.no_prune:
-                prune_calibration = tuple(_sample(ds, ("train",), a.prune_calibration_n, a.seed, meta["arch"])[1:3])
         if a.recipe:
             meta["dataset"]["recipe"] = a.recipe
         meta["metrics"].update(_baselines(a.baseline, ds.path))
@@ -254,12 +254,12 @@ def main(argv=None) -> None:
             tolerance=a.tolerance,
             int8_check=int8,
             calibration=calibration,
-            prune_calibration=prune_calibration,
+            prune_calibration=prune_calibration if a.int8_head else None,
         )
         _copy_baseline_models(a.baseline, a.out)
         if a.int8_encoder:
-            prune_n = None if a.no_prune else a.prune_calibration_n
-            _add_int8_encoder(a.out, ds, meta["arch"], a.int8_check_n, a.seed, prune_n)
+            prune_crops = None if prune_calibration is None else prune_calibration[0]
+            _add_int8_encoder(a.out, ds, meta["arch"], a.int8_check_n, a.seed, prune_crops)
         if calibration is not None and a.reliability_png:
             atomic.write_bytes(a.reliability_png, (Path(a.out) / DIAGRAM).read_bytes())
     except CalibrationError as e:

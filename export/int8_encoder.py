@@ -16,13 +16,13 @@ from __future__ import annotations
 import argparse
 import hashlib
 import logging
-import os
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from vgq import atomic
 from vgq.model_card import ModelCard
 
 from .quantize import EncoderCheck, QuantizationError, check_encoder_variant, quantize_encoder
@@ -110,10 +110,8 @@ def add_int8_encoder(
     if card.architecture != "fast_vgqcnn":
         raise QuantizationError(f"{model_dir}: an int8 encoder exists for fast_vgqcnn only, not {card.architecture}")
     encoder, head = model_dir / card.files["encoder"], model_dir / card.files["head"]
-    fd, tmp = tempfile.mkstemp(prefix=f".{INT8_ENCODER_FILE}.", suffix=".tmp", dir=model_dir)
-    os.close(fd)
     pruning = None
-    try:
+    with atomic.staged(model_dir / INT8_ENCODER_FILE) as tmp:
         with tempfile.TemporaryDirectory(prefix=".prune-", dir=model_dir) as work:
             if prune:  # quantise the whole encoder, then drop the channels dead in the int8 graph
                 whole = Path(work) / "encoder_int8_whole.onnx"
@@ -133,11 +131,7 @@ def add_int8_encoder(
             check_data=check_data,
             calibration=calibration,
         )
-        digest = hashlib.sha256(Path(tmp).read_bytes()).hexdigest()
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, model_dir / INT8_ENCODER_FILE)
-    finally:
-        Path(tmp).unlink(missing_ok=True)
+        digest = hashlib.sha256(tmp.read_bytes()).hexdigest()
     import onnxruntime as ort
 
     card.files["encoder_int8"] = INT8_ENCODER_FILE

@@ -21,9 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 import sys
-import tempfile
 from collections import defaultdict
 from pathlib import Path
 
@@ -32,6 +30,7 @@ import onnx
 import onnxruntime as ort
 from onnx import helper, numpy_helper
 
+from vgq import atomic
 from vgq.model_card import ENCODER_INPUT, ModelCard
 
 from .prune_head import PruningError
@@ -253,16 +252,10 @@ def prune_folder_encoder(
     if "pruning" in card.export.get("int8_encoder", {}):
         raise PruningError(f"{model_dir}: its int8 encoder is pruned already")
     current = model_dir / card.files["encoder_int8"]
-    fd, tmp = tempfile.mkstemp(prefix=f".{current.name}.", suffix=".tmp", dir=model_dir)
-    os.close(fd)
-    try:
+    with atomic.staged(current) as tmp:
         record = prune_encoder(current, tmp, model_dir / card.files["head"], calibration_crops, check, check_data)
         record["calibration_data"] = calibration_data
-        digest = hashlib.sha256(Path(tmp).read_bytes()).hexdigest()
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, current)
-    finally:
-        Path(tmp).unlink(missing_ok=True)
+        digest = hashlib.sha256(tmp.read_bytes()).hexdigest()
     card.export["int8_encoder"]["pruning"] = record
     card.export["int8_encoder"]["sha256"] = digest
     card.save(model_dir)

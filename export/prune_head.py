@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 import sys
 import tempfile
 from dataclasses import asdict, dataclass
@@ -38,12 +37,12 @@ from pathlib import Path
 
 import numpy as np
 import onnx
-import onnxruntime as ort
 from onnx import helper, numpy_helper
 
-from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT, ModelCard
+from vgq import atomic
+from vgq.model_card import HEAD_INPUTS, HEAD_OUTPUT, ModelCard
 
-from .quantize import QuantizationError, check_int8_head, quantize_head
+from .quantize import QuantizationError, check_int8_head, image_terms, quantize_head, session
 
 #: initialiser names of the head graph as export.onnx_export writes it (export.graphs.HeadGraph)
 WEIGHTS = {
@@ -186,21 +185,6 @@ class PruneCheck:
         return asdict(self)
 
 
-def _session(path) -> ort.InferenceSession:
-    from service.runtime import session_options
-
-    return ort.InferenceSession(str(path), session_options(1), providers=["CPUExecutionProvider"])
-
-
-def image_terms(encoder_path: str | Path, crops: np.ndarray) -> np.ndarray:
-    """(n, 1024) image terms of (n, S, S) or (n, 1, S, S) crops (metres) through the encoder graph."""
-    enc = _session(encoder_path)
-    x = np.ascontiguousarray(crops, np.float32).reshape(len(crops), 1, *np.shape(crops)[-2:])
-    return np.concatenate(
-        [enc.run([ENCODER_OUTPUT], {ENCODER_INPUT: x[i : i + 256]})[0] for i in range(0, len(x), 256)]
-    )
-
-
 def check_pruned_head(
     head_path,
     pruned_path,
@@ -217,7 +201,7 @@ def check_pruned_head(
     pruned head is off (thresholds: MAX_ABS_DIFF, MAX_FLIP_FRACTION unless given)."""
     max_abs_diff = MAX_ABS_DIFF if max_abs_diff is None else max_abs_diff
     max_flip_fraction = MAX_FLIP_FRACTION if max_flip_fraction is None else max_flip_fraction
-    full, pruned = _session(head_path), _session(pruned_path)
+    full, pruned = session(head_path), session(pruned_path)
     terms, poses = np.ascontiguousarray(terms, np.float32), np.ascontiguousarray(poses, np.float32)
     cross = np.random.default_rng(seed).permutation(len(poses))
     diffs, flips = [], 0
@@ -290,9 +274,7 @@ def rebuild_int8_head(
     card = ModelCard.load(model_dir)
     if card.architecture != "fast_vgqcnn":
         raise PruningError(f"{model_dir}: a pruned head exists for fast_vgqcnn only, not {card.architecture}")
-    fd, tmp = tempfile.mkstemp(prefix=f".{INT8_HEAD_FILE}.", suffix=".tmp", dir=model_dir)
-    os.close(fd)
-    try:
+    with atomic.staged(model_dir / INT8_HEAD_FILE) as tmp:
         record = build_int8_head(
             model_dir / card.files["encoder"],
             model_dir / card.files["head"],
@@ -303,11 +285,7 @@ def rebuild_int8_head(
             cross_pairs,
         )
         record["pruning"]["calibration_data"] = calibration_data
-        record["sha256"] = hashlib.sha256(Path(tmp).read_bytes()).hexdigest()
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, model_dir / INT8_HEAD_FILE)
-    finally:
-        Path(tmp).unlink(missing_ok=True)
+        record["sha256"] = hashlib.sha256(tmp.read_bytes()).hexdigest()
     card.files["head_int8"] = INT8_HEAD_FILE
     card.export["int8_head"] = record
     card.save(model_dir)

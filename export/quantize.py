@@ -82,6 +82,20 @@ def quantize_head(head_path: str | Path, out_path: str | Path) -> tuple[str, ...
     return (node,)
 
 
+def session(path) -> ort.InferenceSession:
+    """An onnxruntime session with the service's options on one thread: checked as served."""
+    return ort.InferenceSession(str(path), session_options(1), providers=["CPUExecutionProvider"])
+
+
+def image_terms(encoder_path: str | Path, crops: np.ndarray) -> np.ndarray:
+    """(n, 1024) image terms of (n, S, S) or (n, 1, S, S) crops (metres) through the encoder graph."""
+    enc = session(encoder_path)
+    x = np.ascontiguousarray(crops, np.float32).reshape(len(crops), 1, *np.shape(crops)[-2:])
+    return np.concatenate(
+        [enc.run([ENCODER_OUTPUT], {ENCODER_INPUT: x[i : i + 256]})[0] for i in range(0, len(x), 256)]
+    )
+
+
 def check_int8_head(
     encoder_path,
     head_path,
@@ -102,16 +116,9 @@ def check_int8_head(
     y = np.asarray(labels).astype(bool)
     if y.all() or not y.any():
         raise QuantizationError("the int8 check needs positive and negative examples")
-    so = session_options(1)  # the service's options: checked as served
-    enc, h32, h8 = (
-        ort.InferenceSession(str(p), so, providers=["CPUExecutionProvider"])
-        for p in (encoder_path, head_path, int8_path)
-    )
-    crops = np.ascontiguousarray(crops, np.float32).reshape(len(crops), 1, *np.shape(crops)[-2:])
+    h32, h8 = session(head_path), session(int8_path)
     poses = np.ascontiguousarray(poses, np.float32)
-    terms = np.concatenate(
-        [enc.run([ENCODER_OUTPUT], {ENCODER_INPUT: crops[i : i + 256]})[0] for i in range(0, len(crops), 256)]
-    )
+    terms = image_terms(encoder_path, crops)
 
     def score(sess, b: int, n: int) -> np.ndarray:
         return np.concatenate(

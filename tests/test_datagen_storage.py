@@ -93,3 +93,18 @@ def test_crop_writers_cover_every_crop_field(tmp_path):
     for w in ws.values():
         w.close()
     assert all((tmp_path / "train" / f"{k}.npy").is_file() for k in CROP_FIELDS)
+
+
+def test_staged_file_replaces_the_old_one_only_when_its_block_succeeds(tmp_path):
+    from vgq import atomic
+
+    target = tmp_path / "graph.onnx"
+    target.write_bytes(b"old")
+    with pytest.raises(RuntimeError), atomic.staged(target) as tmp:
+        tmp.write_bytes(b"half")
+        raise RuntimeError("check refused")
+    assert target.read_bytes() == b"old" and sorted(p.name for p in tmp_path.iterdir()) == ["graph.onnx"]
+    with atomic.staged(target) as tmp:
+        assert tmp.parent == tmp_path and tmp.name.endswith(".tmp")
+        tmp.write_bytes(b"new")
+    assert target.read_bytes() == b"new" and sorted(p.name for p in tmp_path.iterdir()) == ["graph.onnx"]

@@ -10,6 +10,8 @@ import io
 import json
 import os
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -48,3 +50,19 @@ def save_npy(path: str | os.PathLike, array: np.ndarray) -> None:
     buf = io.BytesIO()
     np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
     write_bytes(path, buf.getvalue())
+
+
+@contextmanager
+def staged(path: str | os.PathLike) -> Iterator[Path]:
+    """A temporary path beside ``path`` (``.NAME.XXXX.tmp``) for a writer that needs a file name
+    (e.g. ``onnx.save``, a quantiser): renamed over ``path`` when the block ends without an
+    error, removed otherwise, so ``path`` is the old file or the whole new one."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
