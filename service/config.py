@@ -93,6 +93,14 @@ class Settings:
             )
         if self.cache_backend not in CACHE_BACKENDS:
             raise ValueError(f"setting cache_backend must be 'memory' or 'redis', got {self.cache_backend!r}")
+        if self.workers > 1 and self.cache_backend == "memory":
+            # uvicorn hands each new connection to whichever worker accepts it: with one memory cache
+            # per worker, an image uploaded through one connection is a 404 on about (N-1)/N of the others
+            raise ValueError(
+                f"setting workers = {self.workers} needs cache_backend 'redis': each worker process keeps its "
+                "own memory cache, so an image uploaded through one connection is unknown (404) to a request "
+                "another worker accepts; set cache_backend=redis and redis_url, or run one worker per replica"
+            )
         if self.cache_backend == "redis" and not self.redis_url.startswith(("redis://", "rediss://", "unix://")):
             raise ValueError(f"setting redis_url must be a redis://, rediss:// or unix:// URL, got {self.redis_url!r}")
         for name in ("max_missing_fraction", "ood_window_missing"):

@@ -256,11 +256,23 @@ def test_limits_come_from_the_environment():
         ({"max_body_bytes": 10}, "max_body_bytes"),
         ({"cache_backend": "memcached"}, "cache_backend"),
         ({"cache_backend": "redis", "redis_url": "localhost:6379"}, "redis_url"),
+        ({"workers": 2}, "workers = 2 needs cache_backend 'redis'"),
     ],
 )
 def test_bad_limits_are_refused_by_name(kw, word):
     with pytest.raises(ValueError, match=word):
         Settings(**kw)
+
+
+def test_several_workers_need_the_shared_cache(capsys):
+    """Each worker has its own memory: with --workers 2 an upload would be a 404 on the other worker."""
+    from service.config import parse_args
+
+    assert Settings(workers=2, cache_backend="redis").ort_threads >= 1
+    with pytest.raises(SystemExit) as e:
+        parse_args(["--workers", "2"])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and "workers = 2 needs cache_backend 'redis'" in err
 
 
 def test_head_precision_setting_is_checked():

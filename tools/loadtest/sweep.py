@@ -4,10 +4,11 @@ the service, all measured in one run on this machine, with a plot.
     python -m tools.loadtest.sweep --clients 1,2,4,8 --workers 1,2 --threads 1,2 --duration 5 \\
         --plot docs/img/latency_vs_clients.png --json sweep.json
 
-For each (workers, threads) a service is started on a free loopback port (``python -m service``,
-memory cache; every client keeps its own keep-alive connection, so its uploads and scores meet
-the same worker), then the load test runs for each client count with the raw HTTP client (least
-client CPU). The machine's load average is recorded with every point.
+For each (workers, threads) a service is started on a free loopback port (``python -m service``;
+one worker: the memory cache; several: the Redis cache on a throw-away ``redis-server``, as the
+service requires, since each worker has its own memory), then the load test runs for each client
+count with the raw HTTP client (least client CPU). The machine's load average is recorded with
+every point.
 """
 
 from __future__ import annotations
@@ -44,14 +45,16 @@ def _free_port() -> int:
 
 
 def start_service(
-    workers: int, threads: int, model_dir: str | None, timeout: float = 90.0
+    workers: int, threads: int, model_dir: str | None, timeout: float = 90.0, redis_url: str | None = None
 ) -> tuple[subprocess.Popen, str]:
-    """A service process on a free loopback port, once /readyz answers 200."""
+    """A service process on a free loopback port, once /readyz answers 200 (``redis_url``: its
+    cache backend is that Redis server; needed for ``workers`` > 1)."""
     import httpx
 
     port = _free_port()
     cmd = [sys.executable, "-m", "service", "--port", str(port), "--workers", str(workers), "--threads", str(threads)]
     cmd += ["--model-dir", model_dir] if model_dir else []
+    cmd += ["--cache-backend", "redis", "--redis-url", redis_url] if redis_url else []
     proc = subprocess.Popen(
         cmd, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )
@@ -93,26 +96,43 @@ def sweep(
     log=print,
 ) -> list[dict]:
     """One point per (workers, threads, clients): the load test's summary plus its settings."""
+    from contextlib import ExitStack
+
+    from .topology import find_binary, redis
+
     work = load_workload(k)
     points = []
-    for w in workers:
-        for t in threads:
-            proc, url = start_service(w, t, model_dir)
-            try:
-                for c in clients:
-                    rec, wall = asyncio.run(run_load(url, c, duration, work, mix, warmup=1.0, transport="raw"))
-                    s = summarize(rec, wall, tuple(e for e in ENDPOINTS if e != "bad" or mix.bad))  # rows for the plot
-                    s.update(workers=w, threads=t, clients=c, load_average=list(os.getloadavg()))
-                    points.append(s)
-                    e = s["endpoints"]
-                    log(
-                        f"workers {w} threads {t} clients {c}: {s['grasps_per_s']:.0f} grasps/s, score p50/p99 "
-                        f"{_ms(e['score']['p50_ms'])}/{_ms(e['score']['p99_ms'])} ms, one-shot p50 {_ms(e['score_once']['p50_ms'])} ms, "
-                        f"{s['errors']} errors, load {os.getloadavg()[0]:.1f}"
-                    )
-            finally:
-                stop(proc)
+    with ExitStack() as stack:
+        redis_url = None
+        if max(workers) > 1:
+            binary = find_binary("redis-server")
+            if binary is None:
+                raise FileNotFoundError("--workers > 1 needs redis-server (apt-get install -y redis-server)")
+            redis_url = redis(stack, binary)
+        for w in workers:
+            for t in threads:
+                _measure(w, t, clients, duration, work, mix, model_dir, redis_url if w > 1 else None, points, log)
     return points
+
+
+def _measure(w, t, clients, duration, work, mix, model_dir, redis_url, points, log) -> None:
+    """The points of one (workers, threads) service, appended to ``points``."""
+    proc, url = start_service(w, t, model_dir, redis_url=redis_url)
+    try:
+        for c in clients:
+            rec, wall = asyncio.run(run_load(url, c, duration, work, mix, warmup=1.0, transport="raw"))
+            s = summarize(rec, wall, tuple(e for e in ENDPOINTS if e != "bad" or mix.bad))  # rows for the plot
+            s.update(workers=w, threads=t, clients=c, cache=("redis" if redis_url else "memory"))
+            s["load_average"] = list(os.getloadavg())
+            points.append(s)
+            e = s["endpoints"]
+            log(
+                f"workers {w} threads {t} clients {c}: {s['grasps_per_s']:.0f} grasps/s, score p50/p99 "
+                f"{_ms(e['score']['p50_ms'])}/{_ms(e['score']['p99_ms'])} ms, one-shot p50 {_ms(e['score_once']['p50_ms'])} ms, "
+                f"{s['errors']} errors, load {os.getloadavg()[0]:.1f}"
+            )
+    finally:
+        stop(proc)
 
 
 def title(points: list[dict], k: int, mix: str, duration: float) -> str:
