@@ -9,11 +9,16 @@ from .config import Settings, parse_args
 
 
 def build_app():
-    """uvicorn factory (used with --workers > 1): settings come from VGQ_* variables."""
+    """uvicorn factory (used with --workers > 1): settings come from VGQ_* variables.
+
+    Each worker loads its model before it accepts a connection (uvicorn runs the lifespan
+    first): with a background load, a worker still loading would take its share of the
+    connections and answer 503 while another already answers /readyz 200. Connections made
+    meanwhile wait in the shared socket's backlog for a worker that is ready."""
     from .app import create_app
     from .config import from_env
 
-    return create_app(from_env())
+    return create_app(from_env(), load_in_background=False)
 
 
 def main(argv=None) -> None:

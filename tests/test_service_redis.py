@@ -113,12 +113,8 @@ def test_two_workers_serve_an_upload_on_any_connection(model_dir):
     """``--workers 2`` (which needs the Redis cache): an image uploaded through one connection is
     scored through fresh connections, whichever worker accepts them."""
     with redis_server() as (rurl, _), running_service(model_dir, "--workers", "2", env=redis_env(rurl)) as url:
-        # /readyz answered on one connection: the other worker may still be loading the model (503)
-        deadline = time.monotonic() + 60
-        while [httpx.get(f"{url}/readyz").status_code for _ in range(10)] != [200] * 10:
-            assert time.monotonic() < deadline, "both workers did not become ready"
-            time.sleep(0.2)
-        codes = []
+        # /readyz answered once: a worker still loading accepts no connection (no 503 from it)
+        codes = [httpx.get(f"{url}/readyz").status_code for _ in range(10)]
         for i in range(6):
             with ServiceClient(url) as c:
                 iid = c.upload(table_scene() + 0.001 * i)
@@ -126,7 +122,7 @@ def test_two_workers_serve_an_upload_on_any_connection(model_dir):
                 with httpx.Client(base_url=url) as fresh:  # a new connection each time
                     r = fresh.post(f"/v1/images/{iid}/scores", json={"grasps": grasps_at(k=2).tolist()})
                 codes.append(r.status_code)
-        assert codes == [200] * 24, (codes, r.text)
+        assert codes == [200] * 34, (codes, r.text)
 
 
 def test_one_shot_on_a_fills_the_cache_of_b(shared):
