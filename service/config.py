@@ -52,6 +52,9 @@ class Settings:
     redis_url: str = "redis://127.0.0.1:6379/0"
     cache_ttl_s: float = 86400.0  # redis backend: an image unused this long expires (each hit renews it)
     request_timeout_s: float = 10.0
+    # plans computed at once (each in a worker thread; more wait without holding one): a plan on a
+    # 4096 x 4096 image takes ~3 GB and ~10 s, on a 300 x 300 one ~15 ms
+    max_concurrent_plans: int = 2
     max_missing_fraction: float = 0.5  # a crop window with more pixels without depth (0) is refused (422)
     ood_window_missing: float = 0.25  # a window with more pixels without depth flags its grasps window_mostly_missing
     api_key: str = ""  # when set, upload and score need header X-API-Key
@@ -76,6 +79,7 @@ class Settings:
             ("max_image_side", 32),
             ("cache_entries", 1),
             ("cache_bytes", 4096),
+            ("max_concurrent_plans", 1),
         ):
             v = getattr(self, name)
             if not isinstance(v, int) or v < lo:

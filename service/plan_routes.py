@@ -9,8 +9,10 @@ model's focal lengths, ``planning.policy.plan_resampled``), with the camera give
 windows the planner needs are taken from the cache when encoded before (by a plan or a score
 request, on this replica or, with Redis, another) and the ones it encodes are added to it,
 except those mostly missing, which the score route refuses (setting max_missing_fraction). Planning takes tens of milliseconds on a 300 x 300
-image and about a second on a 2048 x 2048 one, so it runs in a worker thread, off the event loop (the in-flight bound of service/limits.py caps how many
-run at once). A :class:`planning.types.PlanningError` answers 422 naming its field; an image
+image, about two seconds and 0.7 GB on a 2048 x 2048 one and ten seconds and 3 GB on a 4096 x 4096
+one, so it runs in a worker thread, off the event loop, at most ``max_concurrent_plans`` at once
+(setting; others wait their turn without holding a thread, under the in-flight bound of
+service/limits.py). A :class:`planning.types.PlanningError` answers 422 naming its field; an image
 with nothing to grasp answers 200 with no grasps and a ``reason``.
 """
 
@@ -19,10 +21,10 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import anyio
 import numpy as np
 import orjson
 from fastapi import APIRouter, Request
-from starlette.concurrency import run_in_threadpool
 
 from planning.policy import camera_for, plan, plan_resampled
 from planning.types import MAX_K, PlanningError, PlanParams
@@ -198,6 +200,13 @@ def plan_params(n: dict) -> tuple[int, int, PlanParams]:
     return k, seed, dataclasses.replace(PlanParams(), cem_iterations=n["cem"] or 0)
 
 
+async def run_plan(svc: Service, fn, *args):
+    """``fn(*args)`` in a worker thread once one of the service's plan slots
+    (``max_concurrent_plans``) is free: many large plans at once would take memory and cores
+    the other requests need."""
+    return await anyio.to_thread.run_sync(fn, *args, limiter=svc.plan_slots)
+
+
 def plan_answer(svc: Service, result, k: int, seed: int, params: PlanParams, intrinsics: dict, **extra):
     svc.metrics.observe_plan(result.seconds.get("total", 0.0), len(result.grasps))
     return json_response(
@@ -214,8 +223,8 @@ async def plan_cached(svc: Service, image_id: str, n: dict, roi):
     k, seed, params = plan_params(n)
     store = CachedWindows(svc, image_id, entry)
     try:
-        result = await run_in_threadpool(
-            plan_resampled, entry.depth, entry.resampled, entry.camera, svc.model, k, roi, seed, params, store
+        result = await run_plan(
+            svc, plan_resampled, entry.depth, entry.resampled, entry.camera, svc.model, k, roi, seed, params, store
         )
     except PlanningError as e:
         raise ApiError(422, f"{e.field}: {e}", {"field": e.field}) from None
@@ -257,7 +266,7 @@ async def plan_grasps(request: Request, svc: Authorized):
     k, seed, params = plan_params(n)
     try:
         intr = camera_for(depth.shape, svc.model.card.intrinsics, n["fx"], n["fy"], n["cx"], n["cy"])
-        result = await run_in_threadpool(plan, depth, intr, svc.model, k, roi, seed, params)
+        result = await run_plan(svc, plan, depth, intr, svc.model, k, roi, seed, params)
     except PlanningError as e:
         raise ApiError(422, f"{e.field}: {e}", {"field": e.field}) from None
     return plan_answer(svc, result, k, seed, params, intr.to_dict())

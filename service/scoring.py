@@ -9,6 +9,7 @@ import gc
 import logging
 from dataclasses import dataclass
 
+import anyio
 import numpy as np
 
 from vgq.camera import map_pixels
@@ -100,6 +101,8 @@ class Service:
         self.load_error: str | None = None
         self.calibration = None
         self.z_range, self.z_range_source = (0.0, np.inf), ""
+        # bounds the plans computed at once (service/plan_routes.py); a waiting plan holds no thread
+        self.plan_slots = anyio.CapacityLimiter(settings.max_concurrent_plans)
 
     def load(self) -> None:
         """Load (unless given) and warm up the model; then mark ready."""

@@ -357,3 +357,47 @@ def test_plan_needs_the_api_key_when_one_is_set(two_boxes):
         spec = httpx.get(f"{u}/openapi.json").json()
         assert spec["paths"]["/v1/plan"]["post"]["security"] == [{"ApiKey": []}]
         assert spec["paths"]["/v1/images/{image_id}/plan"]["post"]["security"] == [{"ApiKey": []}]
+
+
+@pytest.mark.parametrize("slots", [1, 3])
+def test_plans_run_at_most_max_concurrent_plans_at_once(two_boxes, monkeypatch, slots):
+    """Six plans sent at once: no more than ``max_concurrent_plans`` compute together, and all answer."""
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fastapi.testclient import TestClient
+
+    import service.plan_routes as plan_routes
+    from service.app import create_app
+    from service.config import Settings
+
+    lock, active, peak = threading.Lock(), [0], [0]
+    real = plan_routes.plan
+
+    def counted(*args, **kw):
+        with lock:
+            active[0] += 1
+            peak[0] = max(peak[0], active[0])
+        try:
+            time.sleep(0.1)  # long enough for the others to arrive
+            return real(*args, **kw)
+        finally:
+            with lock:
+                active[0] -= 1
+
+    monkeypatch.setattr(plan_routes, "plan", counted)
+    app = create_app(
+        Settings(model_dir=str(MODEL_DIR), threads=1, max_concurrent_plans=slots, log_level="warning"),
+        load_in_background=False,
+    )
+    with TestClient(app) as c, ThreadPoolExecutor(6) as pool:
+        body = npy(two_boxes[0])
+        codes = list(
+            pool.map(
+                lambda _: c.post("/v1/plan", content=body, headers={"content-type": "application/x-npy"}).status_code,
+                range(6),
+            )
+        )
+    assert codes == [200] * 6
+    assert peak[0] == slots if slots == 1 else 1 < peak[0] <= slots
