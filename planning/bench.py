@@ -316,7 +316,9 @@ def run_trials_bench(args) -> dict:
     on the same trials' noise, a paired comparison) and of a random collision-free candidate, on
     the first ``--scenes`` scenes of the precision benchmark's draw (same seed: the same
     objects, poses and cameras). A grasp is positive when it holds in more than the label's
-    share of its trials (the physics oracle's rule, with ``--trials`` trials)."""
+    share of its trials (the physics oracle's rule, with ``--trials`` trials). ``--robust P``
+    also judges the top-1 by the network's score averaged over P copies of each candidate under
+    the trials' execution noise (the score of the grasp the robot would execute)."""
     try:
         from datagen.physics import GraspSimulator, PhysicsParams, run_trials
     except ImportError as e:
@@ -344,6 +346,7 @@ def run_trials_bench(args) -> dict:
                         "top1_held": 0,
                         "score_top1_held": 0,
                         "random_held": 0,
+                        **({"robust_top1_held": 0} if args.robust else {}),
                     }
                 )
                 print(f"scene {i:2d} object {oid:3d}: no grasp ({res.reason})", flush=True)
@@ -362,6 +365,10 @@ def run_trials_bench(args) -> dict:
                 "score_top1": int(nms(c["frames"], c["scores"], 1, params.nms_distance, params.nms_angle)[0]),
                 "random": int(np.random.default_rng(2000 + i).integers(len(c["frames"]))),
             }
+            if args.robust:
+                picks["robust_top1"] = int(
+                    np.argmax(noisy_scores(model, scene.depth, config.intrinsics, c["frames"], args.robust, params, i))
+                )
             uniq = sorted(set(picks.values()))  # a grasp picked twice is judged once
             sim.set_object(scene.mesh_object, scene.T_world_object)
             tr = run_trials(sim, scene.T_world_camera @ c["frames"][uniq], args.trials, np.random.default_rng(3000 + i))
@@ -387,7 +394,8 @@ def run_trials_bench(args) -> dict:
         "scenes_without_grasp": int(sum(not r["planned"] for r in rows)),
         "seed": args.seed,
     }
-    for k in ("top1", "score_top1", "random"):
+    judged = ("top1", "score_top1", "random") + (("robust_top1",) if args.robust else ())
+    for k in judged:
         h = np.array([r[f"{k}_held"] / r["trials"] if r["trials"] else 0.0 for r in rows])
         summary[f"{k}_held"] = int(sum(r[f"{k}_held"] for r in rows))
         summary[f"{k}_success"] = summary[f"{k}_held"] / n if n else 0.0
@@ -407,6 +415,7 @@ def run_trials_bench(args) -> dict:
         "top1": f"the plan (ranked by its {ranked_by})",
         "score_top1": "the network's score alone",
         "random": "a random collision-free candidate",
+        **({"robust_top1": f"the network's score averaged over {args.robust} noisy copies"} if args.robust else {}),
     }
     for k, name in names.items():
         if k == "score_top1" and ranked_by == "score":
@@ -421,6 +430,21 @@ def run_trials_bench(args) -> dict:
         )
     print("scenes without a grasp count as no trials held")
     return summary
+
+
+def noisy_scores(model, depth, intr, frames: np.ndarray, copies: int, params, seed: int) -> np.ndarray:
+    """(n,) the network's score of each grasp frame (n, 4, 4, camera frame) averaged over
+    ``copies`` copies under the physics trials' execution noise (datagen.physics.PhysicsParams:
+    translation per axis, rotation vector per axis about the TCP; isotropic, so drawn in the
+    camera frame), scored on the image's windows as the planner scores."""
+    from datagen.physics import PhysicsParams, execution_noise, perturbed_frames
+
+    from .policy import WindowScorer, grasp_rows
+
+    dt, R, _ = execution_noise(len(frames), copies, PhysicsParams(), np.random.default_rng(7000 + seed))
+    noisy = perturbed_frames(frames, dt, R).reshape(-1, 4, 4)
+    p, _ = WindowScorer(model, np.asarray(depth, np.float32), params.windows).score(grasp_rows(noisy, intr))
+    return p.reshape(len(frames), copies).mean(axis=1)
 
 
 POOL_FEATURES = {
@@ -711,6 +735,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     ap.add_argument("--per-scene", type=int, default=24, help="pool: random candidates tried per scene")
     ap.add_argument(
+        "--robust",
+        type=int,
+        default=0,
+        metavar="P",
+        help="trials: also judge the top-1 by the score averaged over P noisy copies of each candidate (0: off)",
+    )
+    ap.add_argument(
         "--retest",
         action="store_true",
         help="pool: judge each scene's best judged candidate again on fresh trials (what a ranker that knew "
@@ -762,6 +793,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         args.centre_offset = None
     if args.random_sample < 1:
         ap.error("--random-sample must be >= 1")
+    if args.robust < 0:
+        ap.error(f"--robust must be >= 0, got {args.robust}")
     if args.scenes is None:
         args.scenes = {"timing": 4, "precision": 20, "trials": 10, "ranker": 20, "pool": 60}[args.what]
     if not 0 < args.max_approach_tilt <= 90:

@@ -130,3 +130,43 @@ def test_trials_judge_the_plan_the_score_alone_and_a_random_pick_on_the_same_sce
         assert s[f"{k}_success"] == pytest.approx(s[f"{k}_held"] / max(s["trials"], 1))
         assert 0 <= s[f"{k}_precision"] <= 1
     assert "the network's score alone" in capsys.readouterr().out
+
+
+def test_trials_judge_the_noise_averaged_score_on_the_same_trials(tmp_path):
+    import json
+
+    from planning.bench import main, parse_args
+
+    out = tmp_path / "trials.json"
+    assert (
+        main(["trials", "--scenes", "2", "--trials", "2", "--threads", "1", "--robust", "3", "--json", str(out)]) == 0
+    )
+    s = json.loads(out.read_text())
+    assert 0 <= s["robust_top1_held"] <= s["trials"] and all("robust_top1_held" in r for r in s["rows"])
+    with pytest.raises(SystemExit):
+        parse_args(["trials", "--robust", "-1"])
+
+
+def test_noisy_scores_average_the_planners_own_scores():
+    """With no noise the average is the planner's score of the grasp itself."""
+    import dataclasses
+    import unittest.mock as mock
+
+    from datagen.physics import PhysicsParams
+    from planning import bench
+    from planning.policy import WindowScorer, grasp_rows, plan
+    from planning.types import PlanParams
+    from tests.planning_scenes import boxes_scene
+    from vgq.camera import DEFAULT_INTRINSICS as intr
+
+    depth = boxes_scene()[0]
+    model = bench._model(bench.MODEL_DIR, 1)
+    res = plan(depth, intr, model, k=5, seed=0)
+    frames = res.candidates["frames"][:8]
+    own, _ = WindowScorer(model, depth, PlanParams().windows).score(grasp_rows(frames, intr))
+    quiet = dataclasses.replace(PhysicsParams(), sigma_translation=0.0, sigma_rotation=0.0)
+    with mock.patch("datagen.physics.PhysicsParams", return_value=quiet):
+        avg = bench.noisy_scores(model, depth, intr, frames, 4, PlanParams(), 0)
+    assert np.allclose(avg, own, atol=1e-6)
+    noisy = bench.noisy_scores(model, depth, intr, frames, 4, PlanParams(), 0)
+    assert noisy.shape == (8,) and not np.allclose(noisy, own)
