@@ -153,12 +153,19 @@ class GripperCollision:
         return out
 
     def collides(self, frames: np.ndarray) -> np.ndarray:
-        """(n,) bool for grasp frames (n, 4, 4) in the camera frame: the table first, then
-        every 4th point (most collisions show there), then all points for the rest."""
+        """(n,) bool for grasp frames (n, 4, 4) in the camera frame (:meth:`collisions`, either)."""
+        table, points = self.collisions(frames)
+        return table | points
+
+    def collisions(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(table (n,), points (n,))`` bool for grasp frames (n, 4, 4) in the camera frame: the
+        table first, then, for the rest, every 4th point (most collisions show there), then all
+        points (a frame that hits the table is not checked against the points)."""
         frames = np.asarray(frames, dtype=np.float64).reshape(-1, 4, 4)
-        hit = self.collides_table(frames)
+        table = self.collides_table(frames)
+        hit = table.copy()
         for pts in (self.points[::4], self.points):
             open_ = np.flatnonzero(~hit)
             if len(open_):
                 hit[open_] = self.collides_points(frames[open_], pts)
-        return hit
+        return table, hit & ~table

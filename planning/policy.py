@@ -335,6 +335,17 @@ def z_training_range(model) -> tuple[float, float]:
 # ----------------------------------------------------------------------------- plan
 
 
+def collision_reason(counts: dict, params: PlanParams) -> str:
+    """Why no checked candidate was collision-free, from the sampler's counts."""
+    table, points = counts["table_collisions"], counts["point_collisions"]
+    margin = f"the fingertips would come within {1000 * params.table_margin:g} mm of the table"
+    if points == 0:
+        return f"every candidate grasp collides with the table: {margin} (too flat or too low to grasp from above?)"
+    if table == 0:
+        return "every candidate grasp collides with the observed points (no room for the fingers)"
+    return f"every candidate grasp collides: {table} with the table ({margin}), {points} with the observed points"
+
+
 def check_seed(seed) -> None:
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
         raise PlanningError("seed", f"seed must be a non-negative integer or None, got {seed!r}")
@@ -435,7 +446,7 @@ def plan_resampled(
             if c["pairs"] == 0
             else "no feasible approach (every one from under the table or behind the object)"
             if c["approaches"] == 0
-            else "every candidate grasp collides with the table or the observed points"
+            else collision_reason(c, params)
         )
         return PlanResult((), reason, counts, seconds, version, ranked_by=ranked_by)
 

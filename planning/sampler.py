@@ -280,8 +280,17 @@ def sample_grasps(
     scene: Scene, params: PlanParams, rng: np.random.Generator, checker: GripperCollision
 ) -> tuple[Candidates, dict]:
     """Up to ``params.num_candidates`` collision-free candidates and the counts of each
-    stage (``pairs``, ``approaches``, ``checked``, ``collision_free``)."""
-    counts = {"pairs": 0, "approaches": 0, "checked": 0, "collision_free": 0}
+    stage (``pairs``, ``approaches``, ``checked``, ``collision_free``) and of the checked
+    frames refused for the table (``table_collisions``: a fingertip within ``table_margin``
+    of it) or for the observed points (``point_collisions``)."""
+    counts = {
+        "pairs": 0,
+        "approaches": 0,
+        "checked": 0,
+        "collision_free": 0,
+        "table_collisions": 0,
+        "point_collisions": 0,
+    }
     found: list[Candidates] = []
     n_found = 0
     for _ in range(params.max_rounds):
@@ -296,8 +305,11 @@ def sample_grasps(
         chunk = max(params.num_candidates - n_found, 32)
         for s in range(0, len(order), chunk):
             idx = order[s : s + chunk]
-            free = ~checker.collides(frames[idx])
+            table, points = checker.collisions(frames[idx])
+            free = ~(table | points)
             counts["checked"] += len(idx)
+            counts["table_collisions"] += int(table.sum())
+            counts["point_collisions"] += int(points.sum())
             idx = idx[free]
             p = pair[idx]
             found.append(Candidates(frames[idx], contacts[p], widths[p], seen[p]))

@@ -412,6 +412,8 @@ PLAN_EXAMPLE = {  # vgq-plan examples/depth_example.npy --k 1 on the bundled mod
         "approaches": 1519,
         "checked": 512,
         "collision_free": 256,
+        "table_collisions": 41,
+        "point_collisions": 215,
         "windows": 1,
     },
     "seconds": {

@@ -105,3 +105,19 @@ def test_the_fast_point_test_matches_a_plain_box_test():
 def test_voxel_downsample_keeps_one_point_per_cube():
     pts = np.array([[0.0, 0, 0], [0.001, 0.001, 0.001], [0.01, 0, 0], [0.0101, 0.0, 0.0]])
     assert len(voxel_downsample(pts, 0.004)) == 2
+
+
+def test_collisions_say_whether_the_table_or_a_point_was_hit():
+    """A frame into the table counts for the table only; one whose finger holds a point, for the points."""
+    rng = np.random.default_rng(1)
+    pts, normal, centre = _plane_points(rng)
+    table = fit_table(pts, rng)
+    g = GripperGeometry()
+    high = _frame(centre + 0.03 * normal, -normal, [1.0, 0, 0])
+    low = _frame(centre + 0.005 * normal, -normal, [1.0, 0, 0])  # fingertips 5 mm into the table
+    in_finger = high[:3, 3] + high[:3, :3] @ [g.max_width / 2 + g.finger_depth / 2, 0.0, -0.02]
+    checker = GripperCollision(g, table, np.array([in_finger, in_finger - 0.03 * normal]))
+    frames = np.stack([high, low, _frame(centre + 0.08 * normal, -normal, [1.0, 0, 0])])
+    t, p = checker.collisions(frames)
+    assert t.tolist() == [False, True, False] and p.tolist() == [True, False, False]
+    assert checker.collides(frames).tolist() == (t | p).tolist()

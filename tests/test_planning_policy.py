@@ -198,3 +198,25 @@ def test_missing_depth_is_filled_before_the_encoder_as_in_training(two_boxes):
     res = plan(holed, DEFAULT_INTRINSICS, m, k=3, seed=0, params=FAST)
     assert len(res.grasps) > 0 and seen
     assert all(np.all(x > 0) for x in seen)
+
+
+def test_an_object_too_low_to_grasp_from_above_names_the_table(model):
+    """A 1.3 cm tall block: every grasp across it puts the fingertips within the table margin."""
+    depth = boxes_scene(extents=((0.02, 0.02, 0.013),))[0]
+    res = plan(depth, DEFAULT_INTRINSICS, model, k=5, seed=0)
+    assert res.grasps == () and res.counts["point_collisions"] == 0
+    assert res.counts["table_collisions"] == res.counts["checked"] > 0
+    assert "collides with the table: the fingertips would come within 5 mm of the table" in res.reason
+
+
+@pytest.mark.parametrize(
+    "table,points,says",
+    [
+        (0, 7, "collides with the observed points"),
+        (3, 4, "collides: 3 with the table (the fingertips would come within 5 mm of the table), 4 with the observed"),
+    ],
+)
+def test_the_collision_reason_names_what_was_hit(table, points, says):
+    from planning.policy import collision_reason
+
+    assert says in collision_reason({"table_collisions": table, "point_collisions": points}, PlanParams())
