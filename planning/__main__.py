@@ -2,8 +2,8 @@
 
     vgq-plan depth.npy --k 5 --out grasps.json --png overlay.png
 
-The depth image is a .npy array in metres (float) or a 16-bit PNG in millimetres; 0 =
-no reading. Intrinsics default to the model's camera (principal point at the image centre
+The depth image is a .npy array in metres (float; an integer array is millimetres) or a
+16-bit PNG in millimetres; 0 = no reading. Intrinsics default to the model's camera (principal point at the image centre
 when the image has another size). Bad input exits with status 2 and one line naming it.
 """
 
@@ -69,7 +69,9 @@ def parse_roi(text: str | None):
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="vgq-plan", description="Plan the best grasps on a depth image.")
-    ap.add_argument("depth", help="depth image: .npy (metres) or 16-bit .png (millimetres)")
+    ap.add_argument(
+        "depth", help="depth image: .npy (float metres or integer millimetres) or 16-bit .png (millimetres)"
+    )
     ap.add_argument("--model", default=DEFAULT_MODEL, help="model folder (default: %(default)s)")
     for name in ("fx", "fy", "cx", "cy"):
         ap.add_argument(f"--{name}", type=float, default=None, help=f"{name} in pixels (default: the model's camera)")
