@@ -18,8 +18,8 @@ _timeout = getattr(asyncio, "timeout", None)
 
 
 class ClientGone(ApiError):
-    def __init__(self):
-        super().__init__(CLIENT_GONE, "client disconnected before the request body was received")
+    def __init__(self, when: str = "before the request body was received"):
+        super().__init__(CLIENT_GONE, f"client disconnected {when}")
 
 
 def _over_budget(n: int) -> ApiError:

@@ -30,7 +30,7 @@ from planning.policy import camera_for, plan, plan_resampled
 from planning.types import MAX_K, PlanningError, PlanParams
 
 from . import openapi as doc
-from .body import read_body
+from .body import ClientGone, read_body
 from .cache import CachedImage, EncodedWindow
 from .depth_io import decode_depth
 from .errors import ApiError
@@ -200,11 +200,18 @@ def plan_params(n: dict) -> tuple[int, int, PlanParams]:
     return k, seed, dataclasses.replace(PlanParams(), cem_iterations=n["cem"] or 0)
 
 
-async def run_plan(svc: Service, fn, *args):
+async def run_plan(svc: Service, request: Request, fn, *args):
     """``fn(*args)`` in a worker thread once one of the service's plan slots
     (``max_concurrent_plans``) is free: many large plans at once would take memory and cores
-    the other requests need."""
-    return await anyio.to_thread.run_sync(fn, *args, limiter=svc.plan_slots)
+    the other requests need. A plan whose client left while it waited is not computed.
+
+    The first look at the connection resumes reading it (the server pauses reading under a
+    large body), so that a client closing it while the plan waits is seen by the second."""
+    await request.is_disconnected()
+    async with svc.plan_slots:
+        if await request.is_disconnected():
+            raise ClientGone("while its plan waited for a plan slot")
+        return await anyio.to_thread.run_sync(fn, *args)
 
 
 def plan_answer(svc: Service, result, k: int, seed: int, params: PlanParams, intrinsics: dict, **extra):
@@ -214,7 +221,7 @@ def plan_answer(svc: Service, result, k: int, seed: int, params: PlanParams, int
     )
 
 
-async def plan_cached(svc: Service, image_id: str, n: dict, roi):
+async def plan_cached(svc: Service, request: Request, image_id: str, n: dict, roi):
     """Plan on the cached image ``image_id``: 404 when unknown or evicted, 422 naming a field."""
     entry = svc.cache.get(image_id)
     if entry is None:
@@ -224,7 +231,18 @@ async def plan_cached(svc: Service, image_id: str, n: dict, roi):
     store = CachedWindows(svc, image_id, entry)
     try:
         result = await run_plan(
-            svc, plan_resampled, entry.depth, entry.resampled, entry.camera, svc.model, k, roi, seed, params, store
+            svc,
+            request,
+            plan_resampled,
+            entry.depth,
+            entry.resampled,
+            entry.camera,
+            svc.model,
+            k,
+            roi,
+            seed,
+            params,
+            store,
         )
     except PlanningError as e:
         raise ApiError(422, f"{e.field}: {e}", {"field": e.field}) from None
@@ -261,12 +279,12 @@ async def plan_grasps(request: Request, svc: Authorized):
     body = await read_body(request, s.max_body_bytes, s.request_timeout_s)
     ct = media_type(request.headers.get("content-type"))
     if ct == JSON:
-        return await plan_cached(svc, body_image_id(body), n, roi)
+        return await plan_cached(svc, request, body_image_id(body), n, roi)
     depth = decode_depth(body, ct, width=n["width"], height=n["height"], max_side=s.max_image_side)
     k, seed, params = plan_params(n)
     try:
         intr = camera_for(depth.shape, svc.model.card.intrinsics, n["fx"], n["fy"], n["cx"], n["cy"])
-        result = await run_plan(svc, plan, depth, intr, svc.model, k, roi, seed, params)
+        result = await run_plan(svc, request, plan, depth, intr, svc.model, k, roi, seed, params)
     except PlanningError as e:
         raise ApiError(422, f"{e.field}: {e}", {"field": e.field}) from None
     return plan_answer(svc, result, k, seed, params, intr.to_dict())
@@ -296,4 +314,4 @@ async def plan_image(image_id: str, request: Request, svc: Authorized):
             "one, the parameters go in the query",
             {"field": "body"},
         )
-    return await plan_cached(svc, image_id, n, roi)
+    return await plan_cached(svc, request, image_id, n, roi)

@@ -401,3 +401,27 @@ def test_plans_run_at_most_max_concurrent_plans_at_once(two_boxes, monkeypatch, 
         )
     assert codes == [200] * 6
     assert peak[0] == slots if slots == 1 else 1 < peak[0] <= slots
+
+
+def test_a_plan_whose_client_left_while_it_waited_is_not_computed(two_boxes):
+    """One plan slot: a second plan, whose client gives up while the first one computes, is
+    dropped when the slot frees (counted as client gone), not planned."""
+    import threading
+    import time
+
+    big = np.tile(two_boxes[0], (6, 6))  # 1800 x 1800 px: about a second of planning
+    headers = {"content-type": "application/x-npy"}
+    with running_service(MODEL_DIR, "--threads", "1", "--max-concurrent-plans", "1") as u:
+        first = threading.Thread(target=lambda: post_plan(u, big))
+        first.start()
+        time.sleep(0.2)  # the first plan holds the slot
+        with pytest.raises(httpx.TimeoutException):
+            httpx.post(f"{u}/v1/plan", content=npy(big), headers=headers, timeout=0.3)
+        first.join()
+        deadline = time.monotonic() + 10
+        gone = 'vgq_requests_total{endpoint="plan",status="499"}'
+        while gone not in (m := httpx.get(f"{u}/metrics").text) and time.monotonic() < deadline:
+            time.sleep(0.05)
+    plans = [line for line in m.splitlines() if line.startswith("vgq_plans_total")]
+    assert sum(float(line.split()[-1]) for line in plans) == 1, plans
+    assert 'vgq_requests_total{endpoint="plan",status="499"} 1.0' in m, "the client gone is not counted"
