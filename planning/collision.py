@@ -25,8 +25,11 @@ class TablePlane:
     inlier_fraction: float
 
     def height(self, x: np.ndarray) -> np.ndarray:
-        """Signed heights (...,) of points (..., 3) above the plane (metres)."""
-        return np.asarray(x) @ self.normal + self.offset
+        """Signed heights (...,) of points (..., 3) above the plane (metres), float32 for float32
+        points (the planner's image-sized clouds: no float64 copy), else float64."""
+        x = np.asarray(x)
+        n = self.normal.astype(np.float32) if x.dtype == np.float32 else self.normal
+        return x @ n + self.offset
 
 
 def lowest_corner_height(frames: np.ndarray, corners: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray:

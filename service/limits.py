@@ -27,6 +27,12 @@ from .metrics import Metrics
 BODY_AMPLIFICATION = 2.25
 #: per request in flight: uvicorn's read buffer (64 KiB high-water mark) and the header block
 PER_REQUEST_BYTES = 64 * 1024 + 16 * 1024
+#: peak bytes per pixel of the resampled image while an upload is resampled (about five float32
+#: images, vgq.camera.resample_depth; one at a time, on the event loop)
+RESAMPLE_BYTES_PER_PIXEL = 20
+#: peak bytes per pixel of the resampled image while a plan runs (float32 organised cloud, normals
+#: and their differences; vgq-plan's peak RSS on 300 to 4096 px images, 2026-12-01: ~86 B/px)
+PLAN_BYTES_PER_PIXEL = 90
 
 
 def worst_case_rss_bytes(settings, ready_rss_bytes: int) -> int:
@@ -39,6 +45,14 @@ def worst_case_rss_bytes(settings, ready_rss_bytes: int) -> int:
         + BODY_AMPLIFICATION * settings.max_buffered_bytes
         + settings.max_inflight * (PER_REQUEST_BYTES + settings.max_header_bytes)
     )
+
+
+def worst_case_compute_bytes(settings) -> int:
+    """Upper bound on what requests hold while they compute, on top of :func:`worst_case_rss_bytes`:
+    one resample at a time on the event loop, and ``max_concurrent_plans`` plans in worker
+    threads, each on an image of ``max_image_side`` squared pixels."""
+    px = settings.max_image_side**2
+    return int(RESAMPLE_BYTES_PER_PIXEL * px + settings.max_concurrent_plans * PLAN_BYTES_PER_PIXEL * px)
 
 
 EXEMPT = frozenset({"/healthz", "/readyz", "/metrics"})

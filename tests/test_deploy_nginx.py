@@ -197,6 +197,15 @@ def test_kubernetes_manifests_probe_scale_and_share_redis():
     hpa = by[("HorizontalPodAutoscaler", "vgq-service")]["spec"]
     assert hpa["scaleTargetRef"]["name"] == "vgq-service" and hpa["metrics"][0]["resource"]["name"] == "cpu"
     assert dep["resources"]["requests"]["cpu"]  # CPU utilisation is relative to the request
+    # the pod's memory limit holds the service's worst case under the manifest's settings
+    from service.config import from_env
+    from service.limits import worst_case_compute_bytes, worst_case_rss_bytes
+
+    settings = from_env(environ=env)
+    limit = dep["resources"]["limits"]["memory"]
+    assert limit.endswith("Mi"), limit
+    ready = 160 * 2**20  # the service once loaded, with headroom over the measured 130-140 MiB
+    assert worst_case_rss_bytes(settings, ready) + worst_case_compute_bytes(settings) <= int(limit[:-2]) * 2**20
     kust = yaml.safe_load((DEPLOY / "k8s" / "kustomization.yaml").read_text())
     assert sorted(kust["resources"]) == sorted(
         f.name for f in (DEPLOY / "k8s").glob("*.yaml") if f.name != "kustomization.yaml"
