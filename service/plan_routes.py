@@ -8,9 +8,9 @@ model's focal lengths, ``planning.policy.plan_resampled``), with the camera give
 ``fx`` .. ``cy`` in the query may repeat it but not change it (422 naming the field). The
 windows the planner needs are taken from the cache when encoded before (by a plan or a score
 request, on this replica or, with Redis, another) and the ones it encodes are added to it,
-except those mostly missing, which the score route refuses (setting max_missing_fraction). Planning takes tens of milliseconds on a 300 x 300
-image, about two seconds and 0.7 GB on a 2048 x 2048 one and ten seconds and 3 GB on a 4096 x 4096
-one, so it runs in a worker thread, off the event loop, at most ``max_concurrent_plans`` at once
+except those mostly missing, which the score route refuses (setting max_missing_fraction).
+Planning takes tens of milliseconds on a 300 x 300 image, about a second and 0.35 GB on a 2048 x
+2048 one and four seconds and 1.5 GB on a 4096 x 4096 one, so it runs in a worker thread, off the event loop, at most ``max_concurrent_plans`` at once
 (setting; others wait their turn without holding a thread, under the in-flight bound of
 service/limits.py). A :class:`planning.types.PlanningError` answers 422 naming its field; an image
 with nothing to grasp answers 200 with no grasps and a ``reason``.
