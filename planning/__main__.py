@@ -4,7 +4,8 @@
 
 The depth image is a .npy array in metres (float; an integer array is millimetres) or a
 16-bit PNG in millimetres; 0 = no reading. Intrinsics default to the model's camera
-(principal point at the image centre when the image has another size). Bad input exits with status 2 and one line naming it.
+(principal point at the image centre when the image has another size). Bad input exits with
+status 2 and one line naming it.
 """
 
 from __future__ import annotations
