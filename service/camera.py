@@ -43,6 +43,22 @@ def focal_range(model: Intrinsics) -> dict:
     return {"fx": [model.fx / hi, model.fx / lo], "fy": [model.fy / hi, model.fy / lo]}
 
 
+def check_resampled_side(camera: Intrinsics, model: Intrinsics, max_side: int) -> None:
+    """422 (field ``fx``) when ``camera``'s image resampled to ``model``'s focal lengths would
+    exceed ``max_side`` px a side (a camera with a shorter focal length is resampled up: the
+    bound on uploads holds for what is computed on). CameraMismatch when the model cannot
+    serve the camera."""
+    sx, sy = check_client_intrinsics(camera, model)
+    dst = resampled_intrinsics(camera, sx, sy)
+    if max(dst.width, dst.height) > max_side:
+        raise ApiError(
+            422,
+            f"the image resampled to the model's focal length would be {dst.width}x{dst.height} px, "
+            f"over max_image_side {max_side}; send a smaller image",
+            {"field": "fx"},
+        )
+
+
 def to_model_camera(
     depth: np.ndarray, camera: Intrinsics, model: Intrinsics, max_side: int, assumed: tuple[str, ...] = ()
 ) -> tuple[np.ndarray, Intrinsics]:
@@ -50,15 +66,7 @@ def to_model_camera(
     cannot serve (focal length outside the range, principal point outside the image) or when
     the resampled image would exceed ``max_side``."""
     try:
-        sx, sy = check_client_intrinsics(camera, model)
-        dst = resampled_intrinsics(camera, sx, sy)
-        if max(dst.width, dst.height) > max_side:
-            raise ApiError(
-                422,
-                f"the image resampled to the model's focal length would be {dst.width}x{dst.height} px, "
-                f"over max_image_side {max_side}; send a smaller image",
-                {"field": "fx"},
-            )
+        check_resampled_side(camera, model, max_side)
         return resample_depth(depth, camera, model)
     except CameraMismatch as e:
         field, note = e.field, ""

@@ -28,10 +28,12 @@ from fastapi import APIRouter, Request
 
 from planning.policy import camera_for, plan, plan_resampled
 from planning.types import MAX_K, PlanningError, PlanParams
+from vgq.camera import CameraMismatch
 
 from . import openapi as doc
 from .body import ClientGone, read_body
 from .cache import CachedImage, EncodedWindow
+from .camera import check_resampled_side
 from .depth_io import decode_depth
 from .errors import ApiError
 from .media import JSON, media_type
@@ -284,6 +286,10 @@ async def plan_grasps(request: Request, svc: Authorized):
     k, seed, params = plan_params(n)
     try:
         intr = camera_for(depth.shape, svc.model.card.intrinsics, n["fx"], n["fy"], n["cx"], n["cy"])
+        try:
+            check_resampled_side(intr, svc.model.card.intrinsics, s.max_image_side)  # as for uploads
+        except CameraMismatch:
+            pass  # the planner names it (field intrinsics)
         result = await run_plan(svc, request, plan, depth, intr, svc.model, k, roi, seed, params)
     except PlanningError as e:
         raise ApiError(422, f"{e.field}: {e}", {"field": e.field}) from None
