@@ -57,11 +57,17 @@ def camera_for(
     cx: float | None = None,
     cy: float | None = None,
 ) -> Intrinsics:
-    """The intrinsics (pixels) of an (H, W) image: each value given, else the model's focal
-    lengths and, when the image has the model's size, its principal point, otherwise the
-    image centre. PlanningError ``intrinsics`` for values no camera has."""
+    """The intrinsics (pixels) of an (H, W) image: each value given, else, as at the service's
+    upload (``service.camera.client_camera``), a focal length from the other one given (the
+    model's pixel aspect) or both the model's, and, when the image has the model's size, its
+    principal point, otherwise the image centre. PlanningError ``intrinsics`` for values no
+    camera has."""
     h, w = shape
     same = (h, w) == (model.height, model.width)
+    if fx is None and fy is not None:
+        fx = fy * model.fx / model.fy
+    if fy is None and fx is not None:
+        fy = fx * model.fy / model.fx
     try:
         return Intrinsics(
             fx=model.fx if fx is None else fx,

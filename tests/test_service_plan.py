@@ -428,8 +428,9 @@ def test_a_plan_whose_client_left_while_it_waited_is_not_computed(two_boxes):
 
 
 def test_a_plan_whose_resampled_image_exceeds_max_image_side_answers_422(two_boxes):
-    """As for uploads: a camera with half the model's focal length doubles the image's sides
-    when resampled, and over ``max_image_side`` that is a 422 naming fx, not a plan."""
+    """As for uploads (fy following fx when only fx is sent): a camera with half the model's
+    focal length doubles the image's sides when resampled, and over ``max_image_side`` that is
+    a 422 naming fx, not a plan."""
     from fastapi.testclient import TestClient
 
     from service.app import create_app
@@ -441,8 +442,8 @@ def test_a_plan_whose_resampled_image_exceeds_max_image_side_answers_422(two_box
     )
     body, headers = npy(two_boxes[0]), {"content-type": "application/x-npy"}
     with TestClient(app) as c:
-        up = c.post("/v1/images", content=body, headers=headers, params={"fx": 262.5, "fy": 262.5})
-        r = c.post("/v1/plan", content=body, headers=headers, params={"fx": 262.5, "fy": 262.5})
+        up = c.post("/v1/images", content=body, headers=headers, params={"fx": 262.5})
+        r = c.post("/v1/plan", content=body, headers=headers, params={"fx": 262.5})
         ok = c.post("/v1/plan", content=body, headers=headers, params={"fx": 525.0})
     assert up.status_code == r.status_code == 422 and r.json()["error"]["message"] == up.json()["error"]["message"]
     assert "600x600 px, over max_image_side 400" in r.json()["error"]["message"] and r.json()["error"]["details"] == {
