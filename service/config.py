@@ -55,6 +55,9 @@ class Settings:
     # plans computed at once (each in a worker thread; more wait without holding one): a plan on a
     # 4096 x 4096 image takes ~1.6 GB and ~4 s, on a 300 x 300 one ~15 ms (service.limits)
     max_concurrent_plans: int = 2
+    # plans waiting for a slot at once; one more answers 503 with Retry-After at once, so that a flood
+    # of plans cannot hold every in-flight place (max_inflight) the scoring routes need
+    max_queued_plans: int = 16
     max_missing_fraction: float = 0.5  # a crop window with more pixels without depth (0) is refused (422)
     ood_window_missing: float = 0.25  # a window with more pixels without depth flags its grasps window_mostly_missing
     api_key: str = ""  # when set, upload and score need header X-API-Key
@@ -80,6 +83,7 @@ class Settings:
             ("cache_entries", 1),
             ("cache_bytes", 4096),
             ("max_concurrent_plans", 1),
+            ("max_queued_plans", 0),
         ):
             v = getattr(self, name)
             if not isinstance(v, int) or v < lo:

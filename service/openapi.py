@@ -36,7 +36,7 @@ _WHAT = {
     415: "unsupported content type",
     422: "invalid parameter, depth image or grasps (the message names them)",
     431: "request headers too large or too many (the connection is closed)",
-    503: "model not ready, or too many requests or body bytes in flight (Retry-After says when to retry)",
+    503: "model not ready, or too many requests, body bytes or waiting plans in flight (Retry-After says when to retry)",
 }
 PROTOCOL = (400, 408, 414, 431)  # answered by the HTTP layer for any operation
 BODY_ERRORS = PROTOCOL + (401, 404, 413, 415, 422, 503)

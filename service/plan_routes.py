@@ -36,6 +36,7 @@ from .cache import CachedImage, EncodedWindow
 from .camera import check_resampled_side
 from .depth_io import decode_depth
 from .errors import ApiError
+from .limits import RETRY_AFTER_S
 from .media import JSON, media_type
 from .numbers import HEIGHT, WIDTH, Number, parse_all
 from .routes import Authorized, json_response
@@ -205,12 +206,21 @@ def plan_params(n: dict) -> tuple[int, int, PlanParams]:
 async def run_plan(svc: Service, request: Request, fn, *args):
     """``fn(*args)`` in a worker thread once one of the service's plan slots
     (``max_concurrent_plans``) is free: many large plans at once would take memory and cores
-    the other requests need. A plan whose client left while it waited is not computed.
+    the other requests need. At most ``max_queued_plans`` wait; one more is a 503 with
+    Retry-After. A plan whose client left while it waited is not computed.
 
     The first look at the connection resumes reading it (the server pauses reading under a
     large body), so that a client closing it while the plan waits is seen by the second."""
     await request.is_disconnected()
-    async with svc.plan_slots:
+    slots, queue = svc.plan_slots, svc.settings.max_queued_plans
+    if slots.available_tokens == 0 and slots.statistics().tasks_waiting >= queue:
+        raise ApiError(
+            503,
+            f"{slots.total_tokens:g} plans computing and {queue} waiting (limits max_concurrent_plans, "
+            "max_queued_plans); retry shortly",
+            headers={"retry-after": str(RETRY_AFTER_S)},
+        )
+    async with slots:
         if await request.is_disconnected():
             raise ClientGone("while its plan waited for a plan slot")
         return await anyio.to_thread.run_sync(fn, *args)

@@ -450,3 +450,40 @@ def test_a_plan_whose_resampled_image_exceeds_max_image_side_answers_422(two_box
         "field": "fx"
     }
     assert ok.status_code == 200
+
+
+def test_plans_beyond_the_queue_answer_503_at_once(two_boxes, monkeypatch):
+    """One slot, one waiting place: of three plans sent while one computes, one waits its turn
+    and the other two are refused at once with 503 and Retry-After (they do not wait)."""
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fastapi.testclient import TestClient
+
+    import service.plan_routes as plan_routes
+    from service.app import create_app
+    from service.config import Settings
+
+    real, started = plan_routes.plan, threading.Event()
+
+    def slow(*args, **kw):
+        started.set()
+        time.sleep(0.4)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(plan_routes, "plan", slow)
+    settings = Settings(
+        model_dir=str(MODEL_DIR), threads=1, max_concurrent_plans=1, max_queued_plans=1, log_level="warning"
+    )
+    body, headers = npy(two_boxes[0]), {"content-type": "application/x-npy"}
+    with TestClient(create_app(settings, load_in_background=False)) as c, ThreadPoolExecutor(4) as pool:
+        first = pool.submit(c.post, "/v1/plan", content=body, headers=headers)
+        assert started.wait(10)
+        queued = pool.submit(c.post, "/v1/plan", content=body, headers=headers)
+        time.sleep(0.1)  # the second is waiting for the slot
+        refused = [c.post("/v1/plan", content=body, headers=headers) for _ in range(2)]
+        answers = [first.result(), queued.result()]
+    assert [r.status_code for r in answers] == [200, 200]
+    assert [r.status_code for r in refused] == [503, 503] and refused[0].headers["retry-after"] == "1"
+    assert "max_queued_plans" in refused[0].json()["error"]["message"]  # a plan that waited would be a 200
