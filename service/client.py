@@ -15,6 +15,7 @@ Intrinsics: a tuple (fx, fy, cx, cy), a dict with those keys (any subset) or a
 from __future__ import annotations
 
 import io
+import time
 from dataclasses import dataclass, field
 
 import httpx
@@ -80,12 +81,52 @@ class Plan:
         return np.array([np.nan if g.get("p_hold") is None else g["p_hold"] for g in self.grasps], dtype=np.float64)
 
 
+#: how long one wait before a retry may be (s), whatever Retry-After says
+MAX_RETRY_WAIT_S = 5.0
+
+
 class ServiceClient:
-    def __init__(self, url: str = "http://127.0.0.1:8000", api_key: str | None = None, timeout: float = 10.0):
+    """``retries``: how often a request is sent again after a 503 (the model still loading,
+    the service at its in-flight, body or plan limits: waits as Retry-After says, at most
+    ``MAX_RETRY_WAIT_S``) or a connection that failed (a replica restarting: waits 0.1, 0.2,
+    0.4 ... s). Every call is safe to repeat: an upload is addressed by its content, a score
+    and a plan (seeded) give the same answer twice. 0: no retries."""
+
+    def __init__(
+        self,
+        url: str = "http://127.0.0.1:8000",
+        api_key: str | None = None,
+        timeout: float = 10.0,
+        retries: int = 3,
+        transport: httpx.BaseTransport | None = None,
+    ):
+        if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
+            raise ValueError(f"retries must be an integer >= 0, got {retries!r}")
         headers = {"X-API-Key": api_key} if api_key else {}
-        self.http = httpx.Client(base_url=url.rstrip("/"), headers=headers, timeout=timeout)
+        self.http = httpx.Client(base_url=url.rstrip("/"), headers=headers, timeout=timeout, transport=transport)
+        self.retries = retries
         self.last_upload: dict = {}
         self.last_ood_count = 0
+
+    def _request(self, method: str, url: str, **kw) -> httpx.Response:
+        """``self.http.request`` with the retries above; the last answer (or error) stands."""
+        for attempt in range(self.retries + 1):
+            last = attempt == self.retries
+            try:
+                r = self.http.request(method, url, **kw)
+            except (httpx.ConnectError, httpx.RemoteProtocolError):
+                if last:
+                    raise
+                time.sleep(min(0.1 * 2**attempt, MAX_RETRY_WAIT_S))
+                continue
+            if r.status_code != 503 or last:
+                return r
+            try:
+                wait = float(r.headers.get("retry-after", "1"))
+            except ValueError:
+                wait = 1.0
+            time.sleep(min(max(wait, 0.0), MAX_RETRY_WAIT_S))
+        raise AssertionError("unreachable")
 
     def close(self) -> None:
         self.http.close()
@@ -117,8 +158,8 @@ class ServiceClient:
         anywhere, windows placed by the service)."""
         params = {} if center is None else {"center_u": center[0], "center_v": center[1]}
         params.update(intrinsics_params(intrinsics))
-        r = self.http.post(
-            "/v1/images", content=self._npy(depth), params=params, headers={"content-type": "application/x-npy"}
+        r = self._request(
+            "POST", "/v1/images", content=self._npy(depth), params=params, headers={"content-type": "application/x-npy"}
         )
         self._raise(r)
         self.last_upload = r.json()
@@ -133,7 +174,8 @@ class ServiceClient:
         p_success. ``last_ood_count``: how many were flagged (``score_details`` says why);
         ``strict``: a flagged grasp raises ServiceError 422."""
         body = np.ascontiguousarray(grasps, dtype="<f4").tobytes()
-        r = self.http.post(
+        r = self._request(
+            "POST",
             f"/v1/images/{image_id}/scores",
             content=body,
             params=self._strict(strict),
@@ -148,7 +190,8 @@ class ServiceClient:
         ``calibrated``), ``raw_score`` (the network's output), ``ood`` (flag names per grasp),
         ``ood_mask`` (bits), ``windows``, ``windows_encoded``; arrays as numpy."""
         body = np.ascontiguousarray(grasps, dtype="<f4").tobytes()
-        r = self.http.post(
+        r = self._request(
+            "POST",
             f"/v1/images/{image_id}/scores",
             content=body,
             params=self._strict(strict),
@@ -186,7 +229,8 @@ class ServiceClient:
         buf = io.BytesIO()
         np.savez(buf, **arrays)
         accept = {} if details else {"accept": "application/octet-stream"}
-        r = self.http.post(
+        r = self._request(
+            "POST",
             "/v1/score",
             content=buf.getvalue(),
             params=self._strict(strict),
@@ -224,10 +268,14 @@ class ServiceClient:
         if roi is not None:
             params["roi"] = ",".join(repr(float(x)) for x in roi)
         if image_id is not None:
-            r = self.http.post(f"/v1/images/{image_id}/plan", params=params)
+            r = self._request("POST", f"/v1/images/{image_id}/plan", params=params)
         else:
-            r = self.http.post(
-                "/v1/plan", content=self._npy(depth), params=params, headers={"content-type": "application/x-npy"}
+            r = self._request(
+                "POST",
+                "/v1/plan",
+                content=self._npy(depth),
+                params=params,
+                headers={"content-type": "application/x-npy"},
             )
         self._raise(r)
         d = r.json()
@@ -236,6 +284,6 @@ class ServiceClient:
         )
 
     def model(self) -> dict:
-        r = self.http.get("/v1/model")
+        r = self._request("GET", "/v1/model")
         self._raise(r)
         return r.json()
