@@ -380,7 +380,7 @@ def test_plans_run_at_most_max_concurrent_plans_at_once(two_boxes, monkeypatch, 
             active[0] += 1
             peak[0] = max(peak[0], active[0])
         try:
-            time.sleep(0.1)  # long enough for the others to arrive
+            time.sleep(0.25)  # long enough for the others to arrive
             return real(*args, **kw)
         finally:
             with lock:
@@ -409,7 +409,7 @@ def test_a_plan_whose_client_left_while_it_waited_is_not_computed(two_boxes):
     import threading
     import time
 
-    big = np.tile(two_boxes[0], (6, 6))  # 1800 x 1800 px: about a second of planning
+    big = np.tile(two_boxes[0], (8, 8))  # 2400 x 2400 px: over a second of planning
     headers = {"content-type": "application/x-npy"}
     with running_service(MODEL_DIR, "--threads", "1", "--max-concurrent-plans", "1") as u:
         first = threading.Thread(target=lambda: post_plan(u, big))
@@ -469,7 +469,7 @@ def test_plans_beyond_the_queue_answer_503_at_once(two_boxes, monkeypatch):
 
     def slow(*args, **kw):
         started.set()
-        time.sleep(0.4)
+        time.sleep(1.0)
         return real(*args, **kw)
 
     monkeypatch.setattr(plan_routes, "plan", slow)
@@ -477,11 +477,15 @@ def test_plans_beyond_the_queue_answer_503_at_once(two_boxes, monkeypatch):
         model_dir=str(MODEL_DIR), threads=1, max_concurrent_plans=1, max_queued_plans=1, log_level="warning"
     )
     body, headers = npy(two_boxes[0]), {"content-type": "application/x-npy"}
-    with TestClient(create_app(settings, load_in_background=False)) as c, ThreadPoolExecutor(4) as pool:
+    app = create_app(settings, load_in_background=False)
+    with TestClient(app) as c, ThreadPoolExecutor(4) as pool:
         first = pool.submit(c.post, "/v1/plan", content=body, headers=headers)
         assert started.wait(10)
         queued = pool.submit(c.post, "/v1/plan", content=body, headers=headers)
-        time.sleep(0.1)  # the second is waiting for the slot
+        deadline = time.monotonic() + 10
+        while app.state.service.plan_slots.statistics().tasks_waiting < 1:  # the second waits for the slot
+            assert time.monotonic() < deadline, "the second plan never waited"
+            time.sleep(0.01)
         refused = [c.post("/v1/plan", content=body, headers=headers) for _ in range(2)]
         answers = [first.result(), queued.result()]
     assert [r.status_code for r in answers] == [200, 200]
