@@ -707,7 +707,13 @@ def main(argv=None) -> int:
         "ranker": run_ranker,
         "pool": run_pool,
     }[args.what]
-    out = run(args)
+    from service.runtime import ModelError
+
+    try:
+        out = run(args)
+    except (ModelError, OSError) as e:  # a model folder or held-out file it cannot read
+        print(f"python -m planning.bench: error: {e}", file=sys.stderr)
+        return 2
     if args.json:
         from vgq import atomic
 

@@ -88,6 +88,8 @@ class Settings:
             v = getattr(self, name)
             if not isinstance(v, int) or v < lo:
                 raise ValueError(f"setting {name} must be an integer >= {lo}, got {v!r}")
+        if self.port > 65535:
+            raise ValueError(f"setting port must be an integer in [0, 65535], got {self.port}")
         if self.max_buffered_bytes < self.max_body_bytes:
             raise ValueError(
                 f"setting max_buffered_bytes ({self.max_buffered_bytes}) must be >= max_body_bytes "

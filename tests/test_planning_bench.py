@@ -170,3 +170,12 @@ def test_noisy_scores_average_the_planners_own_scores():
     assert np.allclose(avg, own, atol=1e-6)
     noisy = bench.noisy_scores(model, depth, intr, frames, 4, PlanParams(), 0)
     assert noisy.shape == (8,) and not np.allclose(noisy, own)
+
+
+@pytest.mark.parametrize("flag,value", [("--model", "/nonexistent"), ("--heldout", "/nonexistent.npz")])
+def test_a_model_or_heldout_file_it_cannot_read_exits_2_naming_it(capsys, flag, value):
+    from planning.bench import main
+
+    assert main(["timing", flag, value, "--scenes", "1", "--repeats", "2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "/nonexistent" in err[0]

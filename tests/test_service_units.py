@@ -257,6 +257,7 @@ def test_limits_come_from_the_environment():
         ({"cache_backend": "memcached"}, "cache_backend"),
         ({"cache_backend": "redis", "redis_url": "localhost:6379"}, "redis_url"),
         ({"workers": 2}, "workers = 2 needs cache_backend 'redis'"),
+        ({"port": 65536}, "port must be an integer in \\[0, 65535\\]"),
     ],
 )
 def test_bad_limits_are_refused_by_name(kw, word):
