@@ -139,8 +139,30 @@ def test_first_score_after_an_upload_is_reported_apart(url):
     assert e["score"]["requests"] >= e["score_first"]["requests"]
 
 
+def test_plans_in_the_mix_are_timed_and_checked(url):
+    """``plan=N``: POST /v1/plan on a fresh image, its own row (client and server latency)."""
+    report = main(
+        [
+            "--url",
+            url,
+            "--clients",
+            "2",
+            "--duration",
+            "1.5",
+            "--warmup",
+            "0.2",
+            "--mix",
+            "upload=0,score=2,once=0,plan=1",
+        ]
+    )
+    assert set(report["endpoints"]) == {"score", "plan"} and report["errors"] == 0
+    plan = report["endpoints"]["plan"]
+    assert plan["requests"] > 0 and plan["p50_ms"] > 0 and plan["server_mean_ms"] > 0
+
+
 def test_mix_endpoints_name_what_each_mix_sends():
     assert Mix.parse("upload=1,score=8,once=1").endpoints() == ("upload", "score_first", "score", "score_once")
+    assert Mix.parse("upload=0,score=0,once=0,plan=2").endpoints() == ("plan",)
     assert Mix.parse("upload=1,score=1,once=0").endpoints() == ("upload", "score_first")
     assert Mix.parse("upload=0,score=8,once=0").endpoints() == ("score",) and Mix.parse("upload=0,once=0").pinned
     with pytest.raises(ValueError, match="nothing to do"):

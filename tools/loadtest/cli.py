@@ -31,8 +31,8 @@ def main(argv=None) -> dict:
     p.add_argument(
         "--mix",
         default="upload=1,score=8,once=1",
-        help="requests per client cycle (default upload=1,score=8,once=1); upload=0,score=N,once=0: cached score "
-        "calls only, against one image per client uploaded and scored once before the run",
+        help="requests per client cycle (default upload=1,score=8,once=1; also plan=N, bad=N); upload=0,score=N,"
+        "once=0: cached score calls only, against one image per client uploaded and scored once before the run",
     )
     p.add_argument("--timeout", type=float, default=10.0, help="per-request timeout, seconds (default 10)")
     p.add_argument("--server-pid", type=int, help="record this process's (and its children's) RSS before and after")

@@ -69,6 +69,14 @@ def _upload_ok(r):
         return "answer is not JSON"
 
 
+def _plan_ok(r):
+    try:
+        grasps = r.json()["grasps"]
+    except (ValueError, KeyError, TypeError):
+        return "answer is not a plan"
+    return None if isinstance(grasps, list) else "no grasps list in answer"
+
+
 def _scores_ok(k: int):
     def check(r):
         return None if len(r.content) == 4 * k else f"answer of {len(r.content)} bytes, expected {4 * k}"
@@ -144,6 +152,10 @@ async def client_loop(
             )
             if r is not None and rec.recording:
                 rec.grasps += k
+            if time.perf_counter() >= deadline:
+                return
+        for _ in range(mix.plan):
+            await _timed(rec, "plan", http.post("/v1/plan", content=fresh.next_npy(), headers=NPY_H), _plan_ok)
             if time.perf_counter() >= deadline:
                 return
         for _ in range(mix.bad):

@@ -10,13 +10,14 @@ import numpy as np
 
 #: report rows: ``score_first`` is the first score call after an upload (it encodes the image's
 #: windows), ``score`` the cached ones (windows encoded: head only)
-ENDPOINTS = ("upload", "score_first", "score", "score_once", "bad")
+ENDPOINTS = ("upload", "score_first", "score", "score_once", "plan", "bad")
 #: the service's /metrics endpoint label of each row (it does not tell first and cached score calls apart)
 SERVER_ENDPOINT = {
     "upload": "upload",
     "score_first": "score",
     "score": "score",
     "score_once": "score_once",
+    "plan": "plan",
     "bad": "bad",
 }
 

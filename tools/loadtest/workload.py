@@ -20,7 +20,8 @@ OCTET = "application/octet-stream"
 @dataclass(frozen=True)
 class Mix:
     """Requests per client cycle: uploads of a fresh image, score calls per upload, one-shots,
-    and bad requests (malformed on purpose; each must get a 4xx naming the problem).
+    plans (``POST /v1/plan`` on a fresh image: the planner, encoder and head) and bad requests
+    (malformed on purpose; each must get a 4xx naming the problem).
 
     The first score call after an upload encodes the image's crop windows (lazily: encoder +
     head) and is reported as ``score_first``; the others find them encoded (head only) and are
@@ -31,20 +32,23 @@ class Mix:
     upload: int = 1
     score: int = 8
     once: int = 1
+    plan: int = 0
     bad: int = 0
 
     @classmethod
     def parse(cls, text: str) -> Mix:
-        """``"upload=1,score=8,once=1,bad=0"`` (missing keys keep their defaults)."""
+        """``"upload=1,score=8,once=1,plan=0,bad=0"`` (missing keys keep their defaults)."""
         kw = {}
         for part in filter(None, (p.strip() for p in text.split(","))):
             name, _, value = part.partition("=")
-            if name not in ("upload", "score", "once", "bad") or not value.strip().isdigit():
-                raise ValueError(f"bad --mix entry {part!r}; expected upload=N, score=N, once=N, bad=N (N >= 0)")
+            if name not in ("upload", "score", "once", "plan", "bad") or not value.strip().isdigit():
+                raise ValueError(
+                    f"bad --mix entry {part!r}; expected upload=N, score=N, once=N, plan=N, bad=N (N >= 0)"
+                )
             kw[name] = int(value)
         mix = cls(**kw)
-        if not (mix.upload or mix.score or mix.once or mix.bad):
-            raise ValueError("--mix: nothing to do (upload, score, once and bad are all 0)")
+        if not (mix.upload or mix.score or mix.once or mix.plan or mix.bad):
+            raise ValueError("--mix: nothing to do (upload, score, once, plan and bad are all 0)")
         return mix
 
     @property
@@ -59,6 +63,7 @@ class Mix:
             "score_first": self.score > 0 and self.upload > 0,
             "score": self.score > (1 if self.upload else 0),
             "score_once": self.once > 0,
+            "plan": self.plan > 0,
             "bad": self.bad > 0,
         }
         return tuple(e for e, on in sent.items() if on)
