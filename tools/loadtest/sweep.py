@@ -121,7 +121,8 @@ def _measure(w, t, clients, duration, work, mix, model_dir, redis_url, points, l
     try:
         for c in clients:
             rec, wall = asyncio.run(run_load(url, c, duration, work, mix, warmup=1.0, transport="raw"))
-            s = summarize(rec, wall, tuple(e for e in ENDPOINTS if e != "bad" or mix.bad))  # rows for the plot
+            rows = tuple(e for e in ENDPOINTS if (e != "bad" or mix.bad) and (e != "plan" or mix.plan))  # for the plot
+            s = summarize(rec, wall, rows)
             s.update(workers=w, threads=t, clients=c, cache=("redis" if redis_url else "memory"))
             s["load_average"] = list(os.getloadavg())
             points.append(s)
