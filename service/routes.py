@@ -160,6 +160,8 @@ async def model_info(request: Request):
             "max_headers",
             "max_url_bytes",
             "request_timeout_s",
+            "max_concurrent_plans",
+            "max_queued_plans",
         )
     }
     card = svc.model.card

@@ -491,3 +491,8 @@ def test_plans_beyond_the_queue_answer_503_at_once(two_boxes, monkeypatch):
     assert [r.status_code for r in answers] == [200, 200]
     assert [r.status_code for r in refused] == [503, 503] and refused[0].headers["retry-after"] == "1"
     assert "max_queued_plans" in refused[0].json()["error"]["message"]  # a plan that waited would be a 200
+
+
+def test_the_plan_limits_are_in_v1_model(url):
+    limits = httpx.get(f"{url}/v1/model").json()["limits"]
+    assert (limits["max_concurrent_plans"], limits["max_queued_plans"]) == (2, 16)
