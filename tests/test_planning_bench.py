@@ -128,6 +128,7 @@ def test_trials_judge_the_plan_the_score_alone_and_a_random_pick_on_the_same_sce
         assert all(0 <= r[f"{k}_held"] <= r["trials"] for k in ("top1", "score_top1", "random"))
     for k in ("top1", "score_top1", "random"):
         assert s[f"{k}_success"] == pytest.approx(s[f"{k}_held"] / max(s["trials"], 1))
+        assert s[f"{k}_precision_se"] == pytest.approx(np.sqrt(s[f"{k}_precision"] * (1 - s[f"{k}_precision"]) / 2))
         assert 0 <= s[f"{k}_precision"] <= 1
     assert "the network's score alone" in capsys.readouterr().out
 
