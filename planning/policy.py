@@ -14,7 +14,7 @@ from typing import Protocol
 import numpy as np
 from PIL import Image
 
-from vgq.camera import CameraMismatch, Intrinsics, map_pixels, project, resample_depth
+from vgq.camera import CameraMismatch, Intrinsics, focal_lengths, map_pixels, project, resample_depth
 from vgq.crop import grid_window_centers, pose_uv, window_center, window_origin
 from vgq.inpaint import crop_filled
 from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT
@@ -57,21 +57,17 @@ def camera_for(
     cx: float | None = None,
     cy: float | None = None,
 ) -> Intrinsics:
-    """The intrinsics (pixels) of an (H, W) image: each value given, else, as at the service's
-    upload (``service.camera.client_camera``), a focal length from the other one given (the
-    model's pixel aspect) or both the model's, and, when the image has the model's size, its
-    principal point, otherwise the image centre. PlanningError ``intrinsics`` for values no
-    camera has."""
+    """The intrinsics (pixels) of an (H, W) image: each value given, else the focal lengths of
+    :func:`vgq.camera.focal_lengths` (as at the service's upload) and, when the image has the
+    model's size, its principal point, otherwise the image centre. PlanningError
+    ``intrinsics`` for values no camera has."""
     h, w = shape
     same = (h, w) == (model.height, model.width)
-    if fx is None and fy is not None:
-        fx = fy * model.fx / model.fy
-    if fy is None and fx is not None:
-        fy = fx * model.fy / model.fx
+    fx, fy = focal_lengths(fx, fy, model)
     try:
         return Intrinsics(
-            fx=model.fx if fx is None else fx,
-            fy=model.fy if fy is None else fy,
+            fx=fx,
+            fy=fy,
             cx=cx if cx is not None else (model.cx if same else (w - 1) / 2),
             cy=cy if cy is not None else (model.cy if same else (h - 1) / 2),
             width=w,

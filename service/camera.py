@@ -11,6 +11,7 @@ from vgq.camera import (
     CameraMismatch,
     Intrinsics,
     check_client_intrinsics,
+    focal_lengths,
     resample_depth,
     resampled_intrinsics,
 )
@@ -25,10 +26,7 @@ def client_camera(numbers: dict, shape: tuple[int, int], model: Intrinsics) -> t
     h, w = shape
     fx, fy, cx, cy = (numbers.get(k) for k in ("fx", "fy", "cx", "cy"))
     assumed = tuple(k for k, v in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)) if v is None)
-    if fx is None:
-        fx = model.fx if fy is None else fy * model.fx / model.fy
-    if fy is None:
-        fy = fx * model.fy / model.fx
+    fx, fy = focal_lengths(fx, fy, model)
     cx = (w - 1) / 2 if cx is None else cx
     cy = (h - 1) / 2 if cy is None else cy
     try:

@@ -110,23 +110,23 @@ class ServiceClient:
 
     def _request(self, method: str, url: str, **kw) -> httpx.Response:
         """``self.http.request`` with the retries above; the last answer (or error) stands."""
-        for attempt in range(self.retries + 1):
-            last = attempt == self.retries
+        attempt = 0
+        while True:
             try:
                 r = self.http.request(method, url, **kw)
             except (httpx.ConnectError, httpx.RemoteProtocolError):
-                if last:
+                if attempt == self.retries:
                     raise
-                time.sleep(min(0.1 * 2**attempt, MAX_RETRY_WAIT_S))
-                continue
-            if r.status_code != 503 or last:
-                return r
-            try:
-                wait = float(r.headers.get("retry-after", "1"))
-            except ValueError:
-                wait = 1.0
-            time.sleep(min(max(wait, 0.0), MAX_RETRY_WAIT_S))
-        raise AssertionError("unreachable")
+                wait = 0.1 * 2**attempt
+            else:
+                if r.status_code != 503 or attempt == self.retries:
+                    return r
+                try:
+                    wait = max(float(r.headers.get("retry-after", "1")), 0.0)
+                except ValueError:
+                    wait = 1.0
+            time.sleep(min(wait, MAX_RETRY_WAIT_S))
+            attempt += 1
 
     def close(self) -> None:
         self.http.close()

@@ -91,3 +91,13 @@ def test_centred_grasps_share_the_central_window():
     geom = CropGeometry()
     c = grid_window_centers([[149.5, 149.5], [160.0, 140.0], [120.0, 180.0]], (300, 300), geom)
     np.testing.assert_array_equal(c, np.tile([149.5, 149.5], (3, 1)))
+
+
+def test_a_missing_focal_length_follows_the_other_at_the_models_aspect():
+    from vgq.camera import Intrinsics, focal_lengths
+
+    model = Intrinsics(fx=500.0, fy=550.0, cx=149.5, cy=149.5, width=300, height=300)
+    assert focal_lengths(None, None, model) == (500.0, 550.0)
+    assert focal_lengths(600.0, None, model) == (600.0, 660.0)
+    assert focal_lengths(None, 660.0, model) == (600.0, 660.0)
+    assert focal_lengths(610.0, 620.0, model) == (610.0, 620.0)

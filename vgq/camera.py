@@ -103,6 +103,17 @@ class CameraMismatch(ValueError):
         self.field = field
 
 
+def focal_lengths(fx: float | None, fy: float | None, model: Intrinsics) -> tuple[float, float]:
+    """A camera's (fx, fy) px from what a client sent: a missing one follows the other at the
+    model's pixel aspect; with neither, the model's. (The service's upload, its plan route and
+    ``vgq-plan`` all complete a camera so.)"""
+    if fx is None:
+        fx = model.fx if fy is None else fy * model.fx / model.fy
+    if fy is None:
+        fy = fx * model.fy / model.fx
+    return fx, fy
+
+
 def check_client_intrinsics(camera: Intrinsics, model: Intrinsics) -> tuple[float, float]:
     """Scale factors (sx, sy) = (model fx / camera fx, model fy / camera fy) that bring an
     image of ``camera`` to the model's focal lengths. Raises :class:`CameraMismatch` when a

@@ -111,12 +111,13 @@ def sweep(
             redis_url = redis(stack, binary)
         for w in workers:
             for t in threads:
-                _measure(w, t, clients, duration, work, mix, model_dir, redis_url if w > 1 else None, points, log)
+                points += _measure(w, t, clients, duration, work, mix, model_dir, redis_url if w > 1 else None, log)
     return points
 
 
-def _measure(w, t, clients, duration, work, mix, model_dir, redis_url, points, log) -> None:
-    """The points of one (workers, threads) service, appended to ``points``."""
+def _measure(w, t, clients, duration, work, mix, model_dir, redis_url, log) -> list[dict]:
+    """The points of one (workers, threads) service, one per client count."""
+    points = []
     proc, url = start_service(w, t, model_dir, redis_url=redis_url)
     try:
         for c in clients:
@@ -134,6 +135,7 @@ def _measure(w, t, clients, duration, work, mix, model_dir, redis_url, points, l
             )
     finally:
         stop(proc)
+    return points
 
 
 def title(points: list[dict], k: int, mix: str, duration: float) -> str:
