@@ -16,6 +16,7 @@ import onnx
 import torch
 from onnx import numpy_helper
 
+from training.checkpoint import net_options
 from training.networks import GraspQualityNet
 from vgq.model_card import ModelCard
 
@@ -50,7 +51,8 @@ def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, Mod
     enc_path, head_path = model_dir / card.files["encoder"], model_dir / card.files["head"]
     (enc, enc_nodes), (head, _) = _load(enc_path), _load(head_path)
     channels = int(_get(enc, "net.conv2_1.weight", enc_path).shape[0])  # the paper's 64, or wider
-    net = GraspQualityNet("fast_vgqcnn", image_size=card.geometry.out, conv2_channels=channels).eval()
+    options = net_options({"config": card.training.get("config", {})})
+    net = GraspQualityNet("fast_vgqcnn", image_size=card.geometry.out, conv2_channels=channels, **options).eval()
     norm = card.normalization
     net.set_normalization(norm)
     for layer in ("conv1_1", "conv1_2", "conv2_1", "conv2_2", "fc3"):
@@ -60,12 +62,20 @@ def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, Mod
     if mm is None or len(mm) != 2:
         raise ValueError(f"{enc_path}: node '/fc4_image/MatMul' not found; not a graph written by export.graphs")
     _set(net.fc4_image.weight, _get(enc, mm[1], enc_path).T, "fc4_image")  # MatMul holds W^T
-    # pc1 with the pose normalisation folded in: W' = W / std, b' = b - W' mean
+    if net.fc4_ref is not None:
+        ref = enc_nodes.get("/fc4_ref/MatMul")
+        if ref is None or len(ref) != 2:
+            raise ValueError(f"{enc_path}: node '/fc4_ref/MatMul' not found; the card says depth_reference centre")
+        _set(net.fc4_ref.weight, _get(enc, ref[1], enc_path).T, "fc4_ref")
+    # pc1 with the pose normalisation folded into its first n_other columns: W' = W / std, b' = b - W' mean
     wf = _get(head, "head.pc1.weight", head_path).astype(np.float64)
     bf = _get(head, "head.pc1.bias", head_path).astype(np.float64)
-    mean, std = np.asarray(norm.pose_mean, np.float64), np.asarray(norm.pose_std, np.float64)
-    _set(net.pc1.weight, wf * std[None, :], "pc1")
-    _set(net.pc1.bias, bf + wf @ mean, "pc1")
+    n = net.n_other
+    mean, std = np.asarray(norm.pose_mean, np.float64)[:n], np.asarray(norm.pose_std, np.float64)[:n]
+    w = wf.copy()
+    w[:, :n] = wf[:, :n] * std[None, :]
+    _set(net.pc1.weight, w, "pc1")
+    _set(net.pc1.bias, bf + wf[:, :n] @ mean, "pc1")
     for layer in ("fc4_pose", "fc5"):
         for what in ("weight", "bias"):
             _set(getattr(getattr(net, layer), what), _get(head, f"head.{layer}.{what}", head_path), layer)
@@ -79,13 +89,23 @@ def vgq_net_like(fast: GraspQualityNet) -> GraspQualityNet:
     """A VGQ-CNN (pose z, q; one centred crop per grasp) with ``fast``'s image stream, fc4,
     fc5 and fc6, and pc1 restricted to the (z, q) columns. Same cost as the paper's VGQ-CNN;
     its scores are not a trained VGQ-CNN's."""
-    net = GraspQualityNet("vgqcnn", image_size=fast.image_size, conv2_channels=fast.conv2_channels).eval()
+    net = GraspQualityNet(
+        "vgqcnn",
+        image_size=fast.image_size,
+        conv2_channels=fast.conv2_channels,
+        depth_reference=fast.depth_reference,
+        pose_features=fast.pose_features,
+        pose_units=fast.pose_units,
+    ).eval()
     cols = [fast.pose_columns.index(c) for c in net.pose_columns]
+    feature_cols = cols  # pc1's inputs: the pose columns, or the non-quaternion ones + 9 rotation entries
+    if fast.pose_features == "rotation":
+        feature_cols = cols[: net.n_other] + list(range(fast.n_other, fast.n_other + 9))
     src = fast.state_dict()
     dst = net.state_dict()
     for k, v in src.items():
         if k.startswith("pc1.weight"):
-            dst[k] = v[:, cols].clone()
+            dst[k] = v[:, feature_cols].clone()
         elif k in ("pose_mean", "pose_std"):
             dst[k] = v[cols].clone()
         else:

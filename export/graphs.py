@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from training.networks import GraspQualityNet, LocalResponseNorm
+from training.networks import GraspQualityNet, LocalResponseNorm, rotation_entries
 
 
 class ExportLRN(nn.Module):
@@ -61,9 +61,13 @@ class _FoldedHead(nn.Module):
 
     def __init__(self, net: GraspQualityNet):
         super().__init__()
+        self.n_other = net.n_other  # the columns normalised; "rotation": the quaternion follows them
+        self.rotation = net.pose_features == "rotation"
         with torch.no_grad():
-            w = net.pc1.weight / net.pose_std[None, :]
-            b = net.pc1.bias - w @ net.pose_mean
+            n = net.n_other
+            w = net.pc1.weight.clone()
+            w[:, :n] = w[:, :n] / net.pose_std[None, :n]
+            b = net.pc1.bias - w[:, :n] @ net.pose_mean[:n]
             self.pc1 = nn.Linear(w.shape[1], w.shape[0])
             self.pc1.weight.copy_(w)
             self.pc1.bias.copy_(b)
@@ -74,6 +78,8 @@ class _FoldedHead(nn.Module):
             self.out.bias.copy_((net.fc6.bias[1] - net.fc6.bias[0]).reshape(1))
 
     def forward(self, image_term: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        if self.rotation:
+            poses = torch.cat([poses[:, : self.n_other], rotation_entries(poses[:, self.n_other :])], dim=1)
         # Gemm(p, W, C = image term + bias): the merge Add and Relu fuse into the Gemm
         x = F.relu(torch.addmm(image_term + self.fc4_pose.bias, F.relu(self.pc1(poses)), self.fc4_pose.weight.t()))
         if self.fc5 is not None:

@@ -41,6 +41,7 @@ from onnx import helper, numpy_helper
 
 from vgq import atomic
 from vgq.model_card import HEAD_INPUTS, HEAD_OUTPUT, ModelCard
+from vgq.pose import POSE_COLUMNS, pose_stream_features
 
 from .quantize import QuantizationError, check_int8_head, image_terms, quantize_head, session
 
@@ -85,8 +86,12 @@ class HeadWeights:
         return cls(**{k: numpy_helper.to_array(inits[n]).astype(np.float64) for k, n in WEIGHTS.items()})
 
     def pose_part(self, poses: np.ndarray) -> np.ndarray:
-        """(k, 7) pose rows -> (k, 1024): fc4's pose contribution plus its bias."""
-        pc1 = np.maximum(np.asarray(poses, np.float64) @ self.pc1_w.T + self.pc1_b, 0)
+        """(k, 7) pose rows -> (k, 1024): fc4's pose contribution plus its bias. A pc1 of 3 + 9
+        inputs reads the rotation-matrix features (``vgq.pose.pose_stream_features``)."""
+        poses = np.asarray(poses, np.float64)
+        if self.pc1_w.shape[1] == poses.shape[1] - 4 + 9:
+            poses = pose_stream_features(poses, POSE_COLUMNS["fast_vgqcnn"], "rotation")
+        pc1 = np.maximum(poses @ self.pc1_w.T + self.pc1_b, 0)
         return pc1 @ self.fc4_w.T + self.fc4_b
 
     def fc5_pre(self, terms: np.ndarray, pose_part: np.ndarray) -> np.ndarray:

@@ -358,3 +358,48 @@ def test_int8_head_is_for_fast_vgqcnn_only(tmp_path, briefly_trained):
             int8_check=(imgs[:200], poses[:200, 2:], np.arange(200) % 2),
         )
     assert not (tmp_path / "v").exists()
+
+
+def test_relative_depth_and_rotation_features_export_and_read_back(tmp_path):
+    """A net with depth_reference centre and rotation pose features: the encoder and head graphs
+    reproduce torch (export's own verification), the pruned int8 head builds, and the folder reads
+    back into the same torch net (export.from_onnx)."""
+    from export.from_onnx import fast_net_from_model_dir
+    from service.runtime import FastModel
+    from vgq.normalization import Normalization
+
+    torch.manual_seed(0)
+    opts = {"depth_reference": "centre", "pose_features": "rotation", "pose_units": 32}
+    net = GraspQualityNet("fast_vgqcnn", **opts).eval()
+    imgs, poses, labels = synthetic_crops(400, np.random.default_rng(5))
+    net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns, "centre"))
+    card = export_model(
+        net,
+        tmp_path / "m",
+        imgs[:16],
+        poses[:16],
+        GEOM,
+        DEFAULT_INTRINSICS,
+        training={"config": opts},
+        int8_check=(imgs[200:], poses[200:], labels[200:]),
+        prune_calibration=(imgs[:200], poses[:200]),
+    )
+    assert card.normalization.image_reference == "centre" and "head_int8" in card.files
+    back, _ = fast_net_from_model_dir(tmp_path / "m")
+    for k, v in net.state_dict().items():
+        if not k.startswith("fc6"):  # read back as one logit difference
+            torch.testing.assert_close(back.state_dict()[k], v, rtol=1e-5, atol=1e-6, msg=k)
+    served = FastModel(tmp_path / "m", head_precision="fp32")
+    with torch.no_grad():
+        x, p = torch.from_numpy(imgs[:1, None]), torch.from_numpy(poses[:64])
+        ref = net.head(net.encode(x), p).numpy()
+        np.testing.assert_allclose(back.head(back.encode(x), p).numpy(), ref, atol=1e-5)
+    assert np.abs(served.score(served.encode(imgs[0]), poses[:64]) - ref).max() < 1e-5
+    from export.prune_encoder import dead_channels, prune_encoder_graph
+    from export.quantize import image_terms, quantize_encoder
+
+    enc, q8, pruned = tmp_path / "m" / "encoder.onnx", tmp_path / "q8.onnx", tmp_path / "q8_pruned.onnx"
+    assert "/fc4_ref/MatMul" in quantize_encoder(enc, q8, imgs[:200])
+    prune_encoder_graph(q8, pruned, dead_channels(q8, imgs[:200]))
+    t32, t8, tp = (image_terms(g, imgs[200:264]) for g in (enc, q8, pruned))
+    assert np.abs(t8 - t32).max() < 0.05 * np.abs(t32).max() and np.abs(tp - t8).max() < 1e-3 * np.abs(t8).max()

@@ -1,5 +1,6 @@
 """Networks: parameter counts, shapes, encode + head == forward."""
 
+import numpy as np
 import pytest
 import torch
 
@@ -52,3 +53,63 @@ def test_wider_second_stage_keeps_the_encoder_contract():
 def test_conv2_channels_must_be_positive():
     with pytest.raises(ValueError, match="conv2_channels"):
         GraspQualityNet("fast_vgqcnn", conv2_channels=0)
+
+
+def _centre_net(**kw):
+    torch.manual_seed(0)
+    net = GraspQualityNet("fast_vgqcnn", depth_reference="centre", **kw).eval()
+    cols = POSE_COLUMNS["fast_vgqcnn"]
+    net.set_normalization(
+        Normalization(0.01, 0.03, cols, [0, 0, 0.7, 0, 0, 0, 0], [4, 4, 0.1, 1, 1, 1, 1], "centre", 0.7, 0.15)
+    )
+    return net
+
+
+def test_centre_reference_sees_the_relief_and_passes_the_depth_on_linearly():
+    net = _centre_net()
+    depth = 0.7 + 0.05 * torch.rand(3, 1, 32, 32)
+    with torch.no_grad():
+        shift = net.encode(depth + 0.2) - net.encode(depth)  # the same relief 20 cm further away
+        expected = net.fc4_ref.weight[:, 0] * (0.2 / 0.15)
+    torch.testing.assert_close(shift, expected.expand(3, -1), rtol=1e-4, atol=1e-5)
+
+
+def test_centre_reference_is_the_mean_of_the_central_block():
+    from vgq.normalization import REFERENCE_PIXELS, window_reference
+
+    x = np.zeros((2, 1, 32, 32), np.float32)
+    lo = (32 - REFERENCE_PIXELS) // 2
+    x[0, 0, lo : lo + REFERENCE_PIXELS, lo : lo + REFERENCE_PIXELS] = 0.5
+    x[1] = 0.9
+    np.testing.assert_allclose(window_reference(x), [0.5, 0.9], rtol=1e-6)
+
+
+def test_normalisation_of_relative_crops_from_data():
+    from vgq.normalization import window_reference
+
+    rng = np.random.default_rng(0)
+    x = (0.5 + rng.random((40, 1, 32, 32)) * 0.5).astype(np.float32)
+    norm = Normalization.from_data(x, rng.random((40, 7)), POSE_COLUMNS["fast_vgqcnn"], "centre")
+    ref = window_reference(x)
+    rel = x - ref[:, None, None, None]
+    assert norm.image_reference == "centre"
+    np.testing.assert_allclose([norm.image_mean, norm.image_std], [rel.mean(), rel.std()], rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose([norm.reference_mean, norm.reference_std], [ref.mean(), ref.std()], rtol=1e-5)
+    assert Normalization.from_dict(norm.to_dict()) == norm
+    with pytest.raises(ValueError, match="image_reference"):
+        GraspQualityNet("fast_vgqcnn").set_normalization(norm)  # a net that reads absolute depth
+
+
+def test_rotation_pose_features_are_the_quaternions_matrix():
+    from scipy.spatial.transform import Rotation
+
+    from training.networks import rotation_entries
+
+    r = Rotation.random(6, random_state=0)
+    xyzw = r.as_quat()
+    q = torch.tensor(np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1))  # w, x, y, z
+    np.testing.assert_allclose(rotation_entries(q).numpy().reshape(6, 3, 3), r.as_matrix(), atol=1e-12)
+    net = GraspQualityNet("fast_vgqcnn", pose_features="rotation", pose_units=64)
+    assert net.pc1.in_features == 3 + 9 and net.fc4_pose.in_features == 64
+    with pytest.raises(ValueError, match="quaternion"):
+        GraspQualityNet("gqcnn", pose_features="rotation")

@@ -264,3 +264,13 @@ def test_success_rate_target_fits_the_trials_that_held(tmp_path):
 def test_success_rate_target_refuses_crops_without_trials(data, tmp_path):
     with pytest.raises(DatasetError, match="needs crops with the physics label"):
         train(TrainConfig(samples=16, target="success_rate", **FAST), data, tmp_path / "r", progress=False)
+
+
+def test_relative_depth_and_rotation_features_round_trip(data, tmp_path):
+    opts = dict(depth_reference="centre", pose_features="rotation", pose_units=32)
+    train(TrainConfig(samples=32, val_every_samples=32, **opts, **FAST), data, tmp_path / "r", progress=False)
+    net, _ = load_trained(tmp_path / "r" / "checkpoints" / "best.pt")
+    assert (net.depth_reference, net.pose_features, net.pose_units) == ("centre", "rotation", 32)
+    assert net.normalization().image_reference == "centre"
+    with pytest.raises(CheckpointError, match="depth_reference 'centre'; this run trains 'none'"):
+        train(TrainConfig(samples=16, **FAST, init=str(tmp_path / "r")), data, tmp_path / "x", progress=False)

@@ -97,9 +97,25 @@ def conv2_channels(ckpt: dict) -> int:
     return int(ckpt.get("config", {}).get("conv2_channels", 64))
 
 
+def net_options(ckpt: dict) -> dict:
+    """The GraspQualityNet options a checkpoint's config records beyond arch and conv2 width
+    (the paper's values for checkpoints written before the options existed)."""
+    cfg = ckpt.get("config", {})
+    return {
+        "depth_reference": str(cfg.get("depth_reference", "none")),
+        "pose_features": str(cfg.get("pose_features", "raw")),
+        "pose_units": int(cfg.get("pose_units", 16)),
+    }
+
+
 def net_from_checkpoint(ckpt: dict) -> GraspQualityNet:
     """A GraspQualityNet in eval mode with the checkpoint's weights and normalisation."""
-    net = GraspQualityNet(ckpt["arch"], image_size=int(ckpt["geometry"]["out"]), conv2_channels=conv2_channels(ckpt))
+    net = GraspQualityNet(
+        ckpt["arch"],
+        image_size=int(ckpt["geometry"]["out"]),
+        conv2_channels=conv2_channels(ckpt),
+        **net_options(ckpt),
+    )
     net.load_state_dict(ckpt["model"])
     net.set_normalization(Normalization.from_dict(ckpt["normalization"]))  # same values; validates
     return net.eval()

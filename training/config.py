@@ -10,7 +10,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
 
-from vgq.pose import POSE_COLUMNS
+from vgq.normalization import IMAGE_REFERENCES
+from vgq.pose import POSE_COLUMNS, POSE_FEATURES
 
 CLASS_BALANCE = ("none", "loss_weights")
 OPTIMIZERS = ("sgd", "adamw")
@@ -26,6 +27,23 @@ class TrainConfig:
         default=64,
         metadata={"help": "channels of the second conv stage (conv2_1, conv2_2; 16 x 16); the paper's 64"},
     )
+    depth_reference: str = field(
+        default="none",
+        metadata={
+            "choices": IMAGE_REFERENCES,
+            "help": "'none': the encoder sees absolute depth (the paper's) | 'centre': each crop relative to "
+            "its central depth, which enters the image term as one more input",
+        },
+    )
+    pose_features: str = field(
+        default="raw",
+        metadata={
+            "choices": POSE_FEATURES,
+            "help": "what the pose stream reads: 'raw' (u, v, z, quaternion: the paper's) | 'rotation' "
+            "(u, v, z and the grasp's rotation matrix, computed from the quaternion in the head)",
+        },
+    )
+    pose_units: int = field(default=16, metadata={"help": "width of the pose stream pc1 (the paper's 16)"})
     samples: int = 10_000_000  # training samples to see in total (paper ablations: 10 M)
     batch_size: int = 64  # global batch (split evenly over DDP processes)
     optimizer: str = field(
@@ -103,6 +121,7 @@ class TrainConfig:
             "log_every_steps",
             "eval_batch_size",
             "conv2_channels",
+            "pose_units",
         ):
             if int(getattr(self, name)) <= 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
@@ -116,6 +135,8 @@ class TrainConfig:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
         if self.class_balance not in CLASS_BALANCE:
             raise ValueError(f"class_balance must be one of {CLASS_BALANCE}, got {self.class_balance!r}")
+        if self.depth_reference not in IMAGE_REFERENCES:
+            raise ValueError(f"depth_reference must be one of {IMAGE_REFERENCES}, got {self.depth_reference!r}")
         if self.target not in TARGETS:
             raise ValueError(f"target must be one of {TARGETS}, got {self.target!r}")
         if self.select_on not in SELECT_ON:

@@ -12,6 +12,12 @@ The split Fast-VGQ-CNN needs is available for every architecture:
 ``encode(depth) = W_img fc3`` (once per image) and ``head_logits(image_term, poses)``.
 Inputs are raw (metres, crop pixels); normalisation is done inside from buffers set by
 ``set_normalization``, so exported graphs carry it too.
+
+``depth_reference`` "centre" (``vgq.normalization``): the encoder sees each crop relative to its
+own central depth and adds a learnt linear term of that depth (``fc4_ref``) to its output, so
+the head and the encoder / head split are unchanged. ``pose_features`` "rotation": the pose
+stream reads the grasp's rotation matrix (9 entries, from the quaternion) in place of the 4
+quaternion components, ``pose_units`` wide (the paper's pc1: 16).
 """
 
 from __future__ import annotations
@@ -20,10 +26,24 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vgq.normalization import Normalization
-from vgq.pose import POSE_COLUMNS
+from vgq.normalization import IMAGE_REFERENCES, REFERENCE_PIXELS, Normalization
+from vgq.pose import POSE_COLUMNS, POSE_FEATURES
 
 ARCHITECTURES = tuple(POSE_COLUMNS)
+
+
+def rotation_entries(q: torch.Tensor) -> torch.Tensor:
+    """(k, 9) row-major rotation matrices of (k, 4) unit quaternions (w, x, y, z): torch's
+    ``vgq.pose.pose_stream_features`` "rotation" (a test holds the two equal)."""
+    w, x, y, z = q.unbind(1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=1,
+    )  # fmt: skip
 
 
 class LocalResponseNorm(nn.Module):
@@ -49,8 +69,23 @@ class LocalResponseNorm(nn.Module):
 class GraspQualityNet(nn.Module):
     """VGQ-CNN / Fast-VGQ-CNN / GQ-CNN. ``forward`` returns logits (k, 2)."""
 
-    def __init__(self, arch: str = "fast_vgqcnn", image_size: int = 32, conv2_channels: int = 64):
+    def __init__(
+        self,
+        arch: str = "fast_vgqcnn",
+        image_size: int = 32,
+        conv2_channels: int = 64,
+        depth_reference: str = "none",
+        pose_features: str = "raw",
+        pose_units: int = 16,
+    ):
         super().__init__()
+        if pose_features not in POSE_FEATURES:
+            raise ValueError(f"pose_features must be one of {POSE_FEATURES}, got {pose_features!r}")
+        if pose_units < 1:
+            raise ValueError(f"pose_units must be >= 1, got {pose_units}")
+        if depth_reference not in IMAGE_REFERENCES:
+            raise ValueError(f"depth_reference must be one of {IMAGE_REFERENCES}, got {depth_reference!r}")
+        self.depth_reference = depth_reference
         if conv2_channels < 1:
             raise ValueError(f"conv2_channels must be >= 1, got {conv2_channels}")
         if arch not in POSE_COLUMNS:
@@ -69,19 +104,33 @@ class GraspQualityNet(nn.Module):
         self.lrn = LocalResponseNorm(64)
         self.lrn2 = LocalResponseNorm(c2)  # no weights; its own module so that export swaps both
         self.fc3 = nn.Linear(c2 * (image_size // 4) ** 2, 1024)
-        self.pc1 = nn.Linear(n_pose, 16)
+        if pose_features == "rotation" and tuple(self.pose_columns[-4:]) != ("qw", "qx", "qy", "qz"):
+            raise ValueError(f"pose_features 'rotation' needs quaternion columns; {arch} has {self.pose_columns}")
+        self.pose_features, self.pose_units = pose_features, int(pose_units)
+        self.n_other = n_pose - 4 if pose_features == "rotation" else n_pose  # columns read as they are
+        n_in = n_pose if pose_features == "raw" else self.n_other + 9
+        self.pc1 = nn.Linear(n_in, self.pose_units)
         self.fc4_image = nn.Linear(1024, 1024, bias=False)
-        self.fc4_pose = nn.Linear(16, 1024, bias=True)  # carries fc4's bias
+        self.fc4_ref = nn.Linear(1, 1024, bias=False) if depth_reference != "none" else None
+        self.fc4_pose = nn.Linear(self.pose_units, 1024, bias=True)  # carries fc4's bias
         self.fc5 = nn.Linear(1024, 1024) if arch != "gqcnn" else None
         self.fc6 = nn.Linear(1024, 2)
         self.register_buffer("image_mean", torch.zeros(()))
         self.register_buffer("image_std", torch.ones(()))
         self.register_buffer("pose_mean", torch.zeros(n_pose))
         self.register_buffer("pose_std", torch.ones(n_pose))
+        self.register_buffer("reference_mean", torch.zeros(()))
+        self.register_buffer("reference_std", torch.ones(()))
 
     def set_normalization(self, norm: Normalization) -> None:
         if tuple(norm.pose_columns) != tuple(self.pose_columns):
             raise ValueError(f"normalisation is for pose columns {norm.pose_columns}, net uses {self.pose_columns}")
+        if norm.image_reference != self.depth_reference:
+            raise ValueError(
+                f"normalisation has image_reference {norm.image_reference!r}, net {self.depth_reference!r}"
+            )
+        self.reference_mean.fill_(norm.reference_mean)
+        self.reference_std.fill_(norm.reference_std)
         self.image_mean.fill_(norm.image_mean)
         self.image_std.fill_(norm.image_std)
         self.pose_mean.copy_(torch.tensor(norm.pose_mean))
@@ -94,10 +143,18 @@ class GraspQualityNet(nn.Module):
             pose_columns=self.pose_columns,
             pose_mean=self.pose_mean.tolist(),
             pose_std=self.pose_std.tolist(),
+            image_reference=self.depth_reference,
+            reference_mean=float(self.reference_mean),
+            reference_std=float(self.reference_std),
         )
 
     def encode(self, depth: torch.Tensor) -> torch.Tensor:
         """Raw depth crops (n, 1, S, S) in metres -> image term of fc4 (n, 1024)."""
+        ref = None
+        if self.fc4_ref is not None:
+            lo = (depth.shape[-1] - REFERENCE_PIXELS) // 2
+            ref = depth[:, :, lo : lo + REFERENCE_PIXELS, lo : lo + REFERENCE_PIXELS].mean(dim=(2, 3), keepdim=True)
+            depth = depth - ref
         x = (depth - self.image_mean) / self.image_std
         x = F.relu(self.conv1_1(x))
         x = self.lrn(F.relu(self.conv1_2(x)))
@@ -106,11 +163,16 @@ class GraspQualityNet(nn.Module):
         x = self.lrn2(F.relu(self.conv2_2(x)))
         x = F.max_pool2d(x, 2)
         x = F.relu(self.fc3(torch.flatten(x, 1)))
-        return self.fc4_image(x)
+        if ref is None:
+            return self.fc4_image(x)
+        return self.fc4_image(x) + self.fc4_ref((ref.flatten(1) - self.reference_mean) / self.reference_std)
 
     def head_logits(self, image_term: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
         """Image term (1 or k, 1024) and raw poses (k, n_pose) -> logits (k, 2)."""
-        p = F.relu(self.pc1((poses - self.pose_mean) / self.pose_std))
+        p = (poses - self.pose_mean) / self.pose_std
+        if self.pose_features == "rotation":
+            p = torch.cat([p[:, : self.n_other], rotation_entries(poses[:, self.n_other :])], dim=1)
+        p = F.relu(self.pc1(p))
         x = F.relu(image_term + self.fc4_pose(p))
         if self.fc5 is not None:
             x = F.relu(self.fc5(x))

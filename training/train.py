@@ -43,6 +43,7 @@ from .checkpoint import (
     RunPaths,
     conv2_channels,
     load_checkpoint,
+    net_options,
     resolve_run,
     save_checkpoint,
 )
@@ -319,6 +320,9 @@ def _init_checkpoint(cfg: TrainConfig, data: CropDataset) -> dict:
         raise CheckpointError(
             f"init checkpoint {path} has {init_channels} conv2 channels; this run trains {cfg.conv2_channels}"
         )
+    for k, v in net_options(ckpt).items():
+        if v != getattr(cfg, k):
+            raise CheckpointError(f"init checkpoint {path} has {k} {v!r}; this run trains {getattr(cfg, k)!r}")
     if ckpt["geometry"] != data.geometry.to_dict():
         raise CheckpointError(
             f"init checkpoint {path} was trained on crops {ckpt['geometry']}; {data.path} has {data.geometry.to_dict()}"
@@ -350,7 +354,14 @@ def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit
     """(net with its normalisation, optimizer, Normalization, TrainState, last validation, best validation):
     fresh (normalisation from the training split) or as saved in ``ckpt``."""
     torch.manual_seed(cfg.seed)
-    net = GraspQualityNet(cfg.arch, image_size=data.geometry.out, conv2_channels=cfg.conv2_channels)
+    net = GraspQualityNet(
+        cfg.arch,
+        image_size=data.geometry.out,
+        conv2_channels=cfg.conv2_channels,
+        depth_reference=cfg.depth_reference,
+        pose_features=cfg.pose_features,
+        pose_units=cfg.pose_units,
+    )
     opt = _optimizer(cfg, net)
     best_val: dict = {}
     if ckpt is None and cfg.init:  # fine-tuning: the init's weights and its input normalisation, a fresh optimizer
@@ -359,7 +370,9 @@ def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit
         norm = Normalization.from_dict(init["normalization"])
         state, last_val = TrainState(), {}
     elif ckpt is None:
-        norm = Normalization.from_data(train_split.arrays["images"], train_split.poses(cfg.arch), net.pose_columns)
+        norm = Normalization.from_data(
+            train_split.arrays["images"], train_split.poses(cfg.arch), net.pose_columns, cfg.depth_reference
+        )
         state, last_val = TrainState(), {}
     else:
         net.load_state_dict(ckpt["model"])

@@ -127,3 +127,32 @@ def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
         ],
         -2,
     )
+
+
+#: what a network's pose stream (pc1) reads: "raw" the pose columns as they are (the paper's);
+#: "rotation" the non-quaternion columns, then the 9 row-major entries of the grasp's rotation
+#: matrix (computed inside the graphs, so clients still send (u, v, z, q))
+POSE_FEATURES: tuple[str, ...] = ("raw", "rotation")
+
+
+def pose_stream_features(poses: np.ndarray, pose_columns, kind: str = "raw") -> np.ndarray:
+    """(k, n_features) the pose stream's input for (k, len(pose_columns)) raw pose rows (before
+    the pose normalisation, which touches only the non-quaternion columns). Needs the quaternion
+    as the last 4 columns for "rotation"."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if kind == "raw":
+        return poses
+    if kind != "rotation":
+        raise ValueError(f"pose features must be one of {POSE_FEATURES}, got {kind!r}")
+    if tuple(pose_columns[-4:]) != ("qw", "qx", "qy", "qz"):
+        raise ValueError(f"pose features 'rotation' need (qw, qx, qy, qz) last; columns are {tuple(pose_columns)}")
+    w, x, y, z = poses[:, -4:].T  # unit quaternions as given (the graphs do not re-normalise)
+    rot = np.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        axis=1,
+    )  # fmt: skip
+    return np.concatenate([poses[:, :-4], rot], axis=1)
