@@ -10,6 +10,10 @@
 #   VERSION=v1 ./scripts/make_default_model.sh       # model v1 (bundled until 2026-11-30)
 #   SAMPLES=2600000 ./scripts/make_default_model.sh  # the bundled v2 (its 2.6 M-sample schedule)
 #   SAMPLES=6000000 ./scripts/make_default_model.sh  # a longer schedule (a finished run resumes into it)
+#   NET_OPTS="--pose-features rotation --pose-units 64" RUN=runs/fast-v2-rot ./scripts/make_default_model.sh
+#                                                    # the next v2: the pose stream reads the rotation matrix
+#                                                    # (+5 points in a probe, docs/training.md); the bundled
+#                                                    # model has the paper's pose stream (NET_OPTS empty)
 #
 # On this project's 2-core CPU: v1's dataset takes ~17 min and training ~2.5 h per 1M samples;
 # v2's dataset ~3 h (1,040 objects, 8 physics trials per grasp and pose), training ~50 min per 1M samples
@@ -28,6 +32,8 @@ main() {
   OUT=${OUT:-models/fast-vgqcnn-default}
   TRAIN_OPTS=(--arch fast_vgqcnn --resume --seed 0 --optimizer adamw --base-lr 0.0002 --decay-every-samples 100000
     --class-balance loss_weights --val-every-samples 25000 --val-max-samples 6000 --checkpoint-every-samples 20000)
+  read -r -a NET <<< "${NET_OPTS:-}"  # network options (training train --help), e.g. --pose-features rotation
+  TRAIN_OPTS+=("${NET[@]}")
   EXPORT_OPTS=(--int8-head)
   EVAL_OPTS=()
   if [ "$VERSION" = v2 ]; then
