@@ -120,10 +120,6 @@ class Normalization:
             x = x - window_reference(x).reshape((-1,) + (1,) * (x.ndim - 1))
         return (x - self.image_mean) / self.image_std
 
-    def normalize_reference(self, x: np.ndarray) -> np.ndarray:
-        """(n,) normalised reference depths of (n, ..., S, S) crops (``image_reference`` "centre")."""
-        return (window_reference(x) - self.reference_mean) / self.reference_std
-
     def normalize_pose(self, p: np.ndarray) -> np.ndarray:
         return (np.asarray(p, dtype=np.float32) - np.asarray(self.pose_mean, np.float32)) / np.asarray(
             self.pose_std, np.float32

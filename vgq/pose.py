@@ -138,7 +138,8 @@ POSE_FEATURES: tuple[str, ...] = ("raw", "rotation")
 def pose_stream_features(poses: np.ndarray, pose_columns, kind: str = "raw") -> np.ndarray:
     """(k, n_features) the pose stream's input for (k, len(pose_columns)) raw pose rows (before
     the pose normalisation, which touches only the non-quaternion columns). Needs the quaternion
-    as the last 4 columns for "rotation"."""
+    as the last 4 columns for "rotation"; for unit quaternions (the service sends canonical ones)
+    equal to what the graphs compute (``training.networks.rotation_entries``, no re-normalising)."""
     poses = np.asarray(poses, dtype=np.float64)
     if kind == "raw":
         return poses
@@ -146,13 +147,5 @@ def pose_stream_features(poses: np.ndarray, pose_columns, kind: str = "raw") -> 
         raise ValueError(f"pose features must be one of {POSE_FEATURES}, got {kind!r}")
     if tuple(pose_columns[-4:]) != ("qw", "qx", "qy", "qz"):
         raise ValueError(f"pose features 'rotation' need (qw, qx, qy, qz) last; columns are {tuple(pose_columns)}")
-    w, x, y, z = poses[:, -4:].T  # unit quaternions as given (the graphs do not re-normalise)
-    rot = np.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        axis=1,
-    )  # fmt: skip
+    rot = matrix_from_quaternion(poses[:, -4:]).reshape(len(poses), 9)  # = the graphs' for unit q
     return np.concatenate([poses[:, :-4], rot], axis=1)
