@@ -85,6 +85,20 @@ def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, Mod
     return net, card
 
 
+def init_checkpoint_from_model_dir(model_dir: str | Path) -> dict:
+    """An exported Fast-VGQ-CNN folder as the parts of a checkpoint a fine-tune reads (``training
+    train --init``): arch, the training config's network options, weights, normalisation, crop
+    geometry. The weights are the graphs' (fc6 as ``[[0], [w]]``: the same probabilities)."""
+    net, card = fast_net_from_model_dir(model_dir)
+    return {
+        "arch": card.architecture,
+        "config": dict(card.training.get("config", {}), conv2_channels=net.conv2_channels),
+        "model": net.state_dict(),
+        "normalization": card.normalization.to_dict(),
+        "geometry": card.geometry.to_dict(),
+    }
+
+
 def vgq_net_like(fast: GraspQualityNet) -> GraspQualityNet:
     """A VGQ-CNN (pose z, q; one centred crop per grasp) with ``fast``'s image stream, fc4,
     fc5 and fc6, and pc1 restricted to the (z, q) columns. Same cost as the paper's VGQ-CNN;

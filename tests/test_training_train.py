@@ -3,6 +3,7 @@ from the saved step, evaluation writes metrics and heat maps, load_trained meta.
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from training.predict import predict_split
 from training.synthetic import make_synthetic_crop_dataset
 from training.train import train
 
+ROOT = Path(__file__).resolve().parent.parent
 FAST = dict(batch_size=16, base_lr=0.1, seed=0, log_every_steps=2)
 
 
@@ -274,3 +276,33 @@ def test_relative_depth_and_rotation_features_round_trip(data, tmp_path):
     assert net.normalization().image_reference == "centre"
     with pytest.raises(CheckpointError, match="depth_reference 'centre'; this run trains 'none'"):
         train(TrainConfig(samples=16, **FAST, init=str(tmp_path / "r")), data, tmp_path / "x", progress=False)
+
+
+def test_fine_tune_into_a_new_pose_stream_keeps_the_image_path(run):
+    from training.checkpoint import load_init_weights
+
+    init = load_checkpoint(run / "checkpoints" / "best.pt")
+    net = GraspQualityNet("fast_vgqcnn", pose_features="rotation", pose_units=32).eval()
+    assert load_init_weights(net, init["model"]) == ["fc4_pose.weight", "pc1.bias", "pc1.weight"]
+    old, _ = load_trained(run / "checkpoints" / "best.pt")
+    net.set_normalization(old.normalization())
+    x = torch.randn(1, 1, 32, 32)
+    poses = torch.tensor([[0.0, 0.0, 0.6, 1, 0, 0, 0], [9.0, -4.0, 0.9, 0, 0, 1, 0]])
+    with torch.no_grad():
+        assert torch.equal(net.encode(x), old.encode(x))  # the image term is the init's
+        p = net.head(net.encode(x), poses)
+    assert p[0] == p[1]  # fc4's pose weights start at zero: no pose term until it learns one
+    with pytest.raises(CheckpointError, match="conv1_1.weight"):
+        load_init_weights(net, {**init["model"], "conv1_1.weight": torch.zeros(3)})
+
+
+def test_fine_tune_from_the_bundled_model_folder(data, tmp_path):
+    model = ROOT / "models" / "fast-vgqcnn-default"
+    opts = dict(pose_features="rotation", pose_units=32)
+    train(TrainConfig(samples=16, **FAST, **opts, init=str(model)), data, tmp_path / "f", progress=False)
+    net, meta = load_trained(tmp_path / "f" / "checkpoints" / "last.pt")
+    from export.from_onnx import fast_net_from_model_dir
+
+    bundled, card = fast_net_from_model_dir(model)
+    assert (net.pose_features, net.pose_units) == ("rotation", 32) and meta["training"]["config"]["init"] == str(model)
+    assert net.normalization().to_dict() == card.normalization.to_dict()  # the bundle's input normalisation

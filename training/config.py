@@ -90,7 +90,9 @@ class TrainConfig:
         default="",
         metadata={
             "help": "fine-tune: a fresh run starts from this checkpoint's weights and input normalisation "
-            "(a checkpoint file or a run folder: its best.pt); '' = random weights"
+            "(a checkpoint file, a run folder: its best.pt, or an exported model folder such as "
+            "models/fast-vgqcnn-default); with another --pose-features / --pose-units the pose stream starts "
+            "fresh; '' = random weights"
         },
     )
     mix_data: str = field(

@@ -39,10 +39,12 @@ from . import metrics as M
 from .checkpoint import (
     CHECKPOINT_FORMAT,
     CHECKPOINT_VERSION,
+    POSE_STREAM_OPTIONS,
     CheckpointError,
     RunPaths,
     conv2_channels,
     load_checkpoint,
+    load_init_weights,
     net_options,
     resolve_run,
     save_checkpoint,
@@ -311,8 +313,14 @@ def _open_mix(
 
 def _init_checkpoint(cfg: TrainConfig, data: CropDataset) -> dict:
     """The checkpoint ``cfg.init`` names (a file, or a run folder's best.pt), checked to suit the run."""
-    path, _ = resolve_run(Path(cfg.init))
-    ckpt = load_checkpoint(path)
+    path = Path(cfg.init)
+    if (path / "model_card.json").is_file():  # an exported model folder (e.g. the bundled model)
+        from export.from_onnx import init_checkpoint_from_model_dir
+
+        ckpt = init_checkpoint_from_model_dir(path)
+    else:
+        path, _ = resolve_run(path)
+        ckpt = load_checkpoint(path)
     if ckpt["arch"] != cfg.arch:
         raise CheckpointError(f"init checkpoint {path} is a {ckpt['arch']} network; this run trains {cfg.arch}")
     init_channels = conv2_channels(ckpt)
@@ -321,7 +329,7 @@ def _init_checkpoint(cfg: TrainConfig, data: CropDataset) -> dict:
             f"init checkpoint {path} has {init_channels} conv2 channels; this run trains {cfg.conv2_channels}"
         )
     for k, v in net_options(ckpt).items():
-        if v != getattr(cfg, k):
+        if v != getattr(cfg, k) and k not in POSE_STREAM_OPTIONS:  # a new pose stream starts fresh
             raise CheckpointError(f"init checkpoint {path} has {k} {v!r}; this run trains {getattr(cfg, k)!r}")
     if ckpt["geometry"] != data.geometry.to_dict():
         raise CheckpointError(
@@ -366,7 +374,11 @@ def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit
     best_val: dict = {}
     if ckpt is None and cfg.init:  # fine-tuning: the init's weights and its input normalisation, a fresh optimizer
         init = _init_checkpoint(cfg, data)
-        net.load_state_dict(init["model"])
+        fresh = load_init_weights(net, init["model"])
+        if fresh:
+            print(
+                f"fine-tune from {cfg.init}: {', '.join(fresh)} start fresh (the pose stream changed)", file=sys.stderr
+            )
         norm = Normalization.from_dict(init["normalization"])
         state, last_val = TrainState(), {}
     elif ckpt is None:
