@@ -3,6 +3,8 @@ by the datagen pipeline (load_object, stable poses, antipodal sampler)."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -328,3 +330,17 @@ def test_objects_made_from_an_older_family_definition_are_regenerated_on_resume(
     logs.clear()
     run_generate(out, cfg, workers=1, progress=False, log=logs.append)
     assert not any("regenerating" in s for s in logs)
+
+
+def test_generate_resume_keeps_the_run_order_of_its_families(tmp_path):
+    """The manifest's config is written with sorted keys; ``--resume`` must still number the objects
+    as the run did (torus before box here), not refuse the run as "a different object list"."""
+    from datagen.__main__ import main
+
+    out = tmp_path / "run"
+    args = ["generate", "--out", str(out), "--objects", "0", "--families", "torus=1,box=1", "--cameras", "1"]
+    tiny = ["--set", "max_stable_poses=1", "--set", "antipodal.num_samples=8", "--set", "quality.num_samples=3"]
+    assert main([*args, *tiny, "--workers", "1", "--quiet"]) == 0
+    assert main(["generate", "--out", str(out), "--resume", "--workers", "1", "--quiet"]) == 0
+    names = [o["name"] for o in json.loads((out / "manifest.json").read_text())["objects"]]
+    assert names == ["torus_0000", "box_0000"]
