@@ -168,7 +168,15 @@ def cmd_sample(args) -> int:
         import dataclasses
 
         params = dataclasses.replace(params, seed=args.seed)
-    sample_dataset(args.inp, args.out, params, plot=not args.no_plots)
+    split_over = None
+    if args.split_over:
+        try:
+            split_over = json.loads(Path(args.split_over).read_text())
+        except (OSError, ValueError) as e:
+            raise CliError(f"--split-over {args.split_over}: not a readable JSON file ({e})") from e
+        if not isinstance(split_over, list) or not all(isinstance(i, int) and i >= 0 for i in split_over):
+            raise CliError(f"--split-over {args.split_over}: must hold a JSON list of object ids (integers >= 0)")
+    sample_dataset(args.inp, args.out, params, plot=not args.no_plots, split_over=split_over)
     return 0
 
 
@@ -474,6 +482,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output folder (sampled vgq-grasps dataset + plots/)")
     s.add_argument("--seed", type=_count("--seed"), help="sampling and split seed (default: sampling.seed)")
     s.add_argument("--no-plots", action="store_true")
+    s.add_argument(
+        "--split-over",
+        metavar="FILE",
+        help="JSON list of object ids to draw the object-wise split over instead of the dataset's own "
+        "(a partly generated run split as its whole run is)",
+    )
     _add_config_args(s)
     s.set_defaults(func=cmd_sample)
 

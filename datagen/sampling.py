@@ -252,10 +252,13 @@ def sample_dataset(
     params: SamplingParams = SamplingParams(),
     log: Callable[[str], None] = print,
     plot: bool = True,
+    split_over: list[int] | None = None,
 ) -> dict:
     """Sample the grasp dataset ``src`` into ``out`` (a ``vgq-grasps`` dataset holding only the
     kept grasps and their images, with ``split`` per object and ``sampling`` statistics in its
-    manifest). Returns the statistics."""
+    manifest). Returns the statistics. ``split_over``: the object ids the object-wise split
+    is drawn over, in place of the dataset's own (e.g. a partly generated run of a recipe split
+    as the whole run was); it must hold every object that has grasps."""
     out = Path(out)
     if (out / storage.MANIFEST).exists():
         raise FileExistsError(f"output folder {out} already holds a dataset; choose a new --out")
@@ -294,7 +297,8 @@ def sample_dataset(
             "by_beta": _beta_table(t.label[m], t.beta[m], params.beta_bin, n_beta),
         }
     families = {int(o["object_id"]): o.get("family") for o in ds.manifest["objects"]}
-    population = split_population(ds.manifest, ds.object_ids)
+    manifest = ds.manifest if split_over is None else {**ds.manifest, "split_object_ids": list(split_over)}
+    population = split_population(manifest, ds.object_ids)
     split = split_by_family(population, families, params.split_fractions, params.seed, params.holdout_families)
     split = {i: split[i] for i in ds.object_ids}  # a derived dataset's objects, split as in its source
     stats["families"] = split_table(split, families)
@@ -331,6 +335,7 @@ def sample_dataset(
         source_dataset=str(Path(src).resolve()),
         **({"intrinsics": src_m["intrinsics"]} if src_m.get("intrinsics") else {}),
         sampling={"params": asdict(params), "stats": stats},
+        **({} if split_over is None else {"split_object_ids": sorted(int(i) for i in population)}),
     )
     for o, so in zip(m["objects"], src_m["objects"]):
         if so.get("status") != "done":

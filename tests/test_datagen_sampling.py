@@ -108,3 +108,28 @@ def test_dataset_without_positives_is_refused(tmp_path):
     with pytest.raises(ValueError, match="no positive grasp"):
         sample_dataset(tmp_path / "raw", tmp_path / "s", log=lambda s: None)
     assert not (tmp_path / "s").exists()
+
+
+def test_split_over_a_larger_population_splits_as_the_whole_run(tmp_path):
+    """A partly generated run (objects 0-4 of 12) sampled with --split-over the whole run's ids puts
+    each object where the whole run's split puts it, and records the population."""
+    fake_dataset(tmp_path / "raw", n_objects=5, n_grasps=120)
+    whole = list(range(12))
+    sample_dataset(tmp_path / "raw", tmp_path / "s", SamplingParams(seed=4), log=lambda s: None, split_over=whole)
+    m = storage.open_dataset(tmp_path / "s").manifest
+    want = split_objects(whole, SamplingParams().split_fractions, 4)
+    assert {i: s for s, ids in m["splits"].items() for i in ids} == {i: want[i] for i in range(5)}
+    assert m["split_object_ids"] == whole
+    with pytest.raises(ValueError, match="not among the manifest's split_object_ids"):
+        sample_dataset(tmp_path / "raw", tmp_path / "t", log=lambda s: None, split_over=[0, 1])
+
+
+def test_split_over_file_must_list_object_ids(tmp_path, capsys):
+    from datagen.__main__ import main
+
+    fake_dataset(tmp_path / "raw", n_objects=2, n_grasps=20)
+    (tmp_path / "ids.json").write_text('{"ids": [0, 1]}')
+    args = ["sample", "--in", str(tmp_path / "raw"), "--out", str(tmp_path / "s"), "--split-over"]
+    assert main([*args, str(tmp_path / "ids.json")]) == 2
+    assert "must hold a JSON list of object ids" in capsys.readouterr().err
+    assert main([*args, str(tmp_path / "missing.json")]) == 2
