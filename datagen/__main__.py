@@ -7,7 +7,6 @@ and one line naming the problem; an interrupted ``generate`` resumes when rerun.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -128,11 +127,8 @@ def cmd_generate(args) -> int:
         if not (out / MANIFEST).is_file():
             raise CliError(f"--resume: no {MANIFEST} in {out}")
         from .config import recorded_config
-        from .pipeline import families_in_object_order
 
-        recorded = read_manifest(out, GRASP_FORMAT)
-        base = DatagenConfig.from_dict(recorded_config(recorded["config"]))
-        base = dataclasses.replace(base, families=families_in_object_order(base.families, recorded["objects"]))
+        base = DatagenConfig.from_dict(recorded_config(read_manifest(out, GRASP_FORMAT)["config"]))
     cfg = _build_config(
         args,
         base,

@@ -272,15 +272,6 @@ def source_family(source: str | None) -> str:
     return SOURCE_FAMILY if source is None else (Path(source).stem or SOURCE_FAMILY)
 
 
-def families_in_object_order(families: dict[str, int], objects: list[dict]) -> dict[str, int]:
-    """``families`` reordered as a run's manifest lists its objects (the order that numbers them).
-    The manifest's config is written with sorted keys, so a config read back from it has its
-    families in alphabetical order, which would renumber the objects of ``box=1,torus=1`` vs
-    ``torus=1,box=1``; ``generate --resume`` restores the run's order with this."""
-    seen = list(dict.fromkeys(o.get("family") for o in objects if o.get("family") in families))
-    return {f: families[f] for f in seen + [f for f in families if f not in seen]}
-
-
 def run_sources(config: DatagenConfig) -> list:
     """The run's objects in id order: the first ``num_objects`` of the mesh source (none
     when 0), then ``families`` (procedural objects, ``<family>_<index>``)."""

@@ -333,14 +333,19 @@ def test_objects_made_from_an_older_family_definition_are_regenerated_on_resume(
 
 
 def test_generate_resume_keeps_the_run_order_of_its_families(tmp_path):
-    """The manifest's config is written with sorted keys; ``--resume`` must still number the objects
-    as the run did (torus before box here), not refuse the run as "a different object list"."""
+    """The manifest's config is written with sorted keys; ``--resume`` (and anything that rebuilds a
+    run's objects from a recorded config, e.g. planning.bench) must number the objects as the run
+    did, not refuse the run as "a different object list". Families are numbered in the registry's
+    order, whatever order they are given in."""
     from datagen.__main__ import main
 
     out = tmp_path / "run"
     args = ["generate", "--out", str(out), "--objects", "0", "--families", "torus=1,box=1", "--cameras", "1"]
     tiny = ["--set", "max_stable_poses=1", "--set", "antipodal.num_samples=8", "--set", "quality.num_samples=3"]
     assert main([*args, *tiny, "--workers", "1", "--quiet"]) == 0
+    run_names = [o["name"] for o in json.loads((out / "manifest.json").read_text())["objects"]]
     assert main(["generate", "--out", str(out), "--resume", "--workers", "1", "--quiet"]) == 0
     names = [o["name"] for o in json.loads((out / "manifest.json").read_text())["objects"]]
-    assert names == ["torus_0000", "box_0000"]
+    assert names == run_names == ["box_0000", "torus_0000"]
+    alphabetical = {"torus": 1, "metaball": 1, "box": 1}
+    assert [s.name for s in family_sources(alphabetical)] == ["box_0000", "torus_0000", "metaball_0000"]

@@ -144,13 +144,16 @@ def make_object(family: str, index: int, seed: int = 0) -> FamilyObject:
 
 def family_sources(counts: dict[str, int], seed: int = 0) -> list:
     """:class:`datagen.mesh.MeshSource` entries for ``{family: count}`` objects of run
-    ``seed`` (indices 0..count-1 per family, in the order of ``counts``). Their meshes are
-    built when loaded; nothing is written to disk."""
+    ``seed`` (indices 0..count-1 per family, the families in the order of :data:`FAMILIES`
+    whatever the order of ``counts``: a config read back from a manifest, written with sorted
+    keys, numbers its objects as the run did). Their meshes are built when loaded; nothing is
+    written to disk."""
     from ..mesh import MeshSource
 
-    out = []
-    for family, n in counts.items():
+    for family in counts:
         get_family(family)
+    out = []
+    for family, n in sorted(counts.items(), key=lambda fn: list(FAMILIES).index(fn[0])):
         if isinstance(n, bool) or not isinstance(n, int) or n < 0:
             raise FamilyError(f"object count of family {family!r} must be an integer >= 0, got {n!r}")
         for i in range(n):
