@@ -115,6 +115,23 @@ def test_pool_options_parse():
     assert not parse_args(["pool"]).retest and parse_args(["pool"]).split == "test"
 
 
+def test_ceiling_judges_each_scenes_best_true_mesh_grasp_again_on_fresh_trials(tmp_path, capsys):
+    import json
+
+    from planning.bench import main, parse_args
+
+    out = tmp_path / "ceiling.json"
+    assert main(["ceiling", "--scenes", "1", "--trials", "2", "--threads", "1", "--json", str(out)]) == 0
+    s = json.loads(out.read_text())
+    assert s["trials"] == 2 and s["scenes"] == 1 and s["scenes_with_grasps"] == 1  # seed 0's object has free grasps
+    assert 0 <= s["best_positive_again"] <= 1 and 0 <= s["best_held_again"] <= 1
+    assert set(s["by_first_count"]) <= {"1/2", "2/2"}  # grasps that held in at least half, by count
+    assert "fresh trials" in capsys.readouterr().out
+    assert parse_args(["ceiling"]).trials is None and parse_args(["pool"]).trials == 5  # ceiling: the recipe's
+    with pytest.raises(SystemExit):
+        parse_args(["ceiling", "--trials", "0"])
+
+
 def test_trials_judge_the_plan_the_score_alone_and_a_random_pick_on_the_same_scenes(tmp_path, capsys):
     import json
 
