@@ -121,8 +121,10 @@ def test_ceiling_judges_each_scenes_best_true_mesh_grasp_again_on_fresh_trials(t
     from planning.bench import main, parse_args
 
     out = tmp_path / "ceiling.json"
-    assert main(["ceiling", "--scenes", "1", "--trials", "2", "--threads", "1", "--json", str(out)]) == 0
+    args = ["ceiling", "--scenes", "1", "--trials", "2", "--confirm", "3", "--threads", "1", "--json", str(out)]
+    assert main(args) == 0
     s = json.loads(out.read_text())
+    assert len(s["confirmed_again"]) == 1 and 0 <= s["confirmed_estimate"][0] <= 1  # the pick by 8 trials
     assert s["trials"] == 2 and s["scenes"] == 1 and s["scenes_with_grasps"] == 1  # seed 0's object has free grasps
     assert 0 <= s["best_positive_again"] <= 1 and 0 <= s["best_held_again"] <= 1
     assert set(s["by_first_count"]) <= {"1/2", "2/2"}  # grasps that held in at least half, by count
