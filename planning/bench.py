@@ -626,7 +626,8 @@ def run_ceiling(args) -> dict:
             line = f"best held {trials * s1[best]:.0f}/{trials}, again {trials * best_again[-1]:.0f}/{trials}"
             if args.confirm:
                 confirmed.append((float(est.max()), float(s2[list(keep).index(pick)])))
-                line += f"; confirmed pick {100 * confirmed[-1][0]:.0f}% of {4 * trials}, again {trials * confirmed[-1][1]:.0f}/{trials}"
+                e, r = confirmed[-1]
+                line += f"; confirmed pick {100 * e:.0f}% of {4 * trials}, again {trials * r:.0f}/{trials}"
             print(f"scene {i:2d} object {oid:4d}: {len(T_wg)} free grasps, {line}", flush=True)
     f = np.concatenate(first) if first else np.zeros(0)
     a = np.concatenate(again) if again else np.zeros(0)
@@ -649,9 +650,9 @@ def run_ceiling(args) -> dict:
         "best_held_again": float(ba.mean()) if scenes else None,
         "by_first_count": by_count,
         # --confirm K: the pick by 4x the trials among the first judging's top K, and its fresh judging
-        "confirmed_estimate": [a for a, _ in confirmed],
-        "confirmed_again": [b for _, b in confirmed],
-        "confirmed_positive_again": float(np.mean([b > threshold for _, b in confirmed])) if confirmed else None,
+        "confirmed_estimate": [e for e, _ in confirmed],
+        "confirmed_again": [r for _, r in confirmed],
+        "confirmed_positive_again": float(np.mean([r > threshold for _, r in confirmed])) if confirmed else None,
         "grasps_per_scene": antipodal.num_samples,
         "approaches_per_grasp": args.approaches,
         "free_grasps": free_per_scene,
