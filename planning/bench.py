@@ -591,20 +591,19 @@ def run_ceiling(args) -> dict:
     _, config, _, picked, rng = _setup(args)
     trials, threshold = args.trials or config.label.trials, config.label.success_threshold
     antipodal = dataclasses.replace(config.antipodal, num_samples=args.grasps or config.antipodal.num_samples)
-    first, again, best_first, best_again, free_per_scene, confirmed, scenes = [], [], [], [], [], [], 0
+    first, again, best_first, best_again, confirmed, rows = [], [], [], [], [], []
     with GraspSimulator(config.gripper, config.physics) as sim:
         for i, oid in enumerate(picked):
-            scene = make_scene(int(oid), config, rng)
-            g = sample_antipodal_grasps(scene.mesh_object, antipodal, rng)
+            scene = make_scene(int(oid), config, rng)  # the shared rng draws only scenes: those of `trials`
+            rng_g = np.random.default_rng(8000 + i)
+            g = sample_antipodal_grasps(scene.mesh_object, antipodal, rng_g)
             if len(g) == 0:
                 continue
             T0 = np.repeat(grasp_frames(g.centers, g.axes, 0.0), args.approaches, axis=0)  # omega drawn per copy
-            T_wg = align_to_table(scene.T_world_object @ T0, rng)[0]
+            T_wg = align_to_table(scene.T_world_object @ T0, rng_g)[0]
             T_wg = T_wg[~np.asarray(CollisionChecker(scene.mesh_world, config.gripper).collides(T_wg), bool)]
             if len(T_wg) == 0:
                 continue
-            scenes += 1
-            free_per_scene.append(len(T_wg))
             sim.set_object(scene.mesh_object, scene.T_world_object)
             s1 = run_trials(sim, T_wg, trials, np.random.default_rng(5000 + i)).success_rate
             keep = np.flatnonzero(s1 >= 0.5)
@@ -623,11 +622,15 @@ def run_ceiling(args) -> dict:
             again.append(s2)
             best_first.append(float(s1[best]))
             best_again.append(float(s2[list(keep).index(best)]))
+            row = {"scene": i, "object_id": int(oid), "free_grasps": len(T_wg)}
+            row.update(best_first=best_first[-1], best_again=best_again[-1])
             line = f"best held {trials * s1[best]:.0f}/{trials}, again {trials * best_again[-1]:.0f}/{trials}"
             if args.confirm:
                 confirmed.append((float(est.max()), float(s2[list(keep).index(pick)])))
                 e, r = confirmed[-1]
+                row.update(confirmed_estimate=e, confirmed_again=r)
                 line += f"; confirmed pick {100 * e:.0f}% of {4 * trials}, again {trials * r:.0f}/{trials}"
+            rows.append(row)
             print(f"scene {i:2d} object {oid:4d}: {len(T_wg)} free grasps, {line}", flush=True)
     f = np.concatenate(first) if first else np.zeros(0)
     a = np.concatenate(again) if again else np.zeros(0)
@@ -640,7 +643,7 @@ def run_ceiling(args) -> dict:
                 "held_again": float(a[m].mean()),
                 "positive_again": float((a[m] > threshold).mean()),
             }
-    bf, ba = np.asarray(best_first), np.asarray(best_again)
+    bf, ba, scenes = np.asarray(best_first), np.asarray(best_again), len(rows)
     out = {
         "scenes": len(picked),
         "scenes_with_grasps": scenes,
@@ -655,8 +658,8 @@ def run_ceiling(args) -> dict:
         "confirmed_positive_again": float(np.mean([r > threshold for _, r in confirmed])) if confirmed else None,
         "grasps_per_scene": antipodal.num_samples,
         "approaches_per_grasp": args.approaches,
-        "free_grasps": free_per_scene,
         "seed": args.seed,
+        "rows": rows,  # per scene with grasps: its index among the drawn scenes (those of `trials`, same seed)
     }
     if scenes:
         print(
