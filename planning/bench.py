@@ -648,6 +648,7 @@ def run_ceiling(args) -> dict:
         "scenes": len(picked),
         "scenes_with_grasps": scenes,
         "trials": trials,
+        "success_threshold": threshold,
         "best_positive_first": float((bf > threshold).mean()) if scenes else None,
         "best_positive_again": float((ba > threshold).mean()) if scenes else None,
         "best_held_again": float(ba.mean()) if scenes else None,
@@ -678,6 +679,31 @@ def run_ceiling(args) -> dict:
             f"  held {k} first: {v['grasps']:4d} grasps, held {100 * v['held_again']:.1f}% of fresh trials, "
             f"positive again {100 * v['positive_again']:.1f}%"
         )
+    if args.plan and confirmed:
+        out["plan_by_ceiling"] = plan_by_ceiling(json.loads(Path(args.plan).read_text()), out)
+        for k, v in out["plan_by_ceiling"].items():
+            print(
+                f"  the plan's top-1 in scenes whose best true-mesh grasp {k}: {v['positive']}/{v['scenes']} positive"
+            )
+    return out
+
+
+#: scene classes by the confirmed pick's success over its 4x trials (``ceiling --confirm``)
+CEILING_CLASSES = {"holds >= 75%": (0.75, 1.01), "holds 50-75%": (0.5, 0.75), "holds < 50%": (0.0, 0.5)}
+
+
+def plan_by_ceiling(trials_out: dict, ceiling_out: dict) -> dict:
+    """The plan's top-1 verdicts (a ``trials`` run's rows: same seed and scene count, so the same
+    scenes) per class of scene by how well its best true-mesh grasp holds (``ceiling --confirm``);
+    scenes the planner found no grasp in count as negatives."""
+    if trials_out.get("seed") != ceiling_out["seed"] or trials_out.get("scenes") != ceiling_out["scenes"]:
+        raise ValueError("--plan must be a `trials` run with the same --seed and --scenes (the same scenes)")
+    plan_rows = trials_out["rows"]
+    out = {}
+    for name, (lo, hi) in CEILING_CLASSES.items():
+        idx = [r["scene"] for r in ceiling_out["rows"] if lo <= r.get("confirmed_estimate", -1) < hi]
+        pos = [plan_rows[i]["top1_held"] > ceiling_out["success_threshold"] * plan_rows[i]["trials"] for i in idx]
+        out[name] = {"scenes": len(idx), "positive": int(sum(pos))}
     return out
 
 
@@ -864,6 +890,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     ap.add_argument(
         "--approaches", type=int, default=1, help="ceiling: approaches (random omega) per grasp (datagen: 1)"
+    )
+    ap.add_argument(
+        "--plan",
+        metavar="FILE",
+        help="ceiling --confirm: a `trials --json` run of the same --seed and --scenes, whose top-1 verdicts are "
+        "counted per class of scene by its best true-mesh grasp",
     )
     ap.add_argument(
         "--confirm",

@@ -134,6 +134,19 @@ def test_ceiling_judges_each_scenes_best_true_mesh_grasp_again_on_fresh_trials(t
         parse_args(["ceiling", "--trials", "0"])
 
 
+def test_the_plans_verdicts_are_counted_per_class_of_scene_by_its_best_true_mesh_grasp():
+    from planning.bench import plan_by_ceiling
+
+    ceiling = {"seed": 0, "scenes": 3, "success_threshold": 0.5, "rows": []}
+    ceiling["rows"] = [{"scene": 0, "confirmed_estimate": 0.9}, {"scene": 2, "confirmed_estimate": 0.3}]
+    plan = {"seed": 0, "scenes": 3, "rows": [{"top1_held": 5, "trials": 8}, {}, {"top1_held": 0, "trials": 0}]}
+    out = plan_by_ceiling(plan, ceiling)
+    assert out["holds >= 75%"] == {"scenes": 1, "positive": 1} and out["holds < 50%"] == {"scenes": 1, "positive": 0}
+    assert out["holds 50-75%"] == {"scenes": 0, "positive": 0}
+    with pytest.raises(ValueError, match="same --seed"):
+        plan_by_ceiling({**plan, "seed": 1}, ceiling)
+
+
 def test_trials_judge_the_plan_the_score_alone_and_a_random_pick_on_the_same_scenes(tmp_path, capsys):
     import json
 
