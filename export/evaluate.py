@@ -39,6 +39,7 @@ def crop_rows(data: str | Path, split: str, max_n: int, seed: int = 0) -> dict[s
         "poses": np.asarray(arrays["poses"][idx], np.float32),
         "labels": np.asarray(arrays["labels"][idx]).astype(bool),
         "family": np.array([fam.get(int(i), "") for i in oid]),
+        "object_id": oid,
     }
 
 
@@ -54,13 +55,25 @@ def raw_scores(model_dir: str | Path, images: np.ndarray, poses: np.ndarray, bat
     return out
 
 
-def evaluate(labels: np.ndarray, scores: np.ndarray, family: np.ndarray) -> dict:
-    """Overall and per-family metrics at raw score 0.5, with ROC AUC."""
+def evaluate(labels: np.ndarray, scores: np.ndarray, family: np.ndarray, object_id: np.ndarray | None = None) -> dict:
+    """Overall and per-family metrics at raw score 0.5, with ROC AUC; with ``object_id`` also the
+    balanced accuracy's 95% interval over the objects (``balanced_accuracy_ci95``)."""
     by_family = M.metrics_by_group(labels[family != ""], scores[family != ""], family[family != ""])
-    return {
+    out = {
         "all": M.nan_to_none(M.binary_metrics(labels, scores)),
         "by_family": {f: M.nan_to_none(m) for f, m in by_family.items()},
     }
+    if object_id is not None:
+        out["all"]["balanced_accuracy_ci95"] = M.object_bootstrap_ci(labels, scores, object_id)
+        for f, m in out["by_family"].items():
+            rows = family == f
+            m["balanced_accuracy_ci95"] = M.object_bootstrap_ci(labels[rows], scores[rows], object_id[rows])
+    return out
+
+
+def _ci(m: dict) -> str:
+    lo, hi = m.get("balanced_accuracy_ci95") or (None, None)
+    return "n/a" if lo is None else f"{100 * lo:.1f}-{100 * hi:.1f}"
 
 
 def main(argv=None) -> dict:
@@ -86,14 +99,18 @@ def main(argv=None) -> dict:
         sys.exit(2)
     results = {}
     for d in a.model_dir:
-        r = evaluate(rows["labels"], raw_scores(d, rows["images"], rows["poses"]), rows["family"])
+        r = evaluate(rows["labels"], raw_scores(d, rows["images"], rows["poses"]), rows["family"], rows["object_id"])
         results[d] = r
         print(f"\n{d} on {a.data} {a.split} ({len(rows['labels'])} crops):")
-        print("| family | n | balanced accuracy | TPR | TNR | AUC |\n|---|---:|---:|---:|---:|---:|")
+        print(
+            "| family | n | balanced accuracy | 95% interval (objects resampled) | TPR | TNR | AUC |\n"
+            "|---|---:|---:|---:|---:|---:|---:|"
+        )
         for name, m in [("all", r["all"]), *r["by_family"].items()]:
             auc = "n/a" if m["auc"] is None else f"{m['auc']:.3f}"
             print(
-                f"| {name} | {m['n']} | {M.pct(m['balanced_accuracy'])} | {M.pct(m['tpr'])} | {M.pct(m['tnr'])} | {auc} |"
+                f"| {name} | {m['n']} | {M.pct(m['balanced_accuracy'])} | {_ci(m)} | {M.pct(m['tpr'])} | "
+                f"{M.pct(m['tnr'])} | {auc} |"
             )
     if a.json:
         from vgq import atomic

@@ -53,6 +53,24 @@ def test_single_class_gives_nan_not_error():
     assert math.isnan(m["tpr"]) and m["tnr"] == 1.0 and math.isnan(m["balanced_accuracy"])
 
 
+def test_object_bootstrap_resamples_objects_not_rows():
+    # 4 objects of 500 rows: two scored perfectly, two always wrong. By rows the estimate looks
+    # exact (2,000 rows); by objects it is 4 draws, and the interval spans most of [0, 1].
+    obj = np.repeat(np.arange(4), 500)
+    y = np.tile(np.r_[np.ones(250), np.zeros(250)], 4)
+    p = np.where(obj < 2, y, 1 - y)
+    lo, hi = M.object_bootstrap_ci(y, p, obj)
+    assert M.binary_metrics(y, p)["balanced_accuracy"] == 0.5
+    assert lo <= 0.25 and hi >= 0.75
+
+
+def test_object_bootstrap_is_tight_when_every_object_agrees_and_undefined_for_one_object():
+    obj = np.repeat(np.arange(20), 10)
+    y = np.tile(np.r_[np.ones(5), np.zeros(5)], 20)
+    assert M.object_bootstrap_ci(y, y, obj) == [1.0, 1.0]
+    assert M.object_bootstrap_ci(y[:10], y[:10], obj[:10]) == [None, None]
+
+
 def test_grid_cells_of_005m_and_5deg():
     labels = np.array([1, 1, 0, 0, 1])
     p = np.array([0.9, 0.1, 0.2, 0.8, 0.7])

@@ -196,6 +196,9 @@ def test_evaluate_reports_each_family_under_its_own_name(data, run, tmp_path):
     y = np.asarray(open_crop_dataset(fam_data).split("test").arrays["labels"])
     assert fams["mug"]["objects"] == np.unique(ids[ids % 2 == 1]).size
     assert fams["mug"]["objects_with_positive"] == np.unique(ids[(ids % 2 == 1) & (y == 1)]).size
+    for m in (*fams.values(), rec["overall"]):  # over the objects: a family's few test objects are few draws
+        lo, hi = m["balanced_accuracy_ci95"]
+        assert lo is None or 0 <= lo <= hi <= 1
     assert (run / "eval" / "metrics_test_families.json").is_file()
     _, meta = load_trained(run)  # the card's metrics carry it under its name, beside the plain test split
     assert meta["metrics"]["test_families"]["by_family"]["mug"]["n"] == fams["mug"]["n"]

@@ -65,8 +65,10 @@ def evaluate(
     p, loss = predict_split(net, sp, rows, batch_size=batch_size, progress=progress, desc=f"evaluate {split}")
     dt = time.time() - t0
     labels = np.asarray(sp.labels[rows])
+    object_id = np.asarray(sp.arrays["object_id"][rows])
     overall = M.nan_to_none({**M.binary_metrics(labels, p, threshold), "loss": loss})
-    by_family, held_out = _family_metrics(data, np.asarray(sp.arrays["object_id"][rows]), labels, p, threshold)
+    overall["balanced_accuracy_ci95"] = M.object_bootstrap_ci(labels, p, object_id, threshold)
+    by_family, held_out = _family_metrics(data, object_id, labels, p, threshold)
     cam_d, cam_phi = np.asarray(sp.arrays["camera_d"][rows]), np.asarray(sp.arrays["camera_phi"][rows])
     # the camera grid's margins: does accuracy fall with distance (fewer pixels per object) or elevation?
     by_distance = {k: M.nan_to_none(m) for k, m in M.metrics_by_bin(labels, p, cam_d, 0.1, threshold).items()}
@@ -140,6 +142,7 @@ def _family_metrics(data, object_id: np.ndarray, labels: np.ndarray, p: np.ndarr
         rows = row_family == f
         m["objects"] = int(np.unique(object_id[rows]).size)
         m["objects_with_positive"] = int(np.unique(object_id[rows & (labels == 1)]).size)
+        m["balanced_accuracy_ci95"] = M.object_bootstrap_ci(labels[rows], p[rows], object_id[rows], threshold)
     holdout = sorted(((data.manifest.get("source") or {}).get("sampling") or {}).get("holdout_families") or [])
     if not holdout:
         return by_family, None

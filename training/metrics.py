@@ -67,6 +67,39 @@ def metrics_by_group(
     return {str(k): binary_metrics(y[g == k], p[g == k], threshold) for k in np.unique(g)}
 
 
+def object_bootstrap_ci(
+    labels: np.ndarray,
+    p_success: np.ndarray,
+    objects: np.ndarray,
+    threshold: float = 0.5,
+    n_boot: int = 2000,
+    level: float = 0.95,
+    seed: int = 0,
+) -> list[float | None]:
+    """Percentile interval ``[lo, hi]`` of balanced accuracy when the objects are resampled with
+    replacement (the rows of one object move together: a split draws objects, not grasps, so a
+    family's 4 test objects are 4 draws however many rows they have). ``[None, None]`` with fewer
+    than 2 objects or when most resamples lack a class."""
+    y = np.asarray(labels).astype(bool).ravel()
+    pred = np.asarray(p_success).ravel() > threshold
+    ids, inv = np.unique(np.asarray(objects).ravel(), return_inverse=True)
+    if len(ids) < 2:
+        return [None, None]
+    k = len(ids)
+    counts = np.stack(  # (objects, 4): tp, fn, tn, fp
+        [np.bincount(inv, weights=w, minlength=k) for w in (y & pred, y & ~pred, ~y & ~pred, ~y & pred)], axis=1
+    )
+    draws = np.random.default_rng(seed).multinomial(k, np.full(k, 1.0 / k), size=n_boot)  # (n_boot, objects)
+    tp, fn, tn, fp = (draws @ counts).T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        bacc = (tp / (tp + fn) + tn / (tn + fp)) / 2
+    bacc = bacc[np.isfinite(bacc)]
+    if len(bacc) < n_boot / 2:
+        return [None, None]
+    lo, hi = np.percentile(bacc, [50 * (1 - level), 50 * (1 + level)])
+    return [float(lo), float(hi)]
+
+
 def metrics_by_bin(
     labels: np.ndarray, p_success: np.ndarray, values: np.ndarray, step: float, threshold: float = 0.5
 ) -> dict[str, dict[str, float]]:
