@@ -32,6 +32,9 @@ class LabelParams:
     kind: str = "physics"  # the label study (docs/labels.md): the only label near AUC 0.8 vs physical success
     trials: int = 8  # physics: noisy trials per grasp and pose (study: AUC 0.78 with 4, 0.82 with 8, 0.83 with 12)
     success_threshold: float = 0.5  # physics: positive when the success rate exceeds this
+    # physics: stop a grasp's trials once its label is decided (5 held or 4 dropped of 8): the same
+    # labels from ~30% fewer trials, but ``quality`` is then the rate over the trials run, not of all
+    early_stop: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -40,6 +43,8 @@ class LabelParams:
             raise ValueError(f"label.trials must be >= 1, got {self.trials}")
         if not (0.0 <= self.success_threshold < 1.0):
             raise ValueError(f"label.success_threshold must be in [0, 1), got {self.success_threshold}")
+        if not isinstance(self.early_stop, bool):
+            raise ValueError(f"label.early_stop must be true or false, got {self.early_stop!r}")
 
     @property
     def needs_physics(self) -> bool:

@@ -141,10 +141,18 @@ class TrialResults:
     first_touch: np.ndarray  # (n, k, 2, 3)
     mu: np.ndarray  # (n, k)
     seconds: float = 0.0
+    ran: np.ndarray | None = None  # (n, k) bool: the trials run (None: all; see run_trials' stop_above)
 
     @property
     def success_rate(self) -> np.ndarray:
-        return self.held.mean(axis=1)
+        """Share of the trials run that held (n,)."""
+        if self.ran is None:
+            return self.held.mean(axis=1)
+        return self.held.sum(axis=1) / np.maximum(self.ran.sum(axis=1), 1)
+
+    @property
+    def trials_run(self) -> int:
+        return int(self.held.size if self.ran is None else self.ran.sum())
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -633,10 +641,15 @@ def run_trials(
     T_world_grasp: np.ndarray,
     num_trials: int,
     rng: np.random.Generator | None,
+    stop_above: float | None = None,
 ) -> TrialResults:
     """``num_trials`` trials of each grasp (n, 4, 4) on the simulator's current object. With
     ``rng`` None the trials are noise-free (mu = friction_coef), else execution noise is drawn
-    from ``rng``."""
+    from ``rng`` (all of it first, so a trial's noise does not depend on which trials ran).
+
+    ``stop_above``: a grasp's trials stop once whether its success rate over all ``num_trials``
+    exceeds this is decided (e.g. 0.5 of 8: at 5 held or 4 dropped); ``success_rate`` is then over
+    the trials run and lies on the same side of the threshold as the full rate would."""
     T = np.asarray(T_world_grasp, dtype=np.float64).reshape(-1, 4, 4)
     n, k = len(T), int(num_trials)
     prm = sim.params
@@ -649,6 +662,8 @@ def run_trials(
     firm = np.zeros((n, k), bool)
     reason = np.zeros((n, k), np.int8)
     touch = np.full((n, k, 2, 3), np.nan)
+    ran = np.zeros((n, k), bool)
+    need = k + 1 if stop_above is None else int(np.floor(stop_above * k)) + 1  # held trials for "above"
     t0 = time.perf_counter()
     for i in range(n):
         for j in range(k):
@@ -657,7 +672,11 @@ def run_trials(
             firm[i, j] = f
             reason[i, j] = REASONS.index(r)
             touch[i, j] = tt
-    return TrialResults(held, firm, reason, touch, mu, time.perf_counter() - t0)
+            ran[i, j] = True
+            n_held = int(held[i, : j + 1].sum())
+            if stop_above is not None and (n_held >= need or (j + 1 - n_held) > k - need):
+                break
+    return TrialResults(held, firm, reason, touch, mu, time.perf_counter() - t0, None if stop_above is None else ran)
 
 
 _SIMS: dict = {}

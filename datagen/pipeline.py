@@ -193,12 +193,15 @@ def _physics_success(
     sim = _worker_sim(config.gripper, config.physics, None)
     t0 = time.perf_counter()
     pose = sim.set_object(mesh, T_wo)
+    n_trials = 0
     if len(idx):
-        res = run_trials(sim, T_wg[idx], config.label.trials, np.random.default_rng(ss))
+        stop = config.label.success_threshold if config.label.early_stop else None
+        res = run_trials(sim, T_wg[idx], config.label.trials, np.random.default_rng(ss), stop_above=stop)
         out[idx] = res.success_rate
+        n_trials = res.trials_run
     info.setdefault("physics", []).append(
         {
-            "trials": int(len(idx) * config.label.trials),
+            "trials": n_trials,
             "seconds": time.perf_counter() - t0,
             "pose_stable": bool(pose["stable"]),
             "pose_drift_m": float(pose["drift_m"]),

@@ -66,6 +66,38 @@ def test_noisy_trials_are_seeded_and_mostly_hold_a_good_grasp(box_sim):
     assert a.held.shape == (1, 4) and a.held.mean() >= 0.5
 
 
+def test_trials_stop_once_the_label_is_decided_on_the_same_side_as_all_trials(box_sim):
+    sim, _ = box_sim
+    T = np.stack([grasp_frame([0, 0, 0.03], EX, -EZ), grasp_frame([0.2, 0, 0.03], EX, -EZ)])  # holds; air
+    full = run_trials(sim, T, 8, np.random.default_rng(5))
+    early = run_trials(sim, T, 8, np.random.default_rng(5), stop_above=0.5)
+    np.testing.assert_array_equal(early.success_rate > 0.5, full.success_rate > 0.5)
+    assert early.ran[1].sum() == 4 and not early.held[1].any()  # 4 drops decide "not above 4 of 8"
+    assert early.trials_run < full.trials_run == 16 and early.ran[0].sum() <= 8
+    np.testing.assert_array_equal(early.mu, full.mu)  # the noise is drawn before any trial runs
+
+
+def test_early_stop_labels_a_dataset_as_all_trials_do_with_fewer_trials(tmp_path):
+    from datagen.config import DatagenConfig
+    from datagen.mesh import MeshSource
+    from datagen.pipeline import generate_object_with_info
+
+    box = trimesh.creation.box(extents=[0.035, 0.04, 0.10])
+    path = tmp_path / "box.stl"
+    box.export(str(path))
+    over = {"cameras_per_pose": 1, "max_stable_poses": 1, "antipodal.num_samples": 12, "quality.num_samples": 3}
+    over.update({"label.kind": "physics", "label.trials": 4, "mesh.rescale": "keep"})
+    runs = {}
+    for stop in (False, True):
+        cfg = DatagenConfig().with_overrides({**over, "label.early_stop": stop})
+        _, g, info = generate_object_with_info(MeshSource("box", path), cfg, 0, 1)
+        runs[stop] = (g["quality"] > cfg.label_threshold, info["physics"][0]["trials"])
+    np.testing.assert_array_equal(runs[True][0], runs[False][0])
+    assert 0 < runs[True][1] < runs[False][1]
+    with pytest.raises(ValueError, match="early_stop"):
+        DatagenConfig().with_overrides({"label.early_stop": "yes"})
+
+
 def test_execution_noise_has_the_configured_spread():
     p = PhysicsParams()
     dt, R, mu = execution_noise(400, 5, p, np.random.default_rng(0))

@@ -271,6 +271,21 @@ def test_success_rate_target_refuses_crops_without_trials(data, tmp_path):
         train(TrainConfig(samples=16, target="success_rate", **FAST), data, tmp_path / "r", progress=False)
 
 
+def test_success_rate_target_refuses_crops_labelled_with_early_stop(tmp_path):
+    from training.synthetic import synthetic_split, write_crop_dataset
+    from vgq.crop import CropGeometry
+
+    rng, geom = np.random.default_rng(3), CropGeometry(96, 32, 36.0)
+    splits = {
+        s: synthetic_split(32, rng, geom, "image", 0.5, first_object=10 * i) for i, s in enumerate(("train", "val"))
+    }
+    label = {"kind": "physics", "trials": 8, "success_threshold": 0.5, "early_stop": True}
+    source = {"kind": "synthetic", "config": {"label": label}}
+    write_crop_dataset(tmp_path / "d", splits, geom, "fast_vgqcnn", label_threshold=0.5, source=source)
+    with pytest.raises(DatasetError, match="early_stop"):
+        train(TrainConfig(samples=16, target="success_rate", **FAST), tmp_path / "d", tmp_path / "r", progress=False)
+
+
 def test_relative_depth_and_rotation_features_round_trip(data, tmp_path):
     opts = dict(depth_reference="centre", pose_features="rotation", pose_units=32)
     train(TrainConfig(samples=32, val_every_samples=32, **opts, **FAST), data, tmp_path / "r", progress=False)

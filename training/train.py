@@ -263,11 +263,17 @@ def _check_resume_dataset(saved: dict, data: CropDataset, mix: CropDataset | Non
 
 def _check_target(cfg: TrainConfig, data: CropDataset) -> None:
     """``target`` "success_rate" needs crops whose ``quality`` is the physics label's success rate."""
-    kind = data.label_info().get("kind")
+    info = data.label_info()
+    kind = info.get("kind")
     if cfg.target == "success_rate" and kind != "physics":
         raise DatasetError(
             f"target 'success_rate' needs crops with the physics label (trial success rates); {data.path} "
             f"carries the {kind!r} label"
+        )
+    if cfg.target == "success_rate" and info.get("early_stop"):
+        raise DatasetError(
+            f"target 'success_rate' needs every grasp's full trials; {data.path} was labelled with "
+            "label.early_stop (its rates are over the trials run until the label was decided)"
         )
 
 
