@@ -680,12 +680,28 @@ def run_ceiling(args) -> dict:
             f"positive again {100 * v['positive_again']:.1f}%"
         )
     if args.plan and confirmed:
-        out["plan_by_ceiling"] = plan_by_ceiling(json.loads(Path(args.plan).read_text()), out)
+        out["plan_by_ceiling"] = plan_by_ceiling(args.plan_run, out)
         for k, v in out["plan_by_ceiling"].items():
             print(
                 f"  the plan's top-1 in scenes whose best true-mesh grasp {k}: {v['positive']}/{v['scenes']} positive"
             )
     return out
+
+
+def read_trials_run(path: str, seed: int, scenes: int) -> dict:
+    """A ``trials --json`` run of ``seed`` and ``scenes`` (so the same scenes), or ValueError saying why not."""
+    try:
+        run = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"not a readable `trials --json` file ({e})") from None
+    rows = run.get("rows") if isinstance(run, dict) else None
+    if not isinstance(rows, list) or any(not isinstance(r, dict) or "top1_held" not in r for r in rows):
+        raise ValueError("not a `trials --json` file (no per-scene top-1 rows)")
+    if run.get("seed") != seed or run.get("scenes") != scenes or len(rows) != scenes:
+        raise ValueError(
+            f"must be a `trials` run with the same --seed ({seed}) and --scenes ({scenes}): the same scenes"
+        )
+    return run
 
 
 #: scene classes by the confirmed pick's success over its 4x trials (``ceiling --confirm``)
@@ -969,6 +985,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         args.scenes = {"timing": 4, "precision": 20, "trials": 10, "ranker": 20, "pool": 60, "ceiling": 30}[args.what]
     if args.confirm < 0:
         ap.error(f"--confirm must be >= 0, got {args.confirm}")
+    args.plan_run = None
+    if args.plan:  # read before the run: a bad file must not cost the benchmark's minutes
+        try:
+            args.plan_run = read_trials_run(args.plan, args.seed, args.scenes)
+        except ValueError as e:
+            ap.error(f"--plan {args.plan}: {e}")
     if args.approaches < 1 or (args.grasps is not None and args.grasps < 1):
         ap.error(f"--approaches and --grasps must be >= 1, got {args.approaches} and {args.grasps}")
     if args.trials is not None and args.trials < 1:

@@ -132,6 +132,11 @@ def test_ceiling_judges_each_scenes_best_true_mesh_grasp_again_on_fresh_trials(t
     assert parse_args(["ceiling"]).trials is None and parse_args(["pool"]).trials == 5  # ceiling: the recipe's
     with pytest.raises(SystemExit):
         parse_args(["ceiling", "--trials", "0"])
+    other = tmp_path / "trials_seed1.json"
+    other.write_text(json.dumps({"seed": 1, "scenes": 1, "rows": [{"top1_held": 0, "trials": 2}]}))
+    for bad in (str(other), str(tmp_path / "missing.json"), str(out)):  # another run's scenes; no file; not `trials`
+        with pytest.raises(SystemExit):
+            parse_args(["ceiling", "--scenes", "1", "--plan", bad])
 
 
 def test_the_plans_verdicts_are_counted_per_class_of_scene_by_its_best_true_mesh_grasp():
