@@ -666,6 +666,7 @@ def run_trials(
     need = k + 1 if stop_above is None else int(np.floor(stop_above * k)) + 1  # held trials for "above"
     t0 = time.perf_counter()
     for i in range(n):
+        n_held = 0
         for j in range(k):
             r, f, tt = sim.trial(Tp[i, j], mu[i, j])
             held[i, j] = r == "held"
@@ -673,8 +674,8 @@ def run_trials(
             reason[i, j] = REASONS.index(r)
             touch[i, j] = tt
             ran[i, j] = True
-            n_held = int(held[i, : j + 1].sum())
-            if stop_above is not None and (n_held >= need or (j + 1 - n_held) > k - need):
+            n_held += int(held[i, j])
+            if stop_above is not None and (n_held >= need or j + 1 - n_held > k - need):  # decided
                 break
     return TrialResults(held, firm, reason, touch, mu, time.perf_counter() - t0, None if stop_above is None else ran)
 

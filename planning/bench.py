@@ -591,7 +591,7 @@ def run_ceiling(args) -> dict:
     _, config, _, picked, rng = _setup(args)
     trials, threshold = args.trials or config.label.trials, config.label.success_threshold
     antipodal = dataclasses.replace(config.antipodal, num_samples=args.grasps or config.antipodal.num_samples)
-    first, again, best_first, best_again, confirmed, rows = [], [], [], [], [], []
+    first, again, rows = [], [], []  # per scene: the re-judged grasps' two rates; the scene's row
     with GraspSimulator(config.gripper, config.physics) as sim:
         for i, oid in enumerate(picked):
             scene = make_scene(int(oid), config, rng)  # the shared rng draws only scenes: those of `trials`
@@ -620,16 +620,16 @@ def run_ceiling(args) -> dict:
             s2 = run_trials(sim, T_wg[keep], trials, np.random.default_rng(6000 + i)).success_rate
             first.append(s1[keep])
             again.append(s2)
-            best_first.append(float(s1[best]))
-            best_again.append(float(s2[list(keep).index(best)]))
+            at = {int(gi): j for j, gi in enumerate(keep)}  # grasp index -> its place in the re-judged ones
             row = {"scene": i, "object_id": int(oid), "free_grasps": len(T_wg)}
-            row.update(best_first=best_first[-1], best_again=best_again[-1])
-            line = f"best held {trials * s1[best]:.0f}/{trials}, again {trials * best_again[-1]:.0f}/{trials}"
+            row.update(best_first=float(s1[best]), best_again=float(s2[at[best]]))
+            line = f"best held {trials * s1[best]:.0f}/{trials}, again {trials * row['best_again']:.0f}/{trials}"
             if args.confirm:
-                confirmed.append((float(est.max()), float(s2[list(keep).index(pick)])))
-                e, r = confirmed[-1]
-                row.update(confirmed_estimate=e, confirmed_again=r)
-                line += f"; confirmed pick {100 * e:.0f}% of {4 * trials}, again {trials * r:.0f}/{trials}"
+                row.update(confirmed_estimate=float(est.max()), confirmed_again=float(s2[at[pick]]))
+                line += (
+                    f"; confirmed pick {100 * row['confirmed_estimate']:.0f}% of {4 * trials}, "
+                    f"again {trials * row['confirmed_again']:.0f}/{trials}"
+                )
             rows.append(row)
             print(f"scene {i:2d} object {oid:4d}: {len(T_wg)} free grasps, {line}", flush=True)
     f = np.concatenate(first) if first else np.zeros(0)
@@ -643,7 +643,9 @@ def run_ceiling(args) -> dict:
                 "held_again": float(a[m].mean()),
                 "positive_again": float((a[m] > threshold).mean()),
             }
-    bf, ba, scenes = np.asarray(best_first), np.asarray(best_again), len(rows)
+    scenes = len(rows)
+    bf, ba = np.array([r["best_first"] for r in rows]), np.array([r["best_again"] for r in rows])
+    confirmed = [(r["confirmed_estimate"], r["confirmed_again"]) for r in rows if "confirmed_estimate" in r]
     out = {
         "scenes": len(picked),
         "scenes_with_grasps": scenes,
