@@ -76,6 +76,32 @@ def heldout_object_ids(path: str = HELDOUT, split: str = "test") -> list[int]:
     return sorted(int(i) for i in np.unique(np.load(p)["object_id"]))
 
 
+UNSEEN = "unseen"  # --heldout: objects outside the model's dataset
+
+
+def unseen_config(config):
+    """The recipe's config with objects outside its dataset: every mesh of its source (the recipe
+    takes the first ``num_objects``) and each family's objects drawn with another seed."""
+    return dataclasses.replace(config, num_objects=None, seed=config.seed + 1)
+
+
+def scene_objects(heldout: str, split: str, config) -> tuple[list[int], object]:
+    """(object ids, the config whose sources they index) of a benchmark's scenes: ``heldout``
+    a held-out crop file or dataset folder (:func:`heldout_object_ids`, the recipe's objects),
+    or ``unseen``: objects the model's dataset never held (:func:`unseen_config`; the mesh
+    source's meshes past the recipe's and newly drawn family objects), to fit the planner's
+    ranker and calibration on objects as new to the model as a user's."""
+    if heldout != UNSEEN:
+        return heldout_object_ids(heldout, split), config
+    cfg = unseen_config(config)
+    sources = _recipe_sources(json.dumps(cfg.to_dict(), sort_keys=True))
+    n = config.num_objects
+    ids = [i for i, src in enumerate(sources) if src.family is not None or (n is not None and i >= n)]
+    if not ids:
+        raise ValueError("the recipe's config leaves no object outside its dataset")
+    return ids, cfg
+
+
 @dataclasses.dataclass
 class BenchScene:
     object_id: int
@@ -195,6 +221,7 @@ def plan_params(args) -> PlanParams:
         min_width=args.min_width,
         table_margin=args.table_margin,
         max_approach_tilt=np.radians(args.max_approach_tilt),
+        top_view_cell=args.top_view_cell if args.top_view_cell > 0 else None,
     )
 
 
@@ -202,9 +229,8 @@ def _setup(args):
     """(model, recipe config, planner params, held-out object ids drawn, rng) of a benchmark run:
     the same seed draws the same objects for every benchmark."""
     model = _model(args.model, args.threads)
-    config = _recipe_config(model)
     params = plan_params(args)
-    ids = heldout_object_ids(args.heldout, args.split)
+    ids, config = scene_objects(args.heldout, args.split, _recipe_config(model))
     rng = np.random.default_rng(args.seed)
     picked = rng.choice(ids, size=args.scenes, replace=args.scenes > len(ids))
     return model, config, params, picked, rng
@@ -737,9 +763,8 @@ def run_ranker(args) -> dict:
     from .policy import WindowScorer, grasp_rows, nms
 
     model = _model(args.model, args.threads)
-    config = _recipe_config(model)
     params = PlanParams()
-    ids = heldout_object_ids(args.heldout)
+    ids, config = scene_objects(args.heldout, "test", _recipe_config(model))
     rng = np.random.default_rng(args.seed)
     picked = rng.choice(ids, size=args.scenes, replace=args.scenes > len(ids))
     rows = []
@@ -803,9 +828,8 @@ def run_timing(args) -> dict:
     from .policy import plan
 
     model = _model(args.model, args.threads)
-    config = _recipe_config(model)
+    ids, config = scene_objects(args.heldout, "test", _recipe_config(model))
     rng = np.random.default_rng(args.seed)
-    ids = heldout_object_ids(args.heldout)
     scenes = []
     while len(scenes) < args.scenes:
         s = make_scene(int(rng.choice(ids)), config, rng)
@@ -884,7 +908,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="python -m planning.bench", description=__doc__.splitlines()[0])
     ap.add_argument("what", choices=["timing", "precision", "trials", "ranker", "pool", "ceiling"])
     ap.add_argument("--model", default=MODEL_DIR)
-    ap.add_argument("--heldout", default=HELDOUT)
+    ap.add_argument(
+        "--heldout",
+        default=HELDOUT,
+        help="the scenes' objects: a held-out crop file, a crop dataset folder (with --split), or "
+        "'unseen': objects outside the model's dataset (to fit the ranker and p_hold on)",
+    )
     ap.add_argument(
         "--split",
         choices=["train", "val", "test"],
@@ -955,6 +984,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         type=float,
         default=float(np.degrees(PlanParams().max_approach_tilt)),
         help="approaches within this angle (deg) of straight down",
+    )
+    ap.add_argument(
+        "--top-view-cell",
+        type=float,
+        default=PlanParams().top_view_cell,
+        help="grid (m) of the objects' tops seen from above that ends a contact line's hidden part; <= 0: off",
     )
     ap.add_argument(
         "--oracle",

@@ -8,7 +8,11 @@
    inward normal; the opposite contact where that line leaves the object. The depth image
    is read as a height field seen from the camera: space behind an observed surface is
    taken as solid, space in front of it as free, so the line leaves the object where it
-   first comes out in front of the observed surface. A line that meets the table first,
+   first comes out in front of the observed surface. With a table, the objects are also
+   read as seen from above (:class:`TopView`): a point is solid only if it lies below the
+   highest object point observed over its spot on the table, so the hidden far side of an
+   object ends where its observed top ends (not at the end of its shadow), and the inside
+   of an open container, whose top is its floor or was not seen, is free. A line that meets the table first,
    never leaves within the jaw opening, or leaves through a visible surface whose normal is
    outside the friction cone is dropped. Contact 1 may lie on a surface the camera does not
    see; then only contact 0's cone is checked (the network judges the rest).
@@ -49,11 +53,73 @@ class Scene:
     objects: np.ndarray
     labels: np.ndarray | None = None
     centres: np.ndarray | None = None
+    top: TopView | None = None
 
     @property
     def up(self) -> np.ndarray:
         """Unit 'up' (3,): the table normal, or towards the camera along the principal ray."""
         return self.table.normal if self.table is not None else np.array([0.0, 0.0, -1.0])
+
+
+@dataclass
+class TopView:
+    """The objects seen from straight above the table: in each ``cell`` x ``cell`` square of a
+    grid on the table plane, the height (metres above the table) of the highest object point
+    observed over it, gaps of a cell closed (a grey closing); -inf where none was (camera frame: the
+    grid's corner ``origin`` (3,) on the table, its unit axes ``e1``, ``e2`` (3,)).
+    ``outward`` (n1, n2, 2): the unit outward normal (e1, e2 components) of the seen
+    footprint's outline, from the gradient of the smoothed footprint (0 inside it)."""
+
+    origin: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+    cell: float
+    heights: np.ndarray
+    outward: np.ndarray
+
+    @classmethod
+    def build(cls, points: np.ndarray, table: TablePlane, cell: float) -> TopView | None:
+        """The top view of object points (n, 3); None without points."""
+        if len(points) == 0:
+            return None
+        n = table.normal.astype(np.float64)
+        e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        p = np.asarray(points, dtype=np.float64)
+        h = p @ n + table.offset
+        a, b = p @ e1, p @ e2
+        a0, b0 = a.min() - 2 * cell, b.min() - 2 * cell
+        i = ((a - a0) / cell).astype(np.int64)
+        j = ((b - b0) / cell).astype(np.int64)
+        heights = np.full((i.max() + 3, j.max() + 3), -np.inf)
+        np.maximum.at(heights, (i, j), h)
+        heights = ndimage.grey_closing(heights, size=3, mode="constant", cval=-np.inf)
+        smooth = ndimage.gaussian_filter(np.isfinite(heights).astype(np.float64), 1.0, mode="constant")
+        g = -np.stack(np.gradient(smooth), axis=-1)
+        outward = g / np.maximum(np.linalg.norm(g, axis=-1, keepdims=True), 1e-9)
+        origin = a0 * e1 + b0 * e2 - table.offset * n
+        return cls(origin, e1, e2, float(cell), heights, outward)
+
+    def _cells(self, x: np.ndarray):
+        d = np.asarray(x, dtype=np.float64) - self.origin
+        i = np.floor(d @ self.e1 / self.cell).astype(np.int64)
+        j = np.floor(d @ self.e2 / self.cell).astype(np.int64)
+        n1, n2 = self.heights.shape
+        on = (i >= 0) & (i < n1) & (j >= 0) & (j < n2)
+        return np.clip(i, 0, n1 - 1), np.clip(j, 0, n2 - 1), on
+
+    def top(self, x: np.ndarray) -> np.ndarray:
+        """Heights (...,) of the top view over points x (..., 3); -inf off the grid."""
+        i, j, on = self._cells(x)
+        return np.where(on, self.heights[i, j], -np.inf)
+
+    def outline_normal(self, x: np.ndarray) -> np.ndarray:
+        """The footprint outline's unit outward normal (..., 3) (in the table plane, camera
+        frame) at points x (..., 3); 0 off the grid and far inside or outside the footprint."""
+        i, j, on = self._cells(x)
+        o = np.where(on[..., None], self.outward[i, j], 0.0)
+        return o[..., :1] * self.e1 + o[..., 1:] * self.e2
 
 
 @dataclass
@@ -111,7 +177,10 @@ def analyse_scene(
         n, ok = estimate_normals(pts[r0:r1, c0:c1], valid[r0:r1, c0:c1], params.normal_window)
         normals[r0:r1, c0:c1], nok[r0:r1, c0:c1] = n, ok
     labels, centres = object_centres(pts, objects, table) if params.max_centre_offset is not None else (None, None)
-    return Scene(np.asarray(depth, np.float64), intr, pts, valid, normals, nok, table, objects, labels, centres)
+    top = None
+    if table is not None and params.top_view_cell is not None:
+        top = TopView.build(pts[objects], table, params.top_view_cell)
+    return Scene(np.asarray(depth, np.float64), intr, pts, valid, normals, nok, table, objects, labels, centres, top)
 
 
 def object_centres(points: np.ndarray, objects: np.ndarray, table: TablePlane | None) -> tuple[np.ndarray, np.ndarray]:
@@ -186,6 +255,8 @@ def sample_contact_pairs(scene: Scene, n_seeds: int, params: PlanParams, rng: np
     d = scene.depth[rows, cols]
     tol = params.surface_tolerance
     occupied = inside & (d > 0) & (x[..., 2] >= d - tol)
+    if scene.top is not None:  # and under the top seen from above (scene.table is set)
+        occupied &= scene.table.height(x) <= scene.top.top(x) + tol
     below = (
         (scene.table.height(x) < -params.table_inlier_distance) if scene.table is not None else np.zeros_like(occupied)
     )
@@ -195,6 +266,9 @@ def sample_contact_pairs(scene: Scene, n_seeds: int, params: PlanParams, rng: np
     idx = np.arange(len(ts))[None, :]
     hits_table = (below & (idx <= e[:, None])).any(axis=1)
     width = ts[e] - 0.5 * step
+    if scene.top is not None:  # where the line left the seen footprint (no surface the camera sees)
+        at_exit = x[np.arange(len(e)), e]
+        left_top = scene.table.height(at_exit) > scene.top.top(at_exit) + tol
     ok = occupied[:, 0] & has_exit & ~hits_table & (width >= params.min_width) & (width <= params.max_opening)
     p2 = p1 + width[:, None] * axes
     # contact 1 on a visible surface: its normal must hold the push (friction cone)
@@ -204,6 +278,11 @@ def sample_contact_pairs(scene: Scene, n_seeds: int, params: PlanParams, rng: np
     cos_lim = np.cos(np.arctan(mu))
     n2 = scene.normals[r2, c2]
     ok &= ~seen | (np.einsum("ij,ij->i", n2, axes) >= cos_lim)
+    if scene.top is not None:
+        # a hidden contact where the line left the footprint: read its wall as upright, whose
+        # normal is the outline's; the axis must lie in that normal's friction cone
+        wall = scene.top.outline_normal(p2)
+        ok &= seen | ~left_top | (np.einsum("ij,ij->i", wall, axes) >= cos_lim)
     if params.max_centre_offset is not None and scene.centres is not None:
         # the jaw line should pass near the object's centre of mass (torques it must resist)
         lab = scene.labels.reshape(-1)[cand[seeds]]

@@ -44,6 +44,9 @@ class PlanParams:
     than ``object_height`` above it are the objects. The gripper's lowest point (a fingertip)
     stays ``table_margin`` above the estimated table: a robot's execution error (datagen's
     trials: 5 mm per axis) must not put the fingers into it.
+    ``top_view_cell``: the grid (metres) on which the objects' tops are read as seen from above
+    to end a contact line's hidden part (:class:`planning.sampler.TopView`); None: the camera's
+    height field alone (space behind an observed surface is solid).
     Results: two grasps are the same (non-maximum suppression) when their centres are
     closer than ``nms_distance`` and their jaw axes within ``nms_angle``.
     Windows: ``windows`` "cover" places few windows over the candidates (see
@@ -66,6 +69,7 @@ class PlanParams:
     jaw_clearance: float = 0.002
     march_step: float = 0.0015
     surface_tolerance: float = 0.003
+    top_view_cell: float | None = 0.0025
     table_inlier_distance: float = 0.003
     object_height: float = 0.004
     table_margin: float = 0.005
@@ -108,6 +112,8 @@ class PlanParams:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"PlanParams.{name} must be > 0, got {v}")
+        if self.top_view_cell is not None and not (np.isfinite(self.top_view_cell) and self.top_view_cell > 0):
+            raise ValueError(f"PlanParams.top_view_cell must be > 0 or None, got {self.top_view_cell}")
         if not 0 <= self.min_width < self.max_opening:
             raise ValueError(f"PlanParams.min_width must be in [0, {self.max_opening}), got {self.min_width}")
 

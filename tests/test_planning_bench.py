@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import trimesh
@@ -76,6 +78,30 @@ def test_held_out_objects_come_from_a_crop_file_or_a_crop_datasets_test_split(tm
     assert heldout_object_ids(str(d), "train") == [1, 5]  # to fit something on objects the test never sees
     with pytest.raises(ValueError, match="no val objects"):
         heldout_object_ids(str(d), "val")
+
+
+def test_unseen_objects_are_the_ones_the_recipes_dataset_never_held():
+    from planning.bench import _recipe_sources, scene_objects
+
+    cfg = DatagenConfig.from_dict({**DatagenConfig().to_dict(), "num_objects": 3, "families": {"box": 2, "mug": 1}})
+    ids, unseen = scene_objects("unseen", "test", cfg)
+    recipe = _recipe_sources(json.dumps(cfg.to_dict(), sort_keys=True))
+    others = _recipe_sources(json.dumps(unseen.to_dict(), sort_keys=True))
+    assert [others[i].name for i in range(3)] == [s.name for s in recipe[:3]]  # the recipe's meshes come first
+    picked = [others[i] for i in ids]
+    meshes = [s for s in picked if s.family is None]
+    assert len(meshes) == len(others) - 3 - 3 and ids[0] == 3  # every mesh past the recipe's first 3
+    fams = [s for s in picked if s.family is not None]
+    assert [s.name for s in fams] == [s.name for s in recipe[3:]]  # the same families and counts ...
+    assert all(a.params != b.params for a, b in zip(fams, recipe[3:]))  # ... drawn anew
+    assert scene_objects("examples/heldout_test_crops.npz", "test", cfg)[1] is cfg
+
+
+def test_command_line_turns_the_top_view_off_with_zero():
+    from planning.bench import parse_args, plan_params
+
+    assert plan_params(parse_args(["trials"])).top_view_cell == PlanParams().top_view_cell
+    assert plan_params(parse_args(["trials", "--top-view-cell", "0"])).top_view_cell is None
 
 
 def test_candidate_features_measure_the_grasp_against_the_true_scene():

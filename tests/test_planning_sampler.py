@@ -7,7 +7,7 @@ pytest.importorskip("trimesh")
 
 from planning.sampler import analyse_scene, collision_checker, sample_contact_pairs, sample_grasps
 from planning.types import PlanParams
-from tests.planning_scenes import boxes_scene
+from tests.planning_scenes import boxes_scene, mesh_scene, open_box
 from vgq.camera import DEFAULT_INTRINSICS
 
 
@@ -67,3 +67,27 @@ def test_sampled_grasps_are_collision_free_frames_with_the_tcp_between_the_conta
     # approach from above the table (beta < 90 deg) and from the camera side (psi < 90 deg)
     z_world = R[:, :, 2] @ T_wc[:3, :3].T
     assert np.all(z_world[:, 2] < 0) and np.all(R[:, 2, 2] > 0)
+
+
+def _horizontal_pair_widths(depth, T_wc, params):
+    scene = analyse_scene(depth, DEFAULT_INTRINSICS, params, np.random.default_rng(0))
+    contacts, axes, widths, _ = sample_contact_pairs(scene, 2000, params, np.random.default_rng(1))
+    return contacts, widths[np.abs((axes @ T_wc[:3, :3].T)[:, 2]) < 0.3]
+
+
+def test_the_top_view_ends_a_line_into_an_open_container_at_its_inner_wall():
+    # an 8 x 8 x 5 cm box with 4 mm walls and no lid: the camera cannot see behind the near
+    # wall, but from above the inside is floor, so a jaw line through the wall leaves it there
+    depth, T_wc = mesh_scene(open_box(wall=0.004), phi=0.6)
+    _, with_top = _horizontal_pair_widths(depth, T_wc, PlanParams())
+    _, without = _horizontal_pair_widths(depth, T_wc, PlanParams(top_view_cell=None))
+    assert len(with_top) >= 100 and np.mean(with_top <= 0.004 + 0.003) >= 0.95
+    assert np.mean(without <= 0.004 + 0.003) <= 0.5  # the camera's height field alone: the wall reads far thicker
+
+
+def test_the_top_view_puts_a_hidden_contact_at_the_far_face_not_the_shadows_end(box):
+    depth, T_wc, _ = box
+    contacts, _ = _horizontal_pair_widths(depth, T_wc, PlanParams())
+    c1 = _world(T_wc, contacts[:, 1])
+    beyond = np.maximum(np.abs(c1[:, 0]) - 0.015, np.abs(c1[:, 1]) - 0.02)  # outside the 3 x 4 cm footprint
+    assert len(c1) >= 100 and np.median(beyond) <= 0.0015 and np.all(beyond <= 0.004)
