@@ -65,8 +65,8 @@ main() {
   cp "$RUN/eval/heatmap_test.png" "$RUN/eval/curves.png" "$OUT/"
   if [ "$VERSION" = v2 ]; then  # planned grasps' p_hold (the score mapped to how often planner candidates
     # hold) and their order (a ranker on the score, the jaw width and the gripper's pose against the table)
-    # (~25 min: 150 scenes of training objects, 32 candidates each, 8 pybullet trials; docs/planning.md)
-    [ -f "$RUN/pool_train.json" ] || $PY -m planning.bench pool --model "$OUT" --heldout "$DATA/crops" --split train \
+    # (~35 min: 150 scenes of objects outside the dataset (docs/planning.md, top view), 32 candidates each, 8 pybullet trials; docs/planning.md)
+    [ -f "$RUN/pool_train.json" ] || $PY -m planning.bench pool --model "$OUT" --heldout unseen \
       --scenes 150 --per-scene 32 --trials 8 --threads 1 --json "$RUN/pool_train.json"
     $PY -m planning.calibration "$RUN/pool_train.json" --model "$OUT"
     $PY -m planning.ranker "$RUN/pool_train.json" --model "$OUT"  # the planner's order (score, width, table pose)
