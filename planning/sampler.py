@@ -102,6 +102,7 @@ class TopView:
         return cls(origin, e1, e2, float(cell), heights, outward)
 
     def _cells(self, x: np.ndarray):
+        """Grid indices (i, j) of points x (..., 3), clipped, and whether they fall on the grid."""
         d = np.asarray(x, dtype=np.float64) - self.origin
         i = np.floor(d @ self.e1 / self.cell).astype(np.int64)
         j = np.floor(d @ self.e2 / self.cell).astype(np.int64)
@@ -255,20 +256,18 @@ def sample_contact_pairs(scene: Scene, n_seeds: int, params: PlanParams, rng: np
     d = scene.depth[rows, cols]
     tol = params.surface_tolerance
     occupied = inside & (d > 0) & (x[..., 2] >= d - tol)
+    hx = scene.table.height(x) if scene.table is not None else None
+    under_top = None
     if scene.top is not None:  # and under the top seen from above (scene.table is set)
-        occupied &= scene.table.height(x) <= scene.top.top(x) + tol
-    below = (
-        (scene.table.height(x) < -params.table_inlier_distance) if scene.table is not None else np.zeros_like(occupied)
-    )
+        under_top = hx <= scene.top.top(x) + tol
+        occupied &= under_top
+    below = (hx < -params.table_inlier_distance) if hx is not None else np.zeros_like(occupied)
     free = ~occupied
     has_exit = free.any(axis=1)
     e = np.argmax(free, axis=1)  # first free step
     idx = np.arange(len(ts))[None, :]
     hits_table = (below & (idx <= e[:, None])).any(axis=1)
     width = ts[e] - 0.5 * step
-    if scene.top is not None:  # where the line left the seen footprint (no surface the camera sees)
-        at_exit = x[np.arange(len(e)), e]
-        left_top = scene.table.height(at_exit) > scene.top.top(at_exit) + tol
     ok = occupied[:, 0] & has_exit & ~hits_table & (width >= params.min_width) & (width <= params.max_opening)
     p2 = p1 + width[:, None] * axes
     # contact 1 on a visible surface: its normal must hold the push (friction cone)
@@ -278,9 +277,10 @@ def sample_contact_pairs(scene: Scene, n_seeds: int, params: PlanParams, rng: np
     cos_lim = np.cos(np.arctan(mu))
     n2 = scene.normals[r2, c2]
     ok &= ~seen | (np.einsum("ij,ij->i", n2, axes) >= cos_lim)
-    if scene.top is not None:
-        # a hidden contact where the line left the footprint: read its wall as upright, whose
-        # normal is the outline's; the axis must lie in that normal's friction cone
+    if under_top is not None:
+        # a hidden contact where the line left the seen footprint: read its wall as upright,
+        # whose normal is the outline's; the axis must lie in that normal's friction cone
+        left_top = ~under_top[np.arange(len(e)), e]
         wall = scene.top.outline_normal(p2)
         ok &= seen | ~left_top | (np.einsum("ij,ij->i", wall, axes) >= cos_lim)
     if params.max_centre_offset is not None and scene.centres is not None:
