@@ -54,3 +54,14 @@ def test_cli_bench_measures_precisions_side_by_side(capsys):
     r = json.loads(capsys.readouterr().out)
     assert set(r["precisions"]) == {"fp32", "bf16"} and r["precisions"]["fp32"]["speedup"] == 1.0
     assert r["precisions"]["bf16"]["samples_per_s"] > 0
+
+
+def test_cli_bench_times_the_predict_pass_per_batch_size(capsys):
+    import json
+
+    argv = ["bench", "--steps", "1", "--warmup", "0", "--batch-size", "4", "--precision", "fp32", "bf16"]
+    assert main([*argv, "--predict-rows", "8", "--predict-batch-sizes", "2", "8"]) == 0
+    r = json.loads(capsys.readouterr().out)["predict_rows_per_s"]
+    assert set(r) == {"fp32", "bf16"} and set(r["fp32"]) == {"2", "8"} and min(r["bf16"].values()) > 0
+    assert main([*argv, "--predict-rows", "8", "--predict-batch-sizes", "0"]) == 2
+    assert "batch size" in capsys.readouterr().err

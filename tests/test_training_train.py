@@ -230,6 +230,17 @@ def test_bf16_training_learns_and_resumes_in_fp32(data, tmp_path):
         TrainConfig(precision="fp16")
 
 
+def test_bf16_validation_pass_agrees_with_fp32(data, run):
+    """A bf16 run validates under bf16 autocast: the same probabilities up to bf16 rounding, in fp32."""
+    net, _ = load_trained(run / "checkpoints" / "last.pt")
+    sp = open_crop_dataset(data).split("val")
+    p32, loss32 = predict_split(net, sp, batch_size=5)
+    p16, loss16 = predict_split(net, sp, batch_size=5, bf16=True)
+    assert p16.dtype == np.float32 and p16.shape == p32.shape
+    assert np.abs(p16 - p32).max() < 0.05 and not np.array_equal(p16, p32)  # bf16 arithmetic did run
+    assert loss16 == pytest.approx(loss32, abs=0.05)
+
+
 def test_wider_second_stage_round_trips_and_guards_fine_tuning(data, tmp_path):
     train(
         TrainConfig(samples=32, val_every_samples=32, conv2_channels=24, **FAST), data, tmp_path / "w", progress=False

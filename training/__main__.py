@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
         "copy of the test split (`datagen crops --splits test --sensor clean`)",
     )
     e.add_argument("--threshold", type=float, default=0.5)
-    e.add_argument("--batch-size", type=int, default=1024)
+    e.add_argument("--batch-size", type=int, default=64)
     e.add_argument(
         "--max-n",
         type=int,
@@ -92,6 +92,13 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("fp32", "bf16"),
         help="measure these side by side (e.g. --precision fp32 bf16)",
     )
+    s.add_argument(
+        "--predict-rows",
+        type=int,
+        default=0,
+        help="also time the forward-only pass of validation / evaluation over this many rows (0: skip)",
+    )
+    s.add_argument("--predict-batch-sizes", type=int, nargs="+", default=[64, 1024])
     s.add_argument("--no-progress", action="store_true")
     return ap
 
@@ -161,15 +168,16 @@ def main(argv: list[str] | None = None) -> int:
             c = dataset_ceiling(args.data, args.split)
             print(json.dumps({"split": args.split, **asdict(c)}))
         elif args.command == "bench":
-            from .bench import measure_train_throughput
+            from .bench import measure_predict_throughput, measure_train_throughput
 
-            print(
-                json.dumps(
-                    measure_train_throughput(
-                        args.arch, args.batch_size, args.steps, args.warmup, args.threads, tuple(args.precision)
-                    )
-                )
+            rec = measure_train_throughput(
+                args.arch, args.batch_size, args.steps, args.warmup, args.threads, tuple(args.precision)
             )
+            if args.predict_rows:
+                rec["predict_rows_per_s"] = measure_predict_throughput(
+                    args.arch, args.predict_rows, tuple(args.predict_batch_sizes), tuple(args.precision), args.threads
+                )
+            print(json.dumps(rec))
     except (ValueError, FileNotFoundError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

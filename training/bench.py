@@ -1,6 +1,7 @@
 """Training throughput on this machine: samples/second of full SGD steps (forward, backward,
 update) on random inputs of the network's shape, for each training precision side by side
-(steps interleaved, so a shared machine's load hits them alike). Data loading is not included."""
+(steps interleaved, so a shared machine's load hits them alike), and optionally the forward-only
+rows/second of validation and evaluation at several batch sizes. Data loading is not included."""
 
 from __future__ import annotations
 
@@ -70,3 +71,41 @@ def measure_train_throughput(
         "torch": torch.__version__,
         "precisions": per,
     }
+
+
+def measure_predict_throughput(
+    arch: str = "fast_vgqcnn",
+    rows: int = 1024,
+    batch_sizes: tuple[int, ...] = (64, 1024),
+    precisions: tuple[str, ...] = ("fp32",),
+    threads: int = 0,
+) -> dict:
+    """Rows/second of the no-grad forward pass (``training.predict.predict_split``'s: validation
+    and evaluation) over ``rows`` random inputs, for each precision x batch size, interleaved after
+    one untimed pass each: ``{precision: {batch_size: rows_per_s}}``."""
+    if rows <= 0 or not batch_sizes or min(batch_sizes) <= 0:
+        raise ValueError("rows and every batch size must be > 0")
+    bad = [p for p in precisions if p not in ("fp32", "bf16")]
+    if bad or not precisions:
+        raise ValueError(f"precisions must be fp32 and/or bf16, got {list(precisions)}")
+    if threads:
+        torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    net = GraspQualityNet(arch).eval()
+    x = 0.7 + 0.01 * torch.randn(rows, 1, 32, 32)
+    p = torch.randn(rows, len(net.pose_columns))
+
+    def one_pass(pr: str, bs: int) -> float:
+        t = time.perf_counter()
+        with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=pr == "bf16"):
+            for i in range(0, rows, bs):
+                net(x[i : i + bs], p[i : i + bs])
+        return time.perf_counter() - t
+
+    times = {(pr, bs): 0.0 for pr in precisions for bs in batch_sizes}
+    for timed in (False, True):
+        for key in times:
+            dt = one_pass(*key)
+            if timed:
+                times[key] = dt
+    return {pr: {str(bs): rows / times[pr, bs] for bs in batch_sizes} for pr in precisions}

@@ -62,7 +62,7 @@ class TrainConfig:
     val_max_samples: int = 0  # 0: the whole validation split
     checkpoint_every_samples: int = 100_000  # last.pt at least this often (and at each validation)
     log_every_steps: int = 50  # train-loss lines in metrics.jsonl (mean over the interval)
-    eval_batch_size: int = 1024
+    eval_batch_size: int = 64  # validation rows per forward pass (small batches are faster on CPUs)
     class_balance: str = field(
         default="none",
         metadata={"choices": CLASS_BALANCE, "help": "'loss_weights': cross-entropy weights n / (2 n_class) from train"},

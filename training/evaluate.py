@@ -25,7 +25,7 @@ def evaluate(
     split: str = "test",
     out_dir: str | Path | None = None,
     threshold: float = 0.5,
-    batch_size: int = 1024,
+    batch_size: int = 64,
     d_step: float = 0.05,
     phi_step_deg: float = 5.0,
     progress: bool = True,

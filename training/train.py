@@ -179,9 +179,11 @@ def _val_index(n: int, cfg: TrainConfig) -> np.ndarray:
     return np.arange(n)
 
 
-def _validate(net: GraspQualityNet, split: CropSplit, cfg: TrainConfig, d: _Dist) -> dict:
+def _validate(net: GraspQualityNet, split: CropSplit, cfg: TrainConfig, d: _Dist, bf16: bool = False) -> dict:
+    """Validation metrics on ``cfg.val_max_samples`` fixed rows of ``split``, the forward pass in the
+    steps' precision (``bf16``; a model selected on it is evaluated and exported in fp32)."""
     idx = _val_index(len(split), cfg)[d.rank :: d.world]
-    p, loss = predict_split(net, split, idx, cfg.eval_batch_size)
+    p, loss = predict_split(net, split, idx, cfg.eval_batch_size, bf16=bf16)
     c = M.confusion(np.asarray(split.labels[idx]), p > 0.5)
     vec = torch.tensor([c["tp"], c["fn"], c["tn"], c["fp"], loss * len(idx)], dtype=torch.float64)
     if d.world > 1:
@@ -573,9 +575,9 @@ def train(
                     )
                     loss_acc, loss_n = 0.0, 0
                 if _crossed(state.samples_seen, cfg.batch_size, cfg.val_every_samples) or done:
-                    last_val = _validate(net, val_split, cfg, d)
+                    last_val = _validate(net, val_split, cfg, d, bf16)
                     log.write({"kind": "val", "step": state.step, "samples": state.samples_seen, **last_val})
-                    val_mix = _validate(net, mix_val, cfg, d) if mix_val is not None else None
+                    val_mix = _validate(net, mix_val, cfg, d, bf16) if mix_val is not None else None
                     if val_mix is not None:
                         log.write({"kind": "val_mix", "step": state.step, "samples": state.samples_seen, **val_mix})
                     score = _selection_score(cfg, last_val, val_mix)
