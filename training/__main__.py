@@ -92,6 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("fp32", "bf16"),
         help="measure these side by side (e.g. --precision fp32 bf16)",
     )
+    s.add_argument("--optimizer", default="adamw", choices=("sgd", "adamw"))
     s.add_argument(
         "--predict-rows",
         type=int,
@@ -171,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
             from .bench import measure_predict_throughput, measure_train_throughput
 
             rec = measure_train_throughput(
-                args.arch, args.batch_size, args.steps, args.warmup, args.threads, tuple(args.precision)
+                args.arch, args.batch_size, args.steps, args.warmup, args.threads, tuple(args.precision), args.optimizer
             )
             if args.predict_rows:
                 rec["predict_rows_per_s"] = measure_predict_throughput(

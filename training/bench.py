@@ -13,7 +13,7 @@ import torch
 
 from .config import TrainConfig
 from .networks import GraspQualityNet
-from .train import _sgd_step
+from .train import _optimizer, _sgd_step
 
 
 def measure_train_throughput(
@@ -23,10 +23,12 @@ def measure_train_throughput(
     warmup: int = 3,
     threads: int = 0,
     precisions: tuple[str, ...] = ("fp32",),
+    optimizer: str = "adamw",
 ) -> dict:
-    """``steps`` timed SGD steps per precision ('fp32', 'bf16': CPU autocast) after ``warmup``
-    untimed ones, interleaved; the top-level numbers are the first precision's, ``precisions``
-    holds each one's and ``speedup`` its samples/s over the first's."""
+    """``steps`` timed optimizer steps (the v2 recipe's AdamW by default, built as the training
+    loop builds it) per precision ('fp32', 'bf16': CPU autocast) after ``warmup`` untimed ones,
+    interleaved; the top-level numbers are the first precision's, ``precisions`` holds each one's
+    and ``speedup`` its samples/s over the first's."""
     if steps <= 0 or warmup < 0 or batch_size <= 0:
         raise ValueError("steps and batch_size must be > 0, warmup >= 0")
     bad = [p for p in precisions if p not in ("fp32", "bf16")]
@@ -34,10 +36,10 @@ def measure_train_throughput(
         raise ValueError(f"precisions must be fp32 and/or bf16, got {list(precisions)}")
     if threads:
         torch.set_num_threads(threads)
-    cfg = TrainConfig(arch=arch, batch_size=batch_size)
+    cfg = TrainConfig(arch=arch, batch_size=batch_size, optimizer=optimizer)
     torch.manual_seed(0)
-    net = GraspQualityNet(arch)
-    opt = torch.optim.SGD(net.parameters(), lr=cfg.base_lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+    net = GraspQualityNet(arch).to(memory_format=torch.channels_last)  # as training.train builds it
+    opt = _optimizer(cfg, net)
     x = 0.7 + 0.01 * torch.randn(batch_size, 1, 32, 32)
     p = torch.randn(batch_size, len(net.pose_columns))
     y = torch.randint(0, 2, (batch_size,))
@@ -58,6 +60,7 @@ def measure_train_throughput(
     ts = times[first]
     return {
         "arch": arch,
+        "optimizer": optimizer,
         "batch_size": batch_size,
         "steps": steps,
         "samples_per_s": per[first]["samples_per_s"],

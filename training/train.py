@@ -361,8 +361,10 @@ def _checkpoint_to_resume(
 
 
 def _optimizer(cfg: TrainConfig, net: GraspQualityNet) -> torch.optim.Optimizer:
+    """The run's optimizer; AdamW's fused CPU kernel (one pass over each parameter: the step 1.07x
+    faster end to end on a Zen 4; the same update up to floating-point order)."""
     if cfg.optimizer == "adamw":
-        return torch.optim.AdamW(net.parameters(), lr=cfg.base_lr, weight_decay=cfg.weight_decay)
+        return torch.optim.AdamW(net.parameters(), lr=cfg.base_lr, weight_decay=cfg.weight_decay, fused=True)
     return torch.optim.SGD(net.parameters(), lr=cfg.base_lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
 
 
@@ -377,7 +379,7 @@ def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit
         depth_reference=cfg.depth_reference,
         pose_features=cfg.pose_features,
         pose_units=cfg.pose_units,
-    )
+    ).to(memory_format=torch.channels_last)  # oneDNN's convolutions ~1.1x faster (training.bench)
     opt = _optimizer(cfg, net)
     best_val: dict = {}
     if ckpt is None and cfg.init:  # fine-tuning: the init's weights and its input normalisation, a fresh optimizer
@@ -397,6 +399,9 @@ def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit
     else:
         net.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
+        if cfg.optimizer == "adamw":  # a run saved before the fused kernel (its groups say fused None) gets it too
+            for g in opt.param_groups:
+                g["fused"] = True
         norm = Normalization.from_dict(ckpt["normalization"])
         state, last_val = TrainState.from_dict(ckpt["state"], str(paths.last)), dict(ckpt.get("val") or {})
         if paths.best.is_file():
