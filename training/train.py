@@ -21,6 +21,7 @@ import math
 import os
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -538,20 +539,31 @@ def train(
     )
     log = _MetricsLog(paths.metrics, d.main)
     loss_acc, loss_n, ema = 0.0, 0, None
+
+    def load(order: np.ndarray, bi: int, step: int):
+        """Batch ``bi`` of an epoch's ``order``, read for optimizer step ``step``."""
+        batch = train_split.batch(order[bi * local_main : (bi + 1) * local_main], cfg.arch, cfg.target)
+        if local_mix:
+            extra = mix_train.batch(_mix_index(cfg, step, d.rank, len(mix_train), local_mix), cfg.arch, cfg.target)
+            batch = tuple(torch.cat(pair) for pair in zip(batch, extra))
+        return batch
+
+    # the next batch is read from the memory map in a thread while this one's step runs (numpy and
+    # torch release the GIL), so a cold page cache's random reads overlap the arithmetic
+    pool = ThreadPoolExecutor(1, thread_name_prefix="train-batches")
     net.train()
     try:
         while state.step < total_steps:
             sampler.set_epoch(state.epoch)
             order = np.fromiter(iter(sampler), dtype=np.int64, count=len(sampler))
             n_batches = len(order) // local_main  # BatchSampler(sampler, local_main, drop_last=True)
+            ahead = (
+                pool.submit(load, order, state.batch_in_epoch, state.step) if state.batch_in_epoch < n_batches else None
+            )
             for bi in range(state.batch_in_epoch, n_batches):
                 lr = cfg.lr_at(state.samples_seen)
-                batch = train_split.batch(order[bi * local_main : (bi + 1) * local_main], cfg.arch, cfg.target)
-                if local_mix:
-                    extra = mix_train.batch(
-                        _mix_index(cfg, state.step, d.rank, len(mix_train), local_mix), cfg.arch, cfg.target
-                    )
-                    batch = tuple(torch.cat(pair) for pair in zip(batch, extra))
+                batch = ahead.result()
+                ahead = pool.submit(load, order, bi + 1, state.step + 1) if bi + 1 < n_batches else None
                 loss = _sgd_step(model, opt, batch, lr, weights, bf16)
                 state.advance(cfg.batch_size)
                 loss_acc, loss_n = loss_acc + loss, loss_n + 1
@@ -599,6 +611,7 @@ def train(
             if state.batch_in_epoch >= n_batches:
                 state.next_epoch()
     finally:
+        pool.shutdown(wait=True, cancel_futures=True)
         bar.close()
         log.close()
     if d.main and not paths.best.is_file():  # no finite balanced accuracy (e.g. one class in val): keep last
