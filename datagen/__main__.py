@@ -174,7 +174,17 @@ def cmd_sample(args) -> int:
             raise CliError(f"--split-over {args.split_over}: not a readable JSON file ({e})") from e
         if not isinstance(split_over, list) or not all(isinstance(i, int) and i >= 0 for i in split_over):
             raise CliError(f"--split-over {args.split_over}: must hold a JSON list of object ids (integers >= 0)")
-    sample_dataset(args.inp, args.out, params, plot=not args.no_plots, split_over=split_over)
+    from .parallel import default_workers
+
+    sample_dataset(
+        args.inp,
+        args.out,
+        params,
+        plot=not args.no_plots,
+        split_over=split_over,
+        workers=args.workers or default_workers(),
+        progress=not args.quiet,
+    )
     return 0
 
 
@@ -480,6 +490,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output folder (sampled vgq-grasps dataset + plots/)")
     s.add_argument("--seed", type=_count("--seed"), help="sampling and split seed (default: sampling.seed)")
     s.add_argument("--no-plots", action="store_true")
+    s.add_argument(
+        "--workers", type=_positive_int("--workers"), help="processes reading and writing shards (default: CPU cores)"
+    )
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.add_argument(
         "--split-over",
         metavar="FILE",

@@ -19,6 +19,7 @@ import numpy as np
 from vgq.schema import SPLITS
 
 from . import storage
+from .parallel import run_tasks
 
 
 @dataclass(frozen=True)
@@ -222,19 +223,49 @@ class GraspTable:
     label: np.ndarray
 
 
-def grasp_table(ds: storage.GraspDataset) -> GraspTable:
-    cols: dict[str, list] = {k: [] for k in GraspTable.__dataclass_fields__}
-    thr = ds.label_threshold
-    for sh in ds:
-        g = sh.grasps
-        n = len(g["grasp_id"])
-        cols["object_id"].append(np.full(n, sh.object_id, dtype=np.int64))
-        cols["row"].append(np.arange(n, dtype=np.int64))
-        cols["beta"].append(g["beta"].astype(np.float64))
-        cols["psi"].append(g["psi"].astype(np.float64))
-        cols["phi"].append(sh.images["camera_phi"][g["image_index"]].astype(np.float64))
-        cols["label"].append(g["quality"] > thr)
+def _table_rows(path: str, sha256: str | None, object_id: int, label_threshold: float) -> tuple[int, dict]:
+    """One shard's rows of the grasp table (a worker task: loads and checks the shard)."""
+    images, g = storage.read_shard(path, sha256)
+    n = len(g["grasp_id"])
+    return object_id, {
+        "object_id": np.full(n, object_id, dtype=np.int64),
+        "row": np.arange(n, dtype=np.int64),
+        "beta": g["beta"].astype(np.float64),
+        "psi": g["psi"].astype(np.float64),
+        "phi": images["camera_phi"][g["image_index"]].astype(np.float64),
+        "label": g["quality"] > label_threshold,
+    }
+
+
+def _shard_tasks(ds: storage.GraspDataset) -> list[tuple[str, str | None, int]]:
+    return [
+        (str(ds.root / e["file"]), e.get("sha256") if ds.verify else None, int(e["object_id"]))
+        for e in ds.shard_entries
+    ]
+
+
+def grasp_table(ds: storage.GraspDataset, workers: int = 1, progress: bool = False) -> GraspTable:
+    """Every grasp of ``ds`` as one row, in shard (object id) order whatever ``workers`` reads them."""
+    parts: dict[int, dict] = {}
+    tasks = [(*t, ds.label_threshold) for t in _shard_tasks(ds)]
+    run_tasks(_table_rows, tasks, workers, on_result=lambda r: parts.__setitem__(*r), progress=progress, desc="read")
+    cols: dict[str, list] = {k: [parts[i][k] for i in ds.object_ids] for k in GraspTable.__dataclass_fields__}
     return GraspTable(**{k: (np.concatenate(v) if v else np.zeros(0)) for k, v in cols.items()})
+
+
+def _write_sampled(
+    path: str, sha256: str | None, object_id: int, out: str, keep: np.ndarray, label_threshold: float
+) -> tuple[int, dict | None]:
+    """Write the ``keep`` rows of one shard (and only the images they use) into ``out`` (a worker
+    task); (object id, its shard entry), or None for the entry when no row is kept."""
+    if not keep.any():
+        return object_id, None
+    images, grasps = storage.read_shard(path, sha256)
+    grasps = {k: v[keep] for k, v in grasps.items()}
+    used, new_index = np.unique(grasps["image_index"], return_inverse=True)
+    grasps["image_index"] = new_index.astype(np.int32).reshape(-1)
+    images = {k: v[used] for k, v in images.items()}
+    return object_id, storage.write_shard(out, object_id, images, grasps, label_threshold)
 
 
 def _beta_table(label: np.ndarray, beta: np.ndarray, width: float, n_bins: int) -> dict:
@@ -253,17 +284,20 @@ def sample_dataset(
     log: Callable[[str], None] = print,
     plot: bool = True,
     split_over: list[int] | None = None,
+    workers: int = 1,
+    progress: bool = False,
 ) -> dict:
     """Sample the grasp dataset ``src`` into ``out`` (a ``vgq-grasps`` dataset holding only the
     kept grasps and their images, with ``split`` per object and ``sampling`` statistics in its
     manifest). Returns the statistics. ``split_over``: the object ids the object-wise split
     is drawn over, in place of the dataset's own (e.g. a partly generated run of a recipe split
-    as the whole run was); it must hold every object that has grasps."""
+    as the whole run was); it must hold every object that has grasps. ``workers`` processes read
+    and write the shards (the same dataset for any number)."""
     out = Path(out)
     if (out / storage.MANIFEST).exists():
         raise FileExistsError(f"output folder {out} already holds a dataset; choose a new --out")
     ds = storage.open_dataset(src)
-    t = grasp_table(ds)
+    t = grasp_table(ds, workers, progress)
     if len(t.label) and not t.label.any():
         raise ValueError(
             f"{src} has no positive grasp (quality > label threshold {ds.label_threshold}); positivity "
@@ -340,18 +374,17 @@ def sample_dataset(
     for o, so in zip(m["objects"], src_m["objects"]):
         if so.get("status") != "done":
             storage.record_skip(m, o["object_id"], so.get("reason", "not generated"))
-    for sh in ds:
-        sel = keep[t.object_id == sh.object_id]
-        if not sel.any():
-            storage.record_skip(m, sh.object_id, "no grasps left after sampling", split=split[sh.object_id])
-            continue
-        grasps = {k: v[sel] for k, v in sh.grasps.items()}
-        used, new_index = np.unique(grasps["image_index"], return_inverse=True)
-        grasps["image_index"] = new_index.astype(np.int32).reshape(-1)
-        images = {k: v[used] for k, v in sh.images.items()}
-        entry = storage.write_shard(out, sh.object_id, images, grasps, ds.label_threshold)
-        storage.record_shard(m, entry, split=split[sh.object_id])
+
+    def record(result: tuple[int, dict | None]) -> None:
+        oid, entry = result
+        if entry is None:
+            storage.record_skip(m, oid, "no grasps left after sampling", split=split[oid])
+        else:
+            storage.record_shard(m, entry, split=split[oid])  # kept in object id order
         storage.write_manifest(out, m)
+
+    tasks = [(*task, str(out), keep[t.object_id == task[2]], ds.label_threshold) for task in _shard_tasks(ds)]
+    run_tasks(_write_sampled, tasks, workers, on_result=record, progress=progress, desc="write")
     m["splits"] = {s: sorted(i for i, v in split.items() if v == s) for s in SPLITS}
     kept_ids = t.object_id[keep]
     stats["splits"] = {s: int(np.isin(kept_ids, m["splits"][s]).sum()) for s in SPLITS}

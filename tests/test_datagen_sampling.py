@@ -103,6 +103,17 @@ def test_sample_dataset_writes_object_wise_split(tmp_path):
     assert (tmp_path / "s" / "plots" / "positivity_by_beta.png").stat().st_size > 1000
 
 
+def test_workers_write_the_same_sampled_dataset(tmp_path):
+    """Shards read and written by two processes: the same manifest and byte-identical shards as one."""
+    fake_dataset(tmp_path / "raw", n_objects=4, n_grasps=200)
+    params = SamplingParams(uniform_quantile=0.5)
+    for w in (1, 2):
+        sample_dataset(tmp_path / "raw", tmp_path / f"s{w}", params, log=lambda s: None, plot=False, workers=w)
+    one, two = (storage.open_dataset(tmp_path / f"s{w}").manifest for w in (1, 2))
+    assert one["shards"] == two["shards"] and one["objects"] == two["objects"] and one["splits"] == two["splits"]
+    assert one["counts"] == two["counts"] and one["counts"]["shards"] == 4
+
+
 def test_dataset_without_positives_is_refused(tmp_path):
     fake_dataset(tmp_path / "raw", n_objects=2, n_grasps=20, positive_rate=0.0)
     with pytest.raises(ValueError, match="no positive grasp"):
