@@ -16,6 +16,15 @@ from .networks import GraspQualityNet
 from .train import _optimizer, _sgd_step
 
 
+def _setup(precisions: tuple[str, ...], threads: int) -> None:
+    """Check the precisions asked for and set torch's thread count (0: torch's default)."""
+    bad = [p for p in precisions if p not in ("fp32", "bf16")]
+    if bad or not precisions:
+        raise ValueError(f"precisions must be fp32 and/or bf16, got {list(precisions)}")
+    if threads:
+        torch.set_num_threads(threads)
+
+
 def measure_train_throughput(
     arch: str = "fast_vgqcnn",
     batch_size: int = 64,
@@ -31,11 +40,7 @@ def measure_train_throughput(
     and ``speedup`` its samples/s over the first's."""
     if steps <= 0 or warmup < 0 or batch_size <= 0:
         raise ValueError("steps and batch_size must be > 0, warmup >= 0")
-    bad = [p for p in precisions if p not in ("fp32", "bf16")]
-    if bad or not precisions:
-        raise ValueError(f"precisions must be fp32 and/or bf16, got {list(precisions)}")
-    if threads:
-        torch.set_num_threads(threads)
+    _setup(precisions, threads)
     cfg = TrainConfig(arch=arch, batch_size=batch_size, optimizer=optimizer)
     torch.manual_seed(0)
     net = GraspQualityNet(arch).to(memory_format=torch.channels_last)  # as training.train builds it
@@ -88,11 +93,7 @@ def measure_predict_throughput(
     one untimed pass each: ``{precision: {batch_size: rows_per_s}}``."""
     if rows <= 0 or not batch_sizes or min(batch_sizes) <= 0:
         raise ValueError("rows and every batch size must be > 0")
-    bad = [p for p in precisions if p not in ("fp32", "bf16")]
-    if bad or not precisions:
-        raise ValueError(f"precisions must be fp32 and/or bf16, got {list(precisions)}")
-    if threads:
-        torch.set_num_threads(threads)
+    _setup(precisions, threads)
     torch.manual_seed(0)
     net = GraspQualityNet(arch).eval()
     x = 0.7 + 0.01 * torch.randn(rows, 1, 32, 32)
