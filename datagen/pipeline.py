@@ -48,9 +48,15 @@ def _concat(parts: list[dict], fields: dict) -> dict[str, np.ndarray]:
     return {k: np.concatenate([p[k] for p in parts]).astype(dtype, copy=False) for k, (dtype, _, _) in fields.items()}
 
 
-def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: int) -> tuple[dict, dict, dict]:
+def generate_object_with_info(
+    src, config: DatagenConfig, object_id: int, seed: int, trials_cache: dict | None = None
+) -> tuple[dict, dict, dict]:
     """:func:`generate_object` plus a dict of facts about the object for the manifest
-    (stable pose probabilities, grasp count, torque scaling used, mesh scale and repairs)."""
+    (stable pose probabilities, grasp count, torque scaling used, mesh scale and repairs).
+
+    ``trials_cache``: the object's recorded physics trials per stable pose id
+    (:meth:`datagen.physics_cache.PhysicsCache.for_object`); a pose they cover is replayed
+    instead of simulated (:func:`_replayed_success`), with the same result."""
     from .camera import sample_cameras
     from .collision import CollisionChecker
     from .grasps import sample_antipodal_grasps
@@ -102,7 +108,9 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
             # pad quality are computed once per pose, not once per camera
             pose_grasp = align_to_table(T_wo @ T_object_grasp0, rng)
             pose_free = ~np.asarray(checker.collides(pose_grasp[0]), dtype=bool)
-            success = _physics_success(obj.mesh, T_wo, pose_grasp[0], pose_free, config, ss_physics, info)
+            success = _replayed_success((trials_cache or {}).get(pose_id), pose_grasp[0], pose_free, cams, intr, info)
+            if success is None:
+                success = _physics_success(obj.mesh, T_wo, pose_grasp[0], pose_free, config, ss_physics, info)
             pose_fields = _robust_fields(
                 kind, obj.mesh, T_wo, pose_grasp[0], ~pose_free, checker_c, config, qparams, rng_robust
             )
@@ -122,7 +130,7 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
             depth = render_depth(mesh_world, T_wc, intr)
             pr = project_grasps(T_wg, T_wc, intr)
             u, v, z = (np.asarray(pr[k], np.float64) for k in ("u", "v", "z"))
-            inside = np.asarray(pr["in_image"], bool) & np.isfinite(u) & np.isfinite(v)  # TCP within the image
+            inside = _inside(pr)
             image_parts.append(
                 {
                     "depth": np.asarray(depth, np.float32)[None],
@@ -158,6 +166,29 @@ def generate_object_with_info(src, config: DatagenConfig, object_id: int, seed: 
             n_img += 1
     info["label"] = kind
     return _concat(image_parts, IMAGE_FIELDS), _concat(grasp_parts, {**GRASP_FIELDS, **GRASP_LABEL_FIELDS}), info
+
+
+def _inside(pr: dict) -> np.ndarray:
+    """Which projected grasps (``project_grasps`` output) have their TCP within the image: the rows kept."""
+    return np.asarray(pr["in_image"], bool) & np.isfinite(pr["u"]) & np.isfinite(pr["v"])
+
+
+def _replayed_success(trials, T_wg, free, cams, intr, info: dict) -> np.ndarray | None:
+    """Success rates (n,) of the grasps ``T_wg`` (world frame) at one pose from its recorded
+    trials (a :class:`datagen.physics_cache.PoseTrials`, or None), or None when they do not
+    cover every grasp whose approach is ``free`` and whose TCP some camera of ``cams`` sees;
+    records the pose's original trial entry (marked cached) in ``info``."""
+    from .project import project_grasps
+
+    if trials is None:
+        return None
+    seen = np.zeros(len(T_wg), bool)
+    for T_wc in cams.T_world_camera:
+        seen |= _inside(project_grasps(T_wg, T_wc, intr))
+    success = trials.replay(T_wg, free & seen)
+    if success is not None:
+        info.setdefault("physics", []).append({**trials.record, "cached": True})
+    return success
 
 
 def _robust_fields(
@@ -223,14 +254,15 @@ def generate_object(src, config: DatagenConfig, object_id: int, seed: int) -> tu
 # ----------------------------------------------------------------------------- run driver
 
 
-def object_task(src, config: DatagenConfig, object_id: int, seed: int) -> dict:
+def object_task(src, config: DatagenConfig, object_id: int, seed: int, trials_cache: dict | None = None) -> dict:
     """Worker task: generate one object and encode its shard (bytes); never raises for a
-    bad object (the result says why it was skipped)."""
+    bad object (the result says why it was skipped). ``trials_cache``: as for
+    :func:`generate_object_with_info`."""
     from .mesh import MeshError
 
     t0 = time.perf_counter()
     try:
-        images, grasps, info = generate_object_with_info(src, config, object_id, seed)
+        images, grasps, info = generate_object_with_info(src, config, object_id, seed, trials_cache)
     except (MeshError, SkipObject) as e:
         return {"object_id": object_id, "status": "skipped", "reason": str(e), "info": {}}
     except Exception as e:  # keep the run going; the object is retried on resume
@@ -390,9 +422,14 @@ def run_generate(
     use_ray: bool = False,
     progress: bool = True,
     log: Callable[[str], None] = print,
+    physics_cache=None,
 ) -> dict:
-    """Generate (or resume) the dataset of ``config`` into ``out``; returns the manifest."""
+    """Generate (or resume) the dataset of ``config`` into ``out``; returns the manifest.
+
+    ``physics_cache``: a :class:`datagen.physics_cache.PhysicsCache` whose recorded trials are
+    replayed where they cover a pose (only if made with this config's physics settings)."""
     from .parallel import run_tasks
+    from .physics_cache import config_key
 
     out = Path(out)
     m, sources = prepare_run(out, config, log)
@@ -411,7 +448,22 @@ def run_generate(
     done_before = len(m["objects"]) - len(todo)
     if done_before:
         log(f"resuming {out}: {done_before} objects already done or skipped, {len(todo)} to go")
-    tasks = [(sources[i], config, i, object_seed(config.seed, sources[i].name)) for i in interleaved(todo, m)]
+    if physics_cache is not None and physics_cache.key != config_key(config):
+        log("physics cache: made with other seed, label, physics or gripper settings; not used")
+        physics_cache = None
+    if physics_cache is not None:
+        n = sum(sources[i].name in physics_cache.objects for i in todo)
+        log(f"physics cache: trials recorded for {n} of the {len(todo)} objects to generate")
+    tasks = [
+        (
+            sources[i],
+            config,
+            i,
+            object_seed(config.seed, sources[i].name),
+            physics_cache.for_object(sources[i].name) if physics_cache is not None else None,
+        )
+        for i in interleaved(todo, m)
+    ]
 
     def on_result(r: dict) -> str:
         oid = r["object_id"]

@@ -147,3 +147,18 @@ def test_stats_counts_each_family_and_its_objects_without_a_positive(tmp_path, c
     assert rc == 0 and out.splitlines()[2].split()[0] == "box"
     rc, _, err = run_main(capsys, "stats", "--in", tmp_path / "nothing")
     assert rc == 2 and "nothing" in err
+
+
+def test_v2_recipe_replays_its_recorded_physics_trials_when_the_file_is_there(tmp_path, capsys, monkeypatch):
+    import shlex
+
+    import datagen.__main__ as cli
+
+    monkeypatch.setattr(cli, "RECIPE_FILES", tmp_path)
+    argv = ("recipe", "--version", "v2", "--out", tmp_path / "d", "--dry-run")
+    generate = lambda *extra: shlex.split(run_main(capsys, *argv, *extra)[1].splitlines()[0])  # noqa: E731
+    assert "--physics-cache" not in generate()  # no recorded trials: every trial runs
+    (tmp_path / cli.RECIPES["v2"]["physics_cache"]).write_bytes(b"")
+    g = generate()
+    assert g[g.index("--physics-cache") + 1] == str(tmp_path / cli.RECIPES["v2"]["physics_cache"])
+    assert "--physics-cache" not in generate("--no-physics-cache")
