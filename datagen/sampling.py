@@ -224,8 +224,9 @@ class GraspTable:
 
 
 def _table_rows(path: str, sha256: str | None, object_id: int, label_threshold: float) -> tuple[int, dict]:
-    """One shard's rows of the grasp table (a worker task: loads and checks the shard)."""
-    images, g = storage.read_shard(path, sha256)
+    """One shard's rows of the grasp table (a worker task: loads and checks the shard, its depth
+    images left compressed)."""
+    images, g = storage.read_shard(path, sha256, skip=("depth",))
     n = len(g["grasp_id"])
     return object_id, {
         "object_id": np.full(n, object_id, dtype=np.int64),

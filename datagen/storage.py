@@ -17,6 +17,7 @@ import io
 import os
 import platform
 import tempfile
+import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +40,9 @@ from vgq.schema import (
 )
 
 SHARD_DIR = "shards"
+# deflate level of the shards: 1 writes a v2 shard in half the time of numpy's 6 for 11% more bytes
+# (0.32 against 0.59 s, 6.1 against 5.5 MB for one random_urdfs object of 300 images)
+SHARD_DEFLATE_LEVEL = 1
 
 
 class DatasetError(ValueError):
@@ -81,8 +85,16 @@ def encode_shard(images: dict[str, np.ndarray], grasps: dict[str, np.ndarray], w
     arrays = {k: np.ascontiguousarray(images[k]) for k in IMAGE_FIELDS}
     arrays.update({k: np.ascontiguousarray(grasps[k]) for k in GRASP_FIELDS})
     arrays.update({k: np.ascontiguousarray(grasps[k]) for k in GRASP_LABEL_FIELDS if k in grasps})
+    return npz_bytes(arrays)
+
+
+def npz_bytes(arrays: dict[str, np.ndarray], level: int = SHARD_DEFLATE_LEVEL) -> bytes:
+    """``np.savez_compressed``'s .npz bytes at deflate ``level`` (numpy's is zlib's default, 6)."""
     buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED, allowZip64=True, compresslevel=level) as zf:
+        for k, v in arrays.items():
+            with zf.open(f"{k}.npy", "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(v), allow_pickle=False)
     return buf.getvalue()
 
 
@@ -116,8 +128,11 @@ def write_shard(root: str | Path, object_id: int, images: dict, grasps: dict, la
     }
 
 
-def read_shard(path: str | Path, sha256: str | None = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """Load and validate one shard; returns (image arrays, grasp arrays).
+def read_shard(
+    path: str | Path, sha256: str | None = None, skip: tuple[str, ...] = ()
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Load and validate one shard; returns (image arrays, grasp arrays). ``skip``: fields left
+    compressed and out of the result (e.g. ``("depth",)`` for a pass that reads only the grasps).
 
     Raises :class:`DatasetError` naming the file when it is missing, not an .npz, fails its
     checksum or lacks a field."""
@@ -130,14 +145,16 @@ def read_shard(path: str | Path, sha256: str | None = None) -> tuple[dict[str, n
         raise DatasetError(f"shard {p} is corrupt: its sha256 does not match the manifest")
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
+            arrays = {k: z[k] for k in z.files if k not in skip}
     except Exception as e:  # zipfile, zlib, numpy format errors: all mean "not a readable shard"
         raise DatasetError(f"shard {p} is not a readable .npz file ({type(e).__name__}: {e})") from e
     try:
-        images = {k: arrays[k] for k in IMAGE_FIELDS if k in arrays}
-        grasps = {k: arrays[k] for k in (*GRASP_FIELDS, *GRASP_LABEL_FIELDS) if k in arrays}
-        n_img = check_fields(IMAGE_FIELDS, images, str(p))
-        _check_label_fields(grasps, check_fields(GRASP_FIELDS, grasps, str(p)), str(p))
+        image_fields = {k: v for k, v in IMAGE_FIELDS.items() if k not in skip}
+        grasp_fields = {k: v for k, v in GRASP_FIELDS.items() if k not in skip}
+        images = {k: arrays[k] for k in image_fields if k in arrays}
+        grasps = {k: arrays[k] for k in (*grasp_fields, *GRASP_LABEL_FIELDS) if k in arrays}
+        n_img = check_fields(image_fields, images, str(p))
+        _check_label_fields(grasps, check_fields(grasp_fields, grasps, str(p)), str(p))
     except ValueError as e:
         raise DatasetError(f"shard {p} is not a {GRASP_FORMAT} shard: {e}") from e
     idx = grasps["image_index"]
