@@ -42,6 +42,24 @@ def test_holes_take_the_depth_of_the_nearest_valid_pixel():
     assert out[5, 5] == np.float32(0.60)
 
 
+def test_the_fill_takes_each_missing_pixel_from_the_valid_pixel_its_label_names():
+    """fill_nearest relies on OpenCV numbering the valid pixels 1, 2, ... in raster order; this
+    checks it against the labels themselves (each missing pixel's label is some valid pixel's)."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        d = rng.uniform(0.3, 1.0, (int(rng.integers(20, 130)), int(rng.integers(20, 130)))).astype(np.float32)
+        miss = rng.random(d.shape) < rng.uniform(0.01, 0.9)
+        miss.flat[int(rng.integers(miss.size))] = False
+        _, labels = cv2.distanceTransformWithLabels(
+            miss.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5, labelType=cv2.DIST_LABEL_PIXEL
+        )
+        table = np.zeros(int(labels.max()) + 1, np.float32)
+        table[labels[~miss]] = d[~miss]
+        np.testing.assert_array_equal(fill_nearest(d * ~miss, miss), table[labels])
+
+
 def test_valid_pixels_are_left_bit_for_bit():
     rng = np.random.default_rng(0)
     d = (0.6 + 0.05 * rng.random((50, 50))).astype(np.float32)
