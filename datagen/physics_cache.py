@@ -162,7 +162,7 @@ def _as_fraction(rate: float, max_den: int) -> tuple[int, int]:
 def from_dataset(root: str | Path, verify: bool = True) -> PhysicsCache:
     """The trials recorded in the physics-labelled grasp dataset at ``root`` (done objects only)."""
     from .config import DatagenConfig, recorded_config
-    from .storage import DatasetError, open_dataset
+    from .storage import DatasetError, open_dataset, read_shard
 
     ds = open_dataset(root, verify=verify)
     m = ds.manifest
@@ -174,10 +174,10 @@ def from_dataset(root: str | Path, verify: bool = True) -> PhysicsCache:
     trials = int(cfg["label"]["trials"])
     intr = Intrinsics.from_dict(m["intrinsics"])
     cache = PhysicsCache(config_key(cfg))
-    for shard in ds:
-        obj = m["objects"][shard.object_id]
+    for entry in ds.shard_entries:  # the depth images are not needed: left compressed
+        img, g = read_shard(ds.root / entry["file"], entry.get("sha256") if verify else None, skip=("depth",))
+        obj = m["objects"][int(entry["object_id"])]
         records = obj.get("physics", [])
-        img, g = shard.images, shard.grasps
         pose_of_row = img["stable_pose_id"][g["image_index"]]
         cam_p = deproject(np.stack([g["u"], g["v"], g["z"]], axis=1), intr)
         T_wc = img["T_world_camera"][g["image_index"]]
