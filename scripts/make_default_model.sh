@@ -16,7 +16,8 @@
 #                                                    # model has the paper's pose stream (NET_OPTS empty)
 #
 # On this project's 2-core CPU: v1's dataset takes ~17 min and training ~2.5 h per 1M samples;
-# v2's dataset ~3 h (1,040 objects, 8 physics trials per grasp and pose), training ~50 min per 1M samples
+# v2's dataset ~40 min (1,040 objects; their physics trials replayed from datagen/recipes/v2_physics_trials.npz,
+# ~3 h when simulated), training ~50 min per 1M samples
 # with bf16 steps (CPUs with AVX-512 BF16; ~2.5 h without); the leave-family-out run SAMPLES_LFO (1 M).
 set -euo pipefail
 cd "$(dirname "$0")/.."
