@@ -108,7 +108,9 @@ def generate_object_with_info(
             # pad quality are computed once per pose, not once per camera
             pose_grasp = align_to_table(T_wo @ T_object_grasp0, rng)
             pose_free = ~np.asarray(checker.collides(pose_grasp[0]), dtype=bool)
-            success = _replayed_success((trials_cache or {}).get(pose_id), pose_grasp[0], pose_free, cams, intr, info)
+            # the grasp is the same for every camera: project it once per camera here, for the replay and the rows
+            pose_proj = [project_grasps(pose_grasp[0], T_wc, intr) for T_wc in cams.T_world_camera]
+            success = _replayed_success((trials_cache or {}).get(pose_id), pose_grasp[0], pose_free, pose_proj, info)
             if success is None:
                 success = _physics_success(obj.mesh, T_wo, pose_grasp[0], pose_free, config, ss_physics, info)
             pose_fields = _robust_fields(
@@ -128,7 +130,7 @@ def generate_object_with_info(
                 )
             score = label_score(kind, quality, ~collides, p_cf, pad_q, success)
             depth = render_depth(mesh_world, T_wc, intr)
-            pr = project_grasps(T_wg, T_wc, intr)
+            pr = pose_proj[j] if kind == "physics" else project_grasps(T_wg, T_wc, intr)
             u, v, z = (np.asarray(pr[k], np.float64) for k in ("u", "v", "z"))
             inside = _inside(pr)
             image_parts.append(
@@ -173,18 +175,15 @@ def _inside(pr: dict) -> np.ndarray:
     return np.asarray(pr["in_image"], bool) & np.isfinite(pr["u"]) & np.isfinite(pr["v"])
 
 
-def _replayed_success(trials, T_wg, free, cams, intr, info: dict) -> np.ndarray | None:
+def _replayed_success(trials, T_wg, free, projections: list[dict], info: dict) -> np.ndarray | None:
     """Success rates (n,) of the grasps ``T_wg`` (world frame) at one pose from its recorded
     trials (a :class:`datagen.physics_cache.PoseTrials`, or None), or None when they do not
-    cover every grasp whose approach is ``free`` and whose TCP some camera of ``cams`` sees;
-    records the pose's original trial entry (marked cached) in ``info``."""
-    from .project import project_grasps
-
+    cover every grasp whose approach is ``free`` and whose TCP one of the cameras sees
+    (``projections``: ``project_grasps`` of ``T_wg`` per camera); records the pose's original
+    trial entry (marked cached) in ``info``."""
     if trials is None:
         return None
-    seen = np.zeros(len(T_wg), bool)
-    for T_wc in cams.T_world_camera:
-        seen |= _inside(project_grasps(T_wg, T_wc, intr))
+    seen = np.logical_or.reduce([_inside(pr) for pr in projections]) if projections else np.zeros(len(T_wg), bool)
     success = trials.replay(T_wg, free & seen)
     if success is not None:
         info.setdefault("physics", []).append({**trials.record, "cached": True})
