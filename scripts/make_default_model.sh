@@ -11,9 +11,10 @@
 #   SAMPLES=2600000 ./scripts/make_default_model.sh  # the bundled v2 (its 2.6 M-sample schedule)
 #   SAMPLES=6000000 ./scripts/make_default_model.sh  # a longer schedule (a finished run resumes into it)
 #   NET_OPTS="--pose-features rotation --pose-units 64" RUN=runs/fast-v2-rot ./scripts/make_default_model.sh
-#                                                    # the next v2: the pose stream reads the rotation matrix
-#                                                    # (+5 points in a probe, docs/training.md); the bundled
-#                                                    # model has the paper's pose stream (NET_OPTS empty)
+#                                                    # the pose stream reads the rotation matrix: faster at
+#                                                    # first, no better from 1.2 M samples on the v2 data
+#                                                    # (docs/training.md); the bundled model has the paper's
+#                                                    # pose stream (NET_OPTS empty)
 #
 # On this project's 2-core CPU: v1's dataset takes ~17 min and training ~2.5 h per 1M samples;
 # v2's dataset ~40 min (1,040 objects; their physics trials replayed from datagen/recipes/v2_physics_trials.npz,
