@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from export.leave_family_out import leave_family_out_metrics
 from vgq import atomic
 from vgq.camera import Intrinsics
 from vgq.crop import CropGeometry
@@ -62,22 +63,13 @@ def _copy_baseline_models(files: list[str], out: str) -> None:
 
 def _leave_family_out(path: str | None) -> dict:
     """``{"leave_family_out": metrics}`` from a `training evaluate` result of a leave-family-out run
-    (its ``held_out_families`` entry: the families never seen in training, their rows together)."""
+    (``export.leave_family_out``: its held-out families' rows together, and each of them)."""
     if path is None:
         return {}
     try:
-        r = json.loads(Path(path).read_text())
-        held = r["held_out_families"]
-    except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
-        raise ValueError(f"--leave-family-out {path}: not a `training evaluate` result ({e})") from None
-    if not held:
-        raise ValueError(f"--leave-family-out {path}: evaluated on a dataset without held-out families")
-    return {
-        "leave_family_out": {
-            **held,
-            "by_family": {f: r["by_family"][f] for f in held["families"] if f in r.get("by_family", {})},
-        }
-    }
+        return {"leave_family_out": leave_family_out_metrics(path)}
+    except ValueError as e:
+        raise ValueError(f"--leave-family-out {e}") from None
 
 
 def _sample(ds, order: tuple[str, ...], n: int, seed: int, arch: str):

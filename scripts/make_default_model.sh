@@ -62,7 +62,7 @@ main() {
     $PY -m training train --data "$DATA/crops_lfo" --out "$RUN-lfo" --samples "${SAMPLES_LFO:-1000000}" \
       "${TRAIN_OPTS[@]}"
     $PY -m training evaluate --run "$RUN-lfo" --data "$DATA/crops_lfo" "${EVAL_OPTS[@]}"
-    export_model --leave-family-out "$RUN-lfo/eval/metrics_test.json"  # the same model, its card with the LFO result
+    $PY -m export.leave_family_out --model-dir "$OUT" "$RUN-lfo/eval/metrics_test.json"  # into the card, no re-export
   fi
   cp "$RUN/eval/heatmap_test.png" "$RUN/eval/curves.png" "$OUT/"
   if [ "$VERSION" = v2 ]; then  # planned grasps' p_hold (the score mapped to how often planner candidates

@@ -244,13 +244,13 @@ def test_export_cli_records_recipe_and_pose_only_baseline(tmp_path):
     assert copied.read_bytes() == (tmp_path / "b" / "baseline_logreg.npz").read_bytes()
 
 
-def test_export_cli_records_the_leave_family_out_result(tmp_path, capsys):
+def _lfo_result(tmp_path, data, run) -> dict:
+    """`training evaluate` of ``run`` on a copy of ``data`` whose odd objects are a family ("mug")
+    held out of training: tmp_path / "lfo_eval" / "metrics_test.json"."""
     import shutil
 
-    from export.__main__ import main
     from training.evaluate import evaluate
 
-    data, run = _tiny_run(tmp_path)
     lfo = tmp_path / "lfo"
     shutil.copytree(data, lfo)
     m = json.loads((lfo / "manifest.json").read_text())
@@ -259,7 +259,15 @@ def test_export_cli_records_the_leave_family_out_result(tmp_path, capsys):
         "sampling": {"holdout_families": ["mug"]},
     }
     (lfo / "manifest.json").write_text(json.dumps(m))
-    rec = evaluate(run, lfo, "test", out_dir=tmp_path / "lfo_eval", progress=False)
+    return evaluate(run, lfo, "test", out_dir=tmp_path / "lfo_eval", progress=False)
+
+
+def test_export_cli_records_the_leave_family_out_result(tmp_path, capsys):
+    from export.__main__ import main
+    from training.evaluate import evaluate
+
+    data, run = _tiny_run(tmp_path)
+    rec = _lfo_result(tmp_path, data, run)
     assert rec["held_out_families"]["families"] == ["mug"]
     assert rec["held_out_families"]["n"] == rec["by_family"]["mug"]["n"]
     args = ["--run", str(run), "--data", str(data), "--out", str(tmp_path / "m"), "--verify-n", "4"]
@@ -271,6 +279,42 @@ def test_export_cli_records_the_leave_family_out_result(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         main([*args[:-3], str(tmp_path / "m2"), "--leave-family-out", str(tmp_path / "plain" / "metrics_test.json")])
     assert e.value.code == 2 and "without held-out families" in capsys.readouterr().err
+
+
+def test_leave_family_out_is_recorded_in_an_exported_card_and_nothing_else_changes(tmp_path, capsys):
+    from export.__main__ import main as export_main
+    from export.leave_family_out import main
+    from training.evaluate import evaluate
+
+    data, run = _tiny_run(tmp_path)
+    rec = _lfo_result(tmp_path, data, run)
+    result = str(tmp_path / "lfo_eval" / "metrics_test.json")
+    args = ["--run", str(run), "--data", str(data), "--verify-n", "4"]
+    export_main([*args, "--out", str(tmp_path / "m")])
+    export_main([*args, "--out", str(tmp_path / "at_export"), "--leave-family-out", result])
+    before = {f.name: f.read_bytes() for f in (tmp_path / "m").iterdir()}
+    card_before = json.loads(before["model_card.json"])
+    assert "leave_family_out" not in card_before["metrics"]
+
+    assert main(["--model-dir", str(tmp_path / "m"), result]) == 0
+    assert "balanced accuracy" in capsys.readouterr().out
+    card = json.loads((tmp_path / "m" / "model_card.json").read_text())
+    expected = ModelCard.load(tmp_path / "at_export").metrics["leave_family_out"]  # what export records
+    assert card["metrics"]["leave_family_out"] == expected
+    assert expected["balanced_accuracy"] == rec["held_out_families"]["balanced_accuracy"]
+    card["metrics"].pop("leave_family_out")
+    assert card == card_before  # every other key as exported
+    assert {f.name: f.read_bytes() for f in (tmp_path / "m").iterdir() if f.name != "model_card.json"} == {
+        k: v for k, v in before.items() if k != "model_card.json"
+    }
+
+    evaluate(run, data, "test", out_dir=tmp_path / "plain", progress=False)  # no held-out family
+    changed = (tmp_path / "m" / "model_card.json").read_bytes()
+    assert main(["--model-dir", str(tmp_path / "m"), str(tmp_path / "plain" / "metrics_test.json")]) == 2
+    assert "without held-out families" in capsys.readouterr().err
+    assert main(["--model-dir", str(tmp_path / "nothing"), result]) == 2
+    assert "no readable model card" in capsys.readouterr().err
+    assert (tmp_path / "m" / "model_card.json").read_bytes() == changed  # a refused call writes nothing
 
 
 def test_export_cli_refuses_baseline_of_another_dataset(tmp_path, capsys):
