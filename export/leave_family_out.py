@@ -21,18 +21,27 @@ from vgq import atomic
 from vgq.model_card import CARD_NAME, ModelCard
 
 
+def _read_result(path: str | Path) -> dict:
+    try:
+        r = json.loads(Path(path).read_text())
+        r["held_out_families"]
+    except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+        raise ValueError(f"{path}: not a `training evaluate` result ({e})") from None
+    return r
+
+
+def _metrics(r: dict, path: str | Path) -> dict:
+    held = r["held_out_families"]
+    if not held:
+        raise ValueError(f"{path}: evaluated on a dataset without held-out families")
+    return {**held, "by_family": {f: r["by_family"][f] for f in held["families"] if f in r.get("by_family", {})}}
+
+
 def leave_family_out_metrics(path: str | Path) -> dict:
     """The card's ``leave_family_out`` entry from a `training evaluate` result of a leave-family-out
     run (its held-out families' rows together, plus their own metrics under ``by_family``);
     ValueError naming the file when it is not such a result."""
-    try:
-        r = json.loads(Path(path).read_text())
-        held = r["held_out_families"]
-    except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
-        raise ValueError(f"{path}: not a `training evaluate` result ({e})") from None
-    if not held:
-        raise ValueError(f"{path}: evaluated on a dataset without held-out families")
-    return {**held, "by_family": {f: r["by_family"][f] for f in held["families"] if f in r.get("by_family", {})}}
+    return _metrics(_read_result(path), path)
 
 
 def record(model_dir: str | Path, result: str | Path) -> dict:
@@ -44,12 +53,11 @@ def record(model_dir: str | Path, result: str | Path) -> dict:
         arch = ModelCard.from_dict(d).architecture
     except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
         raise ValueError(f"{model_dir}: no readable model card ({e})") from None
-    lfo = leave_family_out_metrics(result)
-    run_arch = json.loads(Path(result).read_text()).get("arch")
-    if run_arch is not None and run_arch != arch:
-        raise ValueError(f"{result}: a {run_arch} run; the model in {model_dir} is {arch}")
+    r = _read_result(result)
+    lfo = _metrics(r, result)
+    if r.get("arch") not in (None, arch):
+        raise ValueError(f"{result}: a {r['arch']} run; the model in {model_dir} is {arch}")
     d.setdefault("metrics", {})["leave_family_out"] = lfo
-    ModelCard.from_dict(d)  # the service must be able to read it back
     atomic.write_json(card_path, d)
     return lfo
 
