@@ -2,8 +2,9 @@
 
 Starts ``python -m service`` on the bundled model, uploads the 54 held-out images of
 examples/heldout_images.npz (700 labelled grasps) clean, through the realistic depth-sensor
-model, with ~2% of the pixels zeroed in holes, at another focal length (fx x 1.4) and with the
-content shifted off centre, and prints the balanced accuracy of ``raw_score`` at 0.5 for each
+model, with ~2% of the pixels zeroed in holes, at another focal length (fx x 1.4), with the
+content shifted off centre and from a camera rolled about its optical axis (with and without
+its up direction), and prints the balanced accuracy of ``raw_score`` at 0.5 for each
 (``p_success`` is calibrated to the native positivity: rank by it, do not threshold it at 0.5).
 Then NaN pixels, an all-zero image and malformed grasps, which must be clear 422s, and a plan on
 an object family the v1 model never saw.
@@ -28,7 +29,8 @@ sys.path.insert(0, str(ROOT))
 
 from datagen.sensor import resolve  # noqa: E402
 from service.client import ServiceClient, ServiceError  # noqa: E402
-from vgq.camera import DEFAULT_INTRINSICS  # noqa: E402
+from vgq.camera import DEFAULT_INTRINSICS, level_depth, leveled_intrinsics, map_pixels, roll_matrix  # noqa: E402
+from vgq.pose import roll_quaternions  # noqa: E402
 
 
 def balanced_accuracy(p: np.ndarray, y: np.ndarray) -> float:
@@ -36,14 +38,14 @@ def balanced_accuracy(p: np.ndarray, y: np.ndarray) -> float:
     return 0.5 * ((pred & y).sum() / max(y.sum(), 1) + (~pred & ~y).sum() / max((~y).sum(), 1))
 
 
-def run(client, data, name, depth_fn, grasp_fn=lambda g: g, intrinsics=None) -> None:
+def run(client, data, name, depth_fn, grasp_fn=lambda g: g, intrinsics=None, up=None) -> None:
     scores, labels, refused = [], [], []
     for i in range(len(data["depth"])):
         rows = data["image_index"] == i
         if not rows.any():
             continue
         try:
-            image_id = client.upload(depth_fn(data["depth"][i].astype(np.float32), i), intrinsics=intrinsics)
+            image_id = client.upload(depth_fn(data["depth"][i].astype(np.float32), i), intrinsics=intrinsics, up=up)
             r = client.score_details(image_id, grasp_fn(data["grasps"][rows].copy()))
         except ServiceError as e:
             refused.append(str(e)[:110])
@@ -123,6 +125,30 @@ def main() -> int:
             lambda d, i: cv2.warpAffine(d, shift, (300, 300), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE),
             shifted,
         )
+        for deg in (30, 90):  # the camera rolled about its optical axis: rows no longer level
+            beta = np.radians(deg)
+            rolled = leveled_intrinsics(DEFAULT_INTRINSICS, beta)
+
+            def turned(g, beta=beta, rolled=rolled):
+                g[:, :2] = map_pixels(g[:, :2], DEFAULT_INTRINSICS, rolled, beta)
+                g[:, 3:7] = roll_quaternions(g[:, 3:7], beta)
+                return g
+
+            camera = {k: getattr(rolled, k) for k in ("fx", "fy", "cx", "cy")}
+            up = roll_matrix(beta).T @ np.array([0.0, -0.5, -0.866])  # any level camera's up, seen rolled
+            for name, given in (
+                (f"camera rolled {deg} deg, up not given", None),
+                (f"camera rolled {deg} deg, up given", up),
+            ):
+                run(
+                    client,
+                    data,
+                    name,
+                    lambda d, i, beta=beta: level_depth(d, DEFAULT_INTRINSICS, beta)[0],
+                    turned,
+                    camera,
+                    given,
+                )
         run(
             client,
             data,

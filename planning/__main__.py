@@ -76,6 +76,14 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--model", default=DEFAULT_MODEL, help="model folder (default: %(default)s)")
     for name in ("fx", "fy", "cx", "cy"):
         ap.add_argument(f"--{name}", type=float, default=None, help=f"{name} in pixels (default: the model's camera)")
+    ap.add_argument(
+        "--up",
+        type=float,
+        nargs=3,
+        metavar=("X", "Y", "Z"),
+        help="the world's up direction in the camera frame (x right, y down, z forward): the image is turned level "
+        "about the optical axis (default: the camera is taken as level)",
+    )
     ap.add_argument("--k", type=int, default=5, help=f"grasps to return, 1 to {MAX_K} (default: %(default)s)")
     ap.add_argument("--roi", help="region of interest u0,v0,u1,v1 in pixels (inclusive)")
     ap.add_argument("--seed", type=int, default=0, help="sampling seed (default: %(default)s)")
@@ -112,7 +120,7 @@ def main(argv=None) -> int:
         model = FastModel(args.model, threads=args.threads)
         intr = camera_for(depth.shape, model.card.intrinsics, args.fx, args.fy, args.cx, args.cy)
         params = dataclasses.replace(PlanParams(), cem_iterations=args.cem)
-        result = plan(depth, intr, model, k=args.k, roi=roi, seed=args.seed, params=params)
+        result = plan(depth, intr, model, k=args.k, roi=roi, seed=args.seed, params=params, up=args.up)
     except (InputError, ModelError) as e:
         print(f"vgq-plan: error: {e}", file=sys.stderr)
         return 2

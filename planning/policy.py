@@ -1,9 +1,9 @@
 """Plan grasps: sample, score with Fast-VGQ-CNN on cached windows, refine, suppress, rank.
 
 :func:`plan` is the entry point an endpoint or the CLI calls. The image is first resampled
-to the model's focal lengths (:func:`vgq.camera.resample_depth`); grasps are planned and
-scored there and returned in the caller's pixels (the camera frame, z, q, the pose and
-the contacts do not depend on the pixel grid).
+to the model's focal lengths (:func:`vgq.camera.resample_depth`) and, given the world's up
+direction, turned level about the optical axis (:func:`vgq.camera.level_depth`); grasps are
+planned and scored there and returned in the caller's pixels and camera frame.
 """
 
 from __future__ import annotations
@@ -14,12 +14,22 @@ from typing import Protocol
 import numpy as np
 from PIL import Image
 
-from vgq.camera import CameraMismatch, Intrinsics, focal_lengths, map_pixels, project, resample_depth
+from vgq.camera import (
+    CameraMismatch,
+    Intrinsics,
+    focal_lengths,
+    level_depth,
+    level_roll,
+    map_pixels,
+    project,
+    resample_depth,
+    roll_matrix,
+)
 from vgq.crop import grid_window_centers, pose_uv, window_center, window_origin
 from vgq.inpaint import crop_filled
 from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT
 from vgq.ood import flag_names, ood_flags
-from vgq.pose import quaternion_from_matrix
+from vgq.pose import canonical_quaternion, quaternion_from_matrix, roll_quaternions
 
 from .calibration import p_hold as hold_probability
 from .cloud import valid_mask
@@ -361,14 +371,16 @@ def plan(
     roi=None,
     seed: int | None = 0,
     params: PlanParams | None = None,
+    up=None,
 ) -> PlanResult:
     """The best ``k`` distinct grasps on ``depth`` (H, W, metres, 0 = no reading) taken with
     ``intrinsics`` (None: the model's camera), scored by ``model`` (a
     :class:`service.runtime.FastModel`); ``roi`` a box (u0, v0, u1, v1) or (H, W) mask of
-    the caller's image where grasps may lie; ``seed`` makes the sampling repeatable.
+    the caller's image where grasps may lie; ``seed`` makes the sampling repeatable; ``up``
+    (3,) the world's up direction in the camera frame (None: the camera is level).
 
-    Raises :class:`PlanningError` (field ``depth``, ``intrinsics``, ``k``, ``roi`` or
-    ``seed``) for input it cannot plan on. When no grasp is found the result has no grasps
+    Raises :class:`PlanningError` (field ``depth``, ``intrinsics``, ``k``, ``roi``, ``seed``
+    or ``up``) for input it cannot plan on. When no grasp is found the result has no grasps
     and a ``reason``."""
     t0 = time.perf_counter()
     model_intr = model.card.intrinsics
@@ -380,10 +392,15 @@ def plan(
     if roi_m is not None and not (roi_m & valid_mask(d)).any():
         raise PlanningError("roi", "the region of interest has no valid depth")
     try:
+        roll = 0.0 if up is None else level_roll(up)
+    except ValueError as e:
+        raise PlanningError("up", str(e)) from None
+    try:
         d_model, intr = resample_depth(np.where(np.isfinite(d), d, 0.0).astype(np.float32), cam, model_intr)
     except CameraMismatch as e:
         raise PlanningError("intrinsics", str(e)) from None
-    return plan_resampled(d_model, intr, cam, model, k, roi_m, seed, params, started=t0)
+    d_model, intr = level_depth(d_model, intr, roll)
+    return plan_resampled(d_model, intr, cam, model, k, roi_m, seed, params, started=t0, roll=roll)
 
 
 def plan_resampled(
@@ -397,6 +414,7 @@ def plan_resampled(
     params: PlanParams | None = None,
     windows: WindowStore | None = None,
     started: float | None = None,
+    roll: float = 0.0,
 ) -> PlanResult:
     """:func:`plan` on an image already at the model's focal lengths: ``depth`` (H', W')
     metres (0 = no reading) with ``intrinsics`` (what :func:`vgq.camera.resample_depth`
@@ -404,7 +422,9 @@ def plan_resampled(
     pixels ``roi`` is given and the grasps are answered. ``windows``: encoded windows of
     this image kept between plans (:class:`WindowStore`): those it holds are not encoded
     again (``counts["windows_reused"]``), the new ones are added. ``started``: the
-    ``perf_counter`` time the request began (``seconds["resample"]`` runs from it)."""
+    ``perf_counter`` time the request began (``seconds["resample"]`` runs from it). ``roll``:
+    radians ``depth`` was turned about the optical axis from ``camera`` to be level
+    (:func:`vgq.camera.level_depth`); the grasps are answered in ``camera``'s frame."""
     params = params or PlanParams()
     t0 = time.perf_counter() if started is None else started
     k = check_k(k)
@@ -418,7 +438,14 @@ def plan_resampled(
     if not valid_mask(d_model).any():
         raise PlanningError("depth", "the image has no valid depth (every pixel is 0 or non-finite)")
     roi_m = roi_mask(roi, (cam.height, cam.width))
-    if roi_m is not None and intr != cam:
+    if roi_m is not None and roll != 0.0:  # each level pixel takes the mask's value at its ray's pixel
+        u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
+        src = np.rint(map_pixels(np.stack([u.ravel(), v.ravel()], axis=1), intr, cam, -roll)).astype(np.int64)
+        inside = (src >= 0).all(axis=1) & (src[:, 0] < cam.width) & (src[:, 1] < cam.height)
+        m = np.zeros(len(src), dtype=bool)
+        m[inside] = roi_m[src[inside, 1], src[inside, 0]]
+        roi_m = m.reshape(intr.height, intr.width)
+    elif roi_m is not None and intr != cam:
         img = Image.fromarray(roi_m.astype(np.uint8) * 255).resize((intr.width, intr.height), Image.Resampling.NEAREST)
         roi_m = np.asarray(img) > 127
     if roi_m is not None and not (roi_m & valid_mask(d_model)).any():
@@ -473,17 +500,24 @@ def plan_resampled(
     top = cands[keep]
     rows = grasp_rows(top.frames, intr)
     flags = ood_flags(rows, d_model, z_training_range(model), missing[keep] > params.window_missing_fraction)
-    uv = map_pixels(rows[:, :2], intr, cam) if intr != cam else rows[:, :2]
+    uv = map_pixels(rows[:, :2], intr, cam, -roll) if intr != cam or roll != 0.0 else rows[:, :2]
     p_hold = hold_probability(cal, {k: v[keep] for k, v in feats.items()}) if cal is not None else [None] * len(keep)
+    q, frames, contacts = rows[:, 3:7], top.frames, top.contacts
+    if roll != 0.0:  # from the level camera's frame back to the caller's
+        R = roll_matrix(roll)
+        q = canonical_quaternion(roll_quaternions(q, -roll))
+        frames = frames.copy()
+        frames[:, :3, :] = np.einsum("ij,njk->nik", R, frames[:, :3, :])
+        contacts = contacts @ R.T
     grasps = tuple(
         PlannedGrasp(
             u=float(uv[i, 0]),
             v=float(uv[i, 1]),
             z=float(rows[i, 2]),
-            q=tuple(float(x) for x in rows[i, 3:7]),
-            pose=top.frames[i].copy(),
+            q=tuple(float(x) for x in q[i]),
+            pose=frames[i].copy(),
             width=float(top.widths[i]),
-            contacts=top.contacts[i].copy(),
+            contacts=contacts[i].copy(),
             score=float(scores[keep[i]]),
             ood_flags=int(flags[i]),
             ood=tuple(flag_names(int(flags[i]))),

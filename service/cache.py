@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vgq.camera import Intrinsics
+from vgq.camera import Intrinsics, footprint
 
 ENTRY_OVERHEAD_BYTES = 512  # key, object headers, intrinsics
 WINDOW_OVERHEAD_BYTES = 128  # dict slot, origin tuple, missing fraction
@@ -44,13 +44,18 @@ class CachedImage:
     ``depth`` (H', W') float32 metres, 0 = no reading (kept to encode new windows and flag
     grasps on missing pixels). ``fixed_center``: the one window centre (resampled px) when
     the upload named one (``center_u`` / ``center_v``); None = windows on the training grid.
-    ``assumed``: the intrinsics the client did not send (model's focal lengths, image centre)."""
+    ``assumed``: the intrinsics the client did not send (model's focal lengths, image centre).
+    ``up``: the world's up direction in the client's camera frame as sent (None: not sent);
+    ``roll``: radians the image was turned about the optical axis to be level
+    (``vgq.camera.level_roll``; ``resampled`` is then the level camera's canvas)."""
 
     depth: np.ndarray
     camera: Intrinsics
     resampled: Intrinsics
     assumed: tuple[str, ...] = ()
     fixed_center: np.ndarray | None = None
+    up: tuple[float, float, float] | None = None
+    roll: float = 0.0
     windows: dict[Origin, EncodedWindow] = field(default_factory=dict)
 
     @property
@@ -60,15 +65,20 @@ class CachedImage:
 
     @property
     def scale(self) -> tuple[float, float]:
-        """(sx, sy): resampled pixels per client pixel."""
-        return self.resampled.width / self.camera.width, self.resampled.height / self.camera.height
+        """(sx, sy): resampled pixels per client pixel (the focal lengths' ratios)."""
+        if self.roll == 0.0:
+            return self.resampled.width / self.camera.width, self.resampled.height / self.camera.height
+        return self.resampled.fx / self.camera.fx, self.resampled.fy / self.camera.fy
 
     @property
     def missing_fraction(self) -> float:
-        """Share of the image's pixels (grid mode) or of the fixed window's (fixed mode) without a reading."""
+        """Share of the image's pixels (grid mode) or of the fixed window's (fixed mode) without a
+        reading (of a level canvas: of the pixels the image covers)."""
         if self.fixed_center is not None and len(self.windows) == 1:
             return next(iter(self.windows.values())).missing_fraction
-        return float(np.mean(self.depth <= 0))
+        if self.roll == 0.0:
+            return float(np.mean(self.depth <= 0))
+        return float(np.mean(self.depth[footprint(self.resampled, self.camera, self.roll)] <= 0))
 
     @property
     def nbytes(self) -> int:

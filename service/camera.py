@@ -1,8 +1,11 @@
 """The client's camera at the HTTP edge: intrinsics from the request (the model's assumed
-where omitted), checked and applied by the shared contract (``vgq.camera``: the image is
-resampled to the model's focal lengths); ``CameraMismatch`` becomes a 422 naming the field."""
+where omitted) and, optionally, the world's up direction in its frame, checked and applied by
+the shared contract (``vgq.camera``: the image is resampled to the model's focal lengths and
+turned level); ``CameraMismatch`` becomes a 422 naming the field."""
 
 from __future__ import annotations
+
+from math import degrees
 
 import numpy as np
 
@@ -12,6 +15,9 @@ from vgq.camera import (
     Intrinsics,
     check_client_intrinsics,
     focal_lengths,
+    level_depth,
+    level_roll,
+    leveled_intrinsics,
     resample_depth,
     resampled_intrinsics,
 )
@@ -35,17 +41,39 @@ def client_camera(numbers: dict, shape: tuple[int, int], model: Intrinsics) -> t
         raise ApiError(422, f"invalid intrinsics: {e}") from None
 
 
+def client_up(numbers: dict) -> tuple[tuple[float, float, float] | None, float]:
+    """(the request's ``up_x``, ``up_y``, ``up_z`` or None, the roll in radians that levels the
+    camera: ``vgq.camera.level_roll``). 422 naming the field when only some are given or the
+    vector is zero."""
+    names = ("up_x", "up_y", "up_z")
+    vals = [numbers.get(k) for k in names]
+    if all(v is None for v in vals):
+        return None, 0.0
+    missing = [k for k, v in zip(names, vals) if v is None]
+    if missing:
+        raise ApiError(
+            422,
+            f"field {missing[0]}: the up direction needs all three of up_x, up_y, up_z "
+            "(the world's up in the camera frame), or none",
+            {"field": missing[0]},
+        )
+    try:
+        return (float(vals[0]), float(vals[1]), float(vals[2])), level_roll(vals)
+    except ValueError as e:
+        raise ApiError(422, f"field up_x: {e}", {"field": "up_x"}) from None
+
+
 def focal_range(model: Intrinsics) -> dict:
     """Focal lengths (px) this model serves, per axis: the image is resampled by model / camera."""
     lo, hi = FOCAL_RATIO_RANGE
     return {"fx": [model.fx / hi, model.fx / lo], "fy": [model.fy / hi, model.fy / lo]}
 
 
-def check_resampled_side(camera: Intrinsics, model: Intrinsics, max_side: int) -> None:
+def check_resampled_side(camera: Intrinsics, model: Intrinsics, max_side: int, roll: float = 0.0) -> None:
     """422 (field ``fx``) when ``camera``'s image resampled to ``model``'s focal lengths would
     exceed ``max_side`` px a side (a camera with a shorter focal length is resampled up: the
-    bound on uploads holds for what is computed on). CameraMismatch when the model cannot
-    serve the camera."""
+    bound on uploads holds for what is computed on), or (field ``up_x``) when turning it level
+    by ``roll`` radians would. CameraMismatch when the model cannot serve the camera."""
     sx, sy = check_client_intrinsics(camera, model)
     dst = resampled_intrinsics(camera, sx, sy)
     if max(dst.width, dst.height) > max_side:
@@ -55,17 +83,30 @@ def check_resampled_side(camera: Intrinsics, model: Intrinsics, max_side: int) -
             f"over max_image_side {max_side}; send a smaller image",
             {"field": "fx"},
         )
+    lev = leveled_intrinsics(dst, roll)
+    if max(lev.width, lev.height) > max_side:
+        raise ApiError(
+            422,
+            f"the image turned level (roll {degrees(roll):.1f} deg) would be {lev.width}x{lev.height} px, "
+            f"over max_image_side {max_side}; send a smaller image",
+            {"field": "up_x"},
+        )
 
 
 def to_model_camera(
-    depth: np.ndarray, camera: Intrinsics, model: Intrinsics, max_side: int, assumed: tuple[str, ...] = ()
+    depth: np.ndarray,
+    camera: Intrinsics,
+    model: Intrinsics,
+    max_side: int,
+    assumed: tuple[str, ...] = (),
+    roll: float = 0.0,
 ) -> tuple[np.ndarray, Intrinsics]:
-    """(depth at the model's focal lengths, its intrinsics); 422 naming the field the model
-    cannot serve (focal length outside the range, principal point outside the image) or when
-    the resampled image would exceed ``max_side``."""
+    """(depth at the model's focal lengths, turned level by ``roll`` radians, its intrinsics);
+    422 naming the field the model cannot serve (focal length outside the range, principal
+    point outside the image) or when the image computed on would exceed ``max_side``."""
     try:
-        check_resampled_side(camera, model, max_side)
-        return resample_depth(depth, camera, model)
+        check_resampled_side(camera, model, max_side, roll)
+        return level_depth(*resample_depth(depth, camera, model), roll)
     except CameraMismatch as e:
         field, note = e.field, ""
         if field in assumed and field in ("fx", "fy"):  # derived from the other one, which is what was sent

@@ -39,6 +39,16 @@ def intrinsics_params(intrinsics) -> dict:
     return dict(zip(("fx", "fy", "cx", "cy"), (float(x) for x in intrinsics)))
 
 
+def up_params(up) -> dict:
+    """``{"up_x": ..., "up_y": ..., "up_z": ...}`` of the world's up direction (3 numbers, camera frame; None: {})."""
+    if up is None:
+        return {}
+    u = [float(x) for x in np.asarray(up, dtype=np.float64).reshape(-1)]
+    if len(u) != 3:
+        raise ValueError(f"up must be 3 numbers (the world's up direction in the camera frame), got {len(u)}")
+    return dict(zip(("up_x", "up_y", "up_z"), u))
+
+
 @dataclass(frozen=True)
 class Plan:
     """The answer of ``POST /v1/plan`` (or ``/v1/images/{id}/plan``): ``grasps`` best first,
@@ -152,12 +162,14 @@ class ServiceClient:
         np.save(buf, np.ascontiguousarray(a, dtype=np.float32), allow_pickle=False)
         return buf.getvalue()
 
-    def upload(self, depth: np.ndarray, center: tuple[float, float] | None = None, intrinsics=None) -> str:
+    def upload(self, depth: np.ndarray, center: tuple[float, float] | None = None, intrinsics=None, up=None) -> str:
         """Upload a (H, W) depth image in metres; returns its id. ``intrinsics``: the camera's
         (fx, fy, cx, cy) px. ``center``: one fixed crop window centre (u, v) px (default: grasps
-        anywhere, windows placed by the service)."""
+        anywhere, windows placed by the service). ``up``: the world's up direction in the camera
+        frame, e.g. ``R_world_camera.T @ (0, 0, 1)`` (default: the camera is taken as level)."""
         params = {} if center is None else {"center_u": center[0], "center_v": center[1]}
         params.update(intrinsics_params(intrinsics))
+        params.update(up_params(up))
         r = self._request(
             "POST", "/v1/images", content=self._npy(depth), params=params, headers={"content-type": "application/x-npy"}
         )
@@ -215,9 +227,10 @@ class ServiceClient:
         intrinsics=None,
         strict: bool = False,
         details: bool = False,
+        up=None,
     ):
         """Upload + score in one request (fills the service's cache too): (k,) float32 p_success,
-        or the whole answer (see ``score_details``) with ``details=True``."""
+        or the whole answer (see ``score_details``) with ``details=True``. ``up`` as for ``upload``."""
         arrays = {"depth": np.asarray(depth, np.float32), "grasps": np.asarray(grasps, np.float32)}
         if center is not None:
             arrays["center"] = np.asarray(center, np.float64)
@@ -226,6 +239,8 @@ class ServiceClient:
             if len(intr) != 4:
                 raise ValueError("score_once needs all four intrinsics (fx, fy, cx, cy) or none")
             arrays["intrinsics"] = np.array([intr[k] for k in ("fx", "fy", "cx", "cy")], np.float64)
+        if up is not None:
+            arrays["up"] = np.array(list(up_params(up).values()), np.float64)
         buf = io.BytesIO()
         np.savez(buf, **arrays)
         accept = {} if details else {"accept": "application/octet-stream"}
@@ -252,6 +267,7 @@ class ServiceClient:
         cem: int = 0,
         *,
         image_id: str | None = None,
+        up=None,
     ) -> Plan:
         """The best ``k`` grasps on a (H, W) depth image in metres (0 = no reading), or on the
         image ``upload`` answered ``image_id`` for (one of the two; nothing is sent again and
@@ -259,12 +275,17 @@ class ServiceClient:
         (as for ``upload``: a tuple, a mapping or ``vgq.camera.Intrinsics``; default:
         the model's; with ``image_id`` the upload's, which they may repeat, not change);
         ``roi``: (u0, v0, u1, v1) px where grasps may lie; ``seed``: repeatable sampling;
-        ``cem``: refinement iterations. Raises ServiceError (422 naming the field) for input
+        ``cem``: refinement iterations; ``up``: the world's up direction in the camera frame
+        (as for ``upload``; with ``image_id`` the upload's is used). Raises ServiceError (422 naming the field) for input
         it cannot plan on, 404 for an unknown or evicted ``image_id``."""
         if (depth is None) == (image_id is None):
             raise ValueError("plan needs a depth image or an image_id (one of the two)")
         params: dict = {"k": k, "seed": seed, "cem": cem}
         params.update({name: repr(v) for name, v in intrinsics_params(intrinsics).items()})
+        if image_id is None:
+            params.update({name: repr(v) for name, v in up_params(up).items()})
+        elif up is not None:
+            raise ValueError("plan on an image_id uses the up direction given at upload; do not pass up")
         if roi is not None:
             params["roi"] = ",".join(repr(float(x)) for x in roi)
         if image_id is not None:

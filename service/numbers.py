@@ -112,9 +112,18 @@ FY = Number(
 CX = Number("cx", "the camera's principal point, column (image px); must lie in the image; default: the image centre")
 CY = Number("cy", "the camera's principal point, row (image px); must lie in the image; default: the image centre")
 INTRINSICS = (FX, FY, CX, CY)
+_UP = (
+    "component of the world's up direction (against gravity) in the camera frame (x right, y down, z along "
+    "the principal ray; any length; all three or none): the image is turned about the optical axis so its rows "
+    "are level, as the training cameras' were; default: the camera is taken as level"
+)
+UP_X = Number("up_x", f"x {_UP}")
+UP_Y = Number("up_y", f"y {_UP}")
+UP_Z = Number("up_z", f"z {_UP}")
+UP = (UP_X, UP_Y, UP_Z)
 
 #: the numeric query parameters of an upload, and the numeric fields of a multipart one-shot
-UPLOAD_NUMBERS = (CENTER_U, CENTER_V, WIDTH, HEIGHT, *INTRINSICS)
+UPLOAD_NUMBERS = (CENTER_U, CENTER_V, WIDTH, HEIGHT, *INTRINSICS, *UP)
 ONE_SHOT_NUMBERS = UPLOAD_NUMBERS
 
 TRUE, FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")

@@ -30,11 +30,12 @@ from .numbers import (
     CENTER_V,
     INTRINSICS,
     ONE_SHOT_NUMBERS,
+    UP,
     parse_all,
     request_key,
 )
 
-MAX_PARTS = 12  # depth, grasps and up to 8 numeric fields (width, height, fx, fy, cx, cy, center_u, center_v)
+MAX_PARTS = 16  # depth, grasps and up to 11 numeric fields (the image size, intrinsics, window centre, up)
 MAX_PART_HEADER_BYTES = 4096
 
 
@@ -205,5 +206,11 @@ def parse_npz(body, max_total_bytes: int, max_side: int, max_grasps: int) -> One
         if intr.shape != (4,):
             raise ApiError(422, "intrinsics must hold 4 values (fx, fy, cx, cy) px")
         for number, value in zip(INTRINSICS, intr):
+            numbers[number.name] = number.parse(value)
+    if "up" in members:
+        up = parse_npy(members["up"], "up", 3).reshape(-1)
+        if up.shape != (3,):
+            raise ApiError(422, "up must hold 3 values (the world's up direction in the camera frame)")
+        for number, value in zip(UP, up):
             numbers[number.name] = number.parse(value)
     return OneShot(members["depth"], NPY_TYPES[0], grasps.astype(np.float64), numbers, depth)

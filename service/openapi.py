@@ -135,7 +135,20 @@ _CAMERA = {
             "intrinsics": _INTR,
         },
     },
+    "level": {
+        "type": "object",
+        "description": "the world's up direction as sent (up_x, up_y, up_z; null: not sent, the camera taken as "
+        "level), the roll (deg) the image was turned about the optical axis to make its rows level as the training "
+        "cameras' were (0 under 0.5 deg or looking straight down), and the camera's tilt from straight down (deg; "
+        "the training cameras': 0 to 70)",
+        "properties": {
+            "up": {"type": ["array", "null"], "items": {"type": "number"}},
+            "roll_deg": {"type": "number"},
+            "tilt_deg": {"type": ["number", "null"]},
+        },
+    },
 }
+_NOT_LEVELLED = {"up": None, "roll_deg": 0.0, "tilt_deg": None}
 _CAMERA_EXAMPLE = {
     "intrinsics": {"fx": 615.0, "fy": 615.0, "cx": 319.5, "cy": 239.5},
     "intrinsics_assumed": [],
@@ -144,6 +157,7 @@ _CAMERA_EXAMPLE = {
         "scale": [0.853125, 0.8541666666666666],
         "intrinsics": {"fx": 524.671875, "fy": 525.3125, "cx": 272.5, "cy": 204.5},
     },
+    "level": _NOT_LEVELLED,
 }
 UPLOAD_RESPONSE = {
     "description": "The image's id (content-addressed), its camera, and how grasps get windows: `grid` (anywhere in "
@@ -208,6 +222,7 @@ UPLOAD_RESPONSE = {
                             "scale": [1.0, 1.0],
                             "intrinsics": {"fx": 525.0, "fy": 525.0, "cx": 149.5, "cy": 149.5},
                         },
+                        "level": _NOT_LEVELLED,
                         "windows": "fixed",
                         "window_center": [149.5, 149.5],
                         "grasp_range": {"u": [113.5, 185.5], "v": [113.5, 185.5]},
@@ -431,6 +446,7 @@ PLAN_EXAMPLE = {  # vgq-plan examples/depth_example.npy --k 1 on the bundled mod
     "seed": 0,
     "cem": 0,
     "intrinsics": {"fx": 525.0, "fy": 525.0, "cx": 149.5, "cy": 149.5, "width": 300, "height": 300},
+    "level": _NOT_LEVELLED,
 }
 PLAN_RESPONSE = {
     "description": "The best k distinct grasps, best first; none (with a reason) when the image has nothing to grasp.",
@@ -479,6 +495,7 @@ PLAN_RESPONSE = {
                         "description": "the camera the image was planned with (px)",
                     },
                     "image_id": {"type": "string", "description": "the image planned on (a JSON body only)"},
+                    "level": _CAMERA["level"],
                     "intrinsics_assumed": {
                         **_CAMERA["intrinsics_assumed"],
                         "description": "intrinsics not sent at upload (a JSON body only)",

@@ -28,17 +28,17 @@ from fastapi import APIRouter, Request
 
 from planning.policy import camera_for, plan, plan_resampled
 from planning.types import MAX_K, PlanningError, PlanParams
-from vgq.camera import CameraMismatch
+from vgq.camera import CameraMismatch, describe_level
 
 from . import openapi as doc
 from .body import ClientGone, read_body
 from .cache import CachedImage, EncodedWindow
-from .camera import check_resampled_side
+from .camera import check_resampled_side, client_up
 from .depth_io import decode_depth
 from .errors import ApiError
 from .limits import RETRY_AFTER_S
 from .media import JSON, media_type
-from .numbers import HEIGHT, WIDTH, Number, parse_all
+from .numbers import HEIGHT, UP, WIDTH, Number, parse_all
 from .routes import Authorized, json_response
 from .scoring import Service
 
@@ -75,7 +75,7 @@ ROI = tuple(
     Number(f"roi[{i}]", f"region of interest {name} (px)", minimum=0.0)
     for i, name in enumerate(("u0", "v0", "u1", "v1"))
 )
-PLAN_NUMBERS = (K, FX, FY, CX, CY, SEED, CEM, WIDTH, HEIGHT)
+PLAN_NUMBERS = (K, FX, FY, CX, CY, SEED, CEM, WIDTH, HEIGHT, *UP)
 #: the query of a plan on an uploaded image (no body to describe: no width / height)
 IMAGE_PLAN_NUMBERS = (K, FX, FY, CX, CY, SEED, CEM)
 
@@ -255,6 +255,8 @@ async def plan_cached(svc: Service, request: Request, image_id: str, n: dict, ro
             seed,
             params,
             store,
+            None,
+            entry.roll,
         )
     except PlanningError as e:
         raise ApiError(422, f"{e.field}: {e}", {"field": e.field}) from None
@@ -267,6 +269,7 @@ async def plan_cached(svc: Service, request: Request, image_id: str, n: dict, ro
         entry.camera.to_dict(),
         image_id=image_id,
         intrinsics_assumed=list(entry.assumed),
+        level=describe_level(entry.up, entry.roll),
     )
 
 
@@ -294,16 +297,17 @@ async def plan_grasps(request: Request, svc: Authorized):
         return await plan_cached(svc, request, body_image_id(body), n, roi)
     depth = decode_depth(body, ct, width=n["width"], height=n["height"], max_side=s.max_image_side)
     k, seed, params = plan_params(n)
+    up, roll = client_up(n)
     try:
         intr = camera_for(depth.shape, svc.model.card.intrinsics, n["fx"], n["fy"], n["cx"], n["cy"])
         try:
-            check_resampled_side(intr, svc.model.card.intrinsics, s.max_image_side)  # as for uploads
+            check_resampled_side(intr, svc.model.card.intrinsics, s.max_image_side, roll)  # as for uploads
         except CameraMismatch:
             pass  # the planner names it (field intrinsics)
-        result = await run_plan(svc, request, plan, depth, intr, svc.model, k, roi, seed, params)
+        result = await run_plan(svc, request, plan, depth, intr, svc.model, k, roi, seed, params, up)
     except PlanningError as e:
         raise ApiError(422, f"{e.field}: {e}", {"field": e.field}) from None
-    return plan_answer(svc, result, k, seed, params, intr.to_dict())
+    return plan_answer(svc, result, k, seed, params, intr.to_dict(), level=describe_level(up, roll))
 
 
 @router.post(

@@ -55,6 +55,8 @@ def pack_entry(entry: CachedImage) -> bytes:
         "resampled": entry.resampled.to_dict(),
         "assumed": list(entry.assumed),
         "fixed_center": None if entry.fixed_center is None else [float(x) for x in entry.fixed_center],
+        "up": None if entry.up is None else list(entry.up),
+        "roll": entry.roll,
     }
     m = orjson.dumps(meta)
     depth = zlib.compress(np.ascontiguousarray(entry.depth, dtype="<f4").tobytes(), 1)
@@ -82,6 +84,8 @@ def unpack_entry(data: bytes) -> CachedImage:
             Intrinsics.from_dict(meta["resampled"]),
             tuple(meta["assumed"]),
             None if fc is None else np.array(fc, dtype=np.float64),
+            None if meta.get("up") is None else tuple(float(x) for x in meta["up"]),
+            float(meta.get("roll", 0.0)),  # entries of replicas that predate the up direction: level
         )
     except (orjson.JSONDecodeError, zlib.error, KeyError, TypeError) as e:
         raise ValueError(f"cache entry is corrupt: {e}") from None

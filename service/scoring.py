@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import anyio
 import numpy as np
 
-from vgq.camera import map_pixels
+from vgq.camera import describe_level, map_pixels
 from vgq.crop import (
     crop_window,
     grid_window_centers,
@@ -23,10 +23,11 @@ from vgq.crop import (
 from vgq.grasps import GraspError, pose_rows
 from vgq.inpaint import missing_mask
 from vgq.ood import flag_names, ood_flags
+from vgq.pose import roll_quaternions
 
 from . import logs
 from .cache import CachedImage, EncodedWindow, MemoryCache
-from .camera import client_camera, to_model_camera
+from .camera import client_camera, client_up, to_model_camera
 from .config import Settings
 from .errors import ApiError
 from .metrics import Metrics
@@ -141,6 +142,7 @@ class Service:
         yet encoded; with ``center_u`` / ``center_v`` (client px) its one fixed window placed."""
         model = self.model.card.intrinsics
         camera, assumed = client_camera(numbers, depth.shape, model)
+        up, roll = client_up(numbers)
         cu, cv = numbers.get("center_u"), numbers.get("center_v")
         if cu is not None or cv is not None:
             h, w = depth.shape
@@ -152,10 +154,10 @@ class Service:
                     f"window centre ({cu}, {cv}) must lie inside the {h}x{w} image "
                     f"(u in [0, {w - 1}], v in [0, {h - 1}])",
                 )
-        resampled_depth, resampled = to_model_camera(depth, camera, model, self.settings.max_image_side, assumed)
-        entry = CachedImage(resampled_depth, camera, resampled, assumed)
+        resampled_depth, resampled = to_model_camera(depth, camera, model, self.settings.max_image_side, assumed, roll)
+        entry = CachedImage(resampled_depth, camera, resampled, assumed, up=up, roll=roll)
         if cu is not None:
-            c = map_pixels([[cu, cv]], camera, resampled)[0]
+            c = map_pixels([[cu, cv]], camera, resampled, roll)[0]
             geom = self.model.geometry
             origin = window_origin(c, geom)
             entry.fixed_center = window_center(origin, geom)
@@ -180,9 +182,11 @@ class Service:
         if g.ndim != 2 or g.shape[1] != 7:
             raise grasp_error(GraspError(f"grasps must be (k, 7) rows u, v, z, qw, qx, qy, qz; got shape {g.shape}"))
         geom = self.model.geometry
-        uv = map_pixels(g[:, :2], entry.camera, entry.resampled)
+        uv = map_pixels(g[:, :2], entry.camera, entry.resampled, entry.roll)
         mapped = g.copy()
         mapped[:, :2] = uv
+        if entry.roll != 0.0:  # orientations in the level camera's frame
+            mapped[:, 3:7] = roll_quaternions(g[:, 3:7], entry.roll)
         finite = np.isfinite(uv)
         if finite.all():  # the usual case: no row to set aside
             finite, safe = True, uv
@@ -193,13 +197,16 @@ class Service:
             centres = np.broadcast_to(entry.fixed_center, safe.shape)
             bad = finite & ~in_training_range(safe, entry.fixed_center, geom)
             if bad.any():
-                sx, sy = entry.scale
-                c = map_pixels(entry.fixed_center[None], entry.resampled, entry.camera)[0]
-                ru, rv = geom.kappa_px / sx, geom.kappa_px / sy
+                r = self.grasp_range(entry)
+                turned = (
+                    f" (a square turned by the camera's roll of {np.degrees(entry.roll):.1f} deg: its bounding box)"
+                    if entry.roll != 0.0
+                    else ""
+                )
                 raise ApiError(
                     422,
                     f"{int(bad.sum())} grasps lie outside the window the model was trained for: u in "
-                    f"[{c[0] - ru:g}, {c[0] + ru:g}], v in [{c[1] - rv:g}, {c[1] + rv:g}] (image px); upload "
+                    f"[{r['u'][0]:g}, {r['u'][1]:g}], v in [{r['v'][0]:g}, {r['v'][1]:g}] (image px){turned}; upload "
                     "without center_u / center_v to have windows placed for every grasp",
                     {"grasps": np.flatnonzero(bad)[:20].tolist()},
                 )
@@ -303,7 +310,18 @@ class Service:
                 "scale": list(entry.scale),
                 "intrinsics": {k: getattr(r, k) for k in ("fx", "fy", "cx", "cy")},
             },
+            "level": describe_level(entry.up, entry.roll),
         }
+
+    def grasp_range(self, entry: CachedImage) -> dict:
+        """Client pixels (u, v ranges) where grasps of a fixed-window upload may lie: the window's
+        training range, mapped back (its bounding box when the image was turned level)."""
+        k = self.model.geometry.kappa_px
+        c = entry.fixed_center
+        square = np.array([[c[0] - k, c[1] - k], [c[0] + k, c[1] - k], [c[0] - k, c[1] + k], [c[0] + k, c[1] + k]])
+        q = map_pixels(square, entry.resampled, entry.camera, -entry.roll)
+        lo, hi = q.min(axis=0), q.max(axis=0)
+        return {"u": [float(lo[0]), float(hi[0])], "v": [float(lo[1]), float(hi[1])]}
 
     def image_info(self, key: str, entry: CachedImage, cached: bool) -> dict:
         out = {
@@ -317,17 +335,8 @@ class Service:
         if entry.fixed_center is None:
             out["windows"] = "grid"
             return out
-        k = self.model.geometry.kappa_px
-        sx, sy = entry.scale
-        c = map_pixels(entry.fixed_center[None], entry.resampled, entry.camera)[0]
-        out.update(
-            windows="fixed",
-            window_center=[float(c[0]), float(c[1])],
-            grasp_range={
-                "u": [float(c[0] - k / sx), float(c[0] + k / sx)],
-                "v": [float(c[1] - k / sy), float(c[1] + k / sy)],
-            },
-        )
+        c = map_pixels(entry.fixed_center[None], entry.resampled, entry.camera, -entry.roll)[0]
+        out.update(windows="fixed", window_center=[float(c[0]), float(c[1])], grasp_range=self.grasp_range(entry))
         return out
 
     def scores_info(self, s: Scores) -> dict:

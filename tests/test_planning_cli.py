@@ -50,6 +50,7 @@ def test_cli_writes_grasps_and_an_overlay(depth_file, name, tmp_path):
         (["--fx", "-5"], "intrinsics"),
         (["--fx", "100"], "intrinsics"),
         (["--model", "/nonexistent"], "model"),
+        (["--up", "0", "0", "0"], "up"),
     ],
 )
 def test_cli_bad_input_exits_2_with_one_line(depth_file, args, words):

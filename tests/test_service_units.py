@@ -183,6 +183,14 @@ def test_cache_entry_bytes_round_trip(fixed):
         not fixed or np.array_equal(back.fixed_center, e.fixed_center)
     )
     assert back.windows == {}
+    assert back.up is None and back.roll == 0.0
+
+
+def test_a_level_entry_keeps_its_up_and_roll_through_the_bytes():
+    e = _entry(False)
+    e.up, e.roll = (0.5, 0.1, -0.8), -1.37340076694502
+    back = unpack_entry(pack_entry(e))
+    assert back.up == e.up and back.roll == e.roll
 
 
 def test_window_entry_bytes_round_trip():

@@ -7,7 +7,9 @@ coordinates, so the centre of a 300 px wide image is u = 149.5.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from math import atan2, degrees, hypot, radians
 
+import cv2
 import numpy as np
 from PIL import Image
 
@@ -152,12 +154,19 @@ def resampled_intrinsics(camera: Intrinsics, sx: float, sy: float) -> Intrinsics
     )
 
 
-def map_pixels(uv: np.ndarray, src: Intrinsics, dst: Intrinsics) -> np.ndarray:
-    """Pixel coordinates (n, 2) of ``src``'s image in ``dst``'s (same camera pose, other
-    intrinsics): the same viewing ray, u' = (u - cx) * fx' / fx + cx'."""
+def map_pixels(uv: np.ndarray, src: Intrinsics, dst: Intrinsics, roll: float = 0.0) -> np.ndarray:
+    """Pixel coordinates (n, 2) of ``src``'s image in ``dst``'s: the same viewing ray, seen by
+    a camera of ``dst``'s intrinsics rolled by ``roll`` radians about the optical axis (its
+    axes are :func:`roll_matrix` (roll) in ``src``'s frame; 0: the same pose, u' = (u - cx) * fx'
+    / fx + cx'). ``map_pixels(uv', dst, src, -roll)`` maps back."""
     a = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     p = np.array([[src.cx, src.cy], [dst.fx, dst.fy], [src.fx, src.fy], [dst.cx, dst.cy]])
-    return (a - p[0]) * p[1] / p[2] + p[3]  # per column, the same operations in the same order
+    if roll == 0.0:
+        return (a - p[0]) * p[1] / p[2] + p[3]  # per column, the same operations in the same order
+    c, s = np.cos(roll), np.sin(roll)
+    x = (a - p[0]) / p[2]  # normalised image coordinates in src's frame
+    xr = np.stack([c * x[:, 0] + s * x[:, 1], -s * x[:, 0] + c * x[:, 1]], axis=1)  # R_z(roll)^T
+    return xr * p[1] + p[3]
 
 
 def resample_depth(depth: np.ndarray, camera: Intrinsics, model: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
@@ -190,3 +199,123 @@ def resample_depth(depth: np.ndarray, camera: Intrinsics, model: Intrinsics) -> 
     ok = w >= MIN_VALID_WEIGHT
     out[ok] = s[ok] / w[ok]
     return out, dst
+
+
+# ----------------------------------------------------------------------------- a level camera
+
+#: A camera rolled by less than this about its optical axis is served as it is (radians).
+ROLL_TOLERANCE: float = radians(0.5)
+#: Camera tilts (radians from looking straight down) of the training cameras
+#: (``datagen.camera.CameraParams.phi_range``'s default): reported, not refused.
+TRAINING_TILT_RANGE: tuple[float, float] = (0.0, radians(70.0))
+
+
+def level_roll(up) -> float:
+    """Roll (radians, -pi to pi) about the optical axis that levels a camera whose frame
+    (x right, y down, z along the principal ray) sees the world's up direction (against
+    gravity) as ``up`` (3,), any length: the rolled camera's x-axis is horizontal and world up
+    points towards -v, as every training camera's (``datagen.camera.look_at_table_origin``).
+    0 when the roll is under :data:`ROLL_TOLERANCE` or the camera looks straight down or up
+    (any roll is level then). ValueError for a zero or non-finite ``up``."""
+    u = np.asarray(up, dtype=np.float64).reshape(-1)
+    if u.shape != (3,) or not np.isfinite(u).all():
+        raise ValueError(f"up must be 3 finite numbers (camera frame), got {u.tolist()}")
+    n = float(np.linalg.norm(u))
+    if n == 0.0:
+        raise ValueError("up must not be the zero vector")
+    if hypot(u[0], u[1]) <= 1e-9 * n:
+        return 0.0
+    a = atan2(u[0], -u[1])
+    return 0.0 if abs(a) < ROLL_TOLERANCE else a
+
+
+def camera_tilt(up) -> float:
+    """Angle (radians, 0 to pi) between the principal ray and straight down, for the world's up
+    direction ``up`` (3,) in the camera frame (the training cameras' phi: 0 to 70 deg)."""
+    u = np.asarray(up, dtype=np.float64).reshape(3)
+    return float(np.arccos(np.clip(-u[2] / np.linalg.norm(u), -1.0, 1.0)))
+
+
+def roll_matrix(roll: float) -> np.ndarray:
+    """3 x 3 R_z(roll): the axes (columns) of the camera rolled by ``roll`` radians about its
+    optical axis, in the unrolled camera's frame; p_unrolled = R @ p_rolled."""
+    c, s = np.cos(roll), np.sin(roll)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def leveled_intrinsics(intr: Intrinsics, roll: float) -> Intrinsics:
+    """Intrinsics of the image ``intr``'s camera would take rolled by ``roll`` radians: the same
+    focal lengths, on a canvas just large enough to hold the whole rolled image (its principal
+    point placed so that the canvas's first row and column touch the rolled image)."""
+    if roll == 0.0:
+        return intr
+    w, h = intr.width, intr.height
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+    origin = Intrinsics(fx=intr.fx, fy=intr.fy, cx=0.0, cy=0.0, width=1, height=1)
+    c = map_pixels(corners, intr, origin, roll)  # offsets from the rolled principal point, px
+    lo, hi = c.min(axis=0), c.max(axis=0)
+    size = np.maximum(1, np.ceil(hi - lo - 1e-6)).astype(int)
+    return Intrinsics(
+        fx=intr.fx, fy=intr.fy, cx=float(-lo[0] - 0.5), cy=float(-lo[1] - 0.5), width=int(size[0]), height=int(size[1])
+    )
+
+
+def level_depth(depth: np.ndarray, intr: Intrinsics, roll: float) -> tuple[np.ndarray, Intrinsics]:
+    """The depth image (H, W, metres; :func:`valid_depth` tells readings) of camera ``intr``
+    rolled by ``roll`` radians about its optical axis: (depth', intrinsics'), the whole image
+    kept on a larger canvas (:func:`leveled_intrinsics`). Depth is a distance along the optical
+    axis, which a roll keeps, so values stay as they are; only the pixel grid turns. Bilinear
+    over valid pixels only (as :func:`resample_depth`); the canvas outside the image is 0, no
+    reading. A roll of 0 returns the image unchanged; a quarter turn moves pixels exactly."""
+    if roll == 0.0:
+        return np.asarray(depth, dtype=np.float32), intr
+    dst = leveled_intrinsics(intr, roll)
+    c, s = np.cos(roll), np.sin(roll)
+    ax, ay = intr.fx / intr.fy, intr.fy / intr.fx
+    # source pixel of each destination pixel: u - cx = c (u' - cx') - s ax (v' - cy'), v - cy = s ay (u' - cx') + c (v' - cy')
+    m = np.array(
+        [
+            [c, -s * ax, intr.cx - c * dst.cx + s * ax * dst.cy],
+            [s * ay, c, intr.cy - s * ay * dst.cx - c * dst.cy],
+        ]
+    )
+    d = np.asarray(depth, dtype=np.float32)
+    valid = valid_depth(d)
+
+    def _warp(a: np.ndarray) -> np.ndarray:
+        return cv2.warpAffine(
+            a,
+            m,
+            (dst.width, dst.height),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0.0,
+        )
+
+    w = _warp(valid.astype(np.float32))
+    v = _warp(np.where(valid, d, 0.0).astype(np.float32))
+    out = np.zeros_like(v)
+    ok = w >= MIN_VALID_WEIGHT
+    out[ok] = v[ok] / w[ok]
+    return out, dst
+
+
+def footprint(canvas: Intrinsics, camera: Intrinsics, roll: float) -> np.ndarray:
+    """(H', W') bool: the pixels of a level ``canvas`` (:func:`leveled_intrinsics`) whose
+    viewing ray falls inside the image of ``camera``, the unrolled camera it was turned from
+    by ``roll`` radians."""
+    u, v = np.meshgrid(np.arange(canvas.width, dtype=np.float64), np.arange(canvas.height, dtype=np.float64))
+    src = map_pixels(np.stack([u.ravel(), v.ravel()], axis=1), canvas, camera, -roll)
+    inside = (src >= -0.5).all(axis=1) & (src[:, 0] <= camera.width - 0.5) & (src[:, 1] <= camera.height - 0.5)
+    return inside.reshape(canvas.height, canvas.width)
+
+
+def describe_level(up, roll: float) -> dict:
+    """What an answer reports of a camera's ``up`` (None: not given, nothing levelled)."""
+    if up is None:
+        return {"up": None, "roll_deg": 0.0, "tilt_deg": None}
+    return {
+        "up": [float(x) for x in np.asarray(up, dtype=np.float64).reshape(3)],
+        "roll_deg": degrees(roll),
+        "tilt_deg": degrees(camera_tilt(up)),
+    }

@@ -115,6 +115,17 @@ def approach_angle(q: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(1.0 - 2.0 * (q[..., 1] ** 2 + q[..., 2] ** 2), -1.0, 1.0))
 
 
+def roll_quaternions(q: np.ndarray, roll: float) -> np.ndarray:
+    """Orientations (..., 4) (w, x, y, z) given in a camera's frame, expressed in the frame of
+    that camera rolled by ``roll`` radians about its optical axis (``vgq.camera.roll_matrix``):
+    R' = R_z(roll)^T R, i.e. q' = (cos roll/2, 0, 0, -sin roll/2) q. Neither normalised nor made
+    canonical: a zero or non-finite row stays one, for ``canonical_quaternion`` to name."""
+    q = np.asarray(q, dtype=np.float64)
+    w1, z1 = np.cos(roll / 2.0), -np.sin(roll / 2.0)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack([w1 * w - z1 * z, w1 * x - z1 * y, w1 * y + z1 * x, w1 * z + z1 * w], -1)
+
+
 def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
     """Quaternions (..., 4) in (w, x, y, z) to rotation matrices (..., 3, 3)."""
     q = canonical_quaternion(q)
