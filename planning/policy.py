@@ -24,6 +24,7 @@ from vgq.camera import (
     project,
     resample_depth,
     roll_matrix,
+    tilt_outside_training,
 )
 from vgq.crop import grid_window_centers, pose_uv, window_center, window_origin
 from vgq.inpaint import crop_filled
@@ -400,7 +401,7 @@ def plan(
     except CameraMismatch as e:
         raise PlanningError("intrinsics", str(e)) from None
     d_model, intr = level_depth(d_model, intr, roll)
-    return plan_resampled(d_model, intr, cam, model, k, roi_m, seed, params, started=t0, roll=roll)
+    return plan_resampled(d_model, intr, cam, model, k, roi_m, seed, params, started=t0, up=up)
 
 
 def plan_resampled(
@@ -414,7 +415,7 @@ def plan_resampled(
     params: PlanParams | None = None,
     windows: WindowStore | None = None,
     started: float | None = None,
-    roll: float = 0.0,
+    up=None,
 ) -> PlanResult:
     """:func:`plan` on an image already at the model's focal lengths: ``depth`` (H', W')
     metres (0 = no reading) with ``intrinsics`` (what :func:`vgq.camera.resample_depth`
@@ -422,11 +423,16 @@ def plan_resampled(
     pixels ``roi`` is given and the grasps are answered. ``windows``: encoded windows of
     this image kept between plans (:class:`WindowStore`): those it holds are not encoded
     again (``counts["windows_reused"]``), the new ones are added. ``started``: the
-    ``perf_counter`` time the request began (``seconds["resample"]`` runs from it). ``roll``:
-    radians ``depth`` was turned about the optical axis from ``camera`` to be level
-    (:func:`vgq.camera.level_depth`); the grasps are answered in ``camera``'s frame."""
+    ``perf_counter`` time the request began (``seconds["resample"]`` runs from it). ``up``: the
+    world's up direction in ``camera``'s frame when ``depth`` was turned level by its
+    :func:`vgq.camera.level_roll` (:func:`vgq.camera.level_depth`; None: not turned); the
+    grasps are answered in ``camera``'s frame."""
     params = params or PlanParams()
     t0 = time.perf_counter() if started is None else started
+    try:
+        roll = 0.0 if up is None else level_roll(up)
+    except ValueError as e:
+        raise PlanningError("up", str(e)) from None
     k = check_k(k)
     check_seed(seed)
     d_model, intr, cam = np.asarray(depth, dtype=np.float32), intrinsics, camera
@@ -499,7 +505,8 @@ def plan_resampled(
     keep = nms(cands.frames, scores if utility is None else utility, k, params.nms_distance, params.nms_angle)
     top = cands[keep]
     rows = grasp_rows(top.frames, intr)
-    flags = ood_flags(rows, d_model, z_training_range(model), missing[keep] > params.window_missing_fraction)
+    tilted = tilt_outside_training(up, model.card.tilt_range()) if up is not None else False
+    flags = ood_flags(rows, d_model, z_training_range(model), missing[keep] > params.window_missing_fraction, tilted)
     uv = map_pixels(rows[:, :2], intr, cam, -roll) if intr != cam or roll != 0.0 else rows[:, :2]
     p_hold = hold_probability(cal, {k: v[keep] for k, v in feats.items()}) if cal is not None else [None] * len(keep)
     q, frames, contacts = rows[:, 3:7], top.frames, top.contacts

@@ -269,11 +269,12 @@ SCORE_RESPONSE = {
                                     "z_outside_training_range",
                                     "center_on_missing_depth",
                                     "window_mostly_missing",
+                                    "camera_tilt_outside_training",
                                 ],
                             },
                         },
                     },
-                    "ood_mask": {"type": "array", "items": {"type": "integer", "minimum": 0, "maximum": 15}},
+                    "ood_mask": {"type": "array", "items": {"type": "integer", "minimum": 0, "maximum": 31}},
                     "windows": {"type": "integer", "description": "crop windows the grasps fell in"},
                     "windows_encoded": {
                         "type": "integer",

@@ -256,7 +256,7 @@ async def plan_cached(svc: Service, request: Request, image_id: str, n: dict, ro
             params,
             store,
             None,
-            entry.roll,
+            entry.up,
         )
     except PlanningError as e:
         raise ApiError(422, f"{e.field}: {e}", {"field": e.field}) from None

@@ -178,6 +178,7 @@ async def model_info(request: Request):
                     "intrinsics": card.intrinsics.to_dict(),
                     "focal_range_px": focal_range(card.intrinsics),
                     "focal_ratio_range": list(FOCAL_RATIO_RANGE),
+                    "tilt_range_deg": [float(np.degrees(t)) for t in svc.tilt_range],
                 },
                 "calibrated": svc.calibration is not None,
                 "calibration": card.calibration or None,

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import anyio
 import numpy as np
 
-from vgq.camera import describe_level, map_pixels
+from vgq.camera import DEFAULT_TILT_RANGE, describe_level, map_pixels, tilt_outside_training
 from vgq.crop import (
     crop_window,
     grid_window_centers,
@@ -102,6 +102,7 @@ class Service:
         self.load_error: str | None = None
         self.calibration = None
         self.z_range, self.z_range_source = (0.0, np.inf), ""
+        self.tilt_range = DEFAULT_TILT_RANGE
         # bounds the plans computed at once (service/plan_routes.py); a waiting plan holds no thread
         self.plan_slots = anyio.CapacityLimiter(settings.max_concurrent_plans)
 
@@ -117,6 +118,7 @@ class Service:
                 )
             self.calibration = self.model.card.calibrator()
             self.z_range, self.z_range_source = training_z_range(self.model.card)
+            self.tilt_range = self.model.card.tilt_range()
             self.model.warm_up()
             gc.collect()
             gc.freeze()  # start-up objects out of the collector's way: no GC pauses on them later
@@ -275,7 +277,9 @@ class Service:
             win_missing = next(iter(frac.values())) > cap  # one bool for every grasp
         else:
             win_missing = np.array([frac[o] > cap for o in where], dtype=bool)[inverse]
-        mask = ood_flags(mapped, entry.depth, self.z_range, win_missing)
+        mask = ood_flags(
+            mapped, entry.depth, self.z_range, win_missing, tilt_outside_training(entry.up, self.tilt_range)
+        )
         if strict and mask.any():
             bad = np.flatnonzero(mask)
             raise ApiError(

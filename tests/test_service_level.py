@@ -72,6 +72,16 @@ def test_the_upload_reports_the_roll_and_tilt(client, heldout):
     assert client.last_upload["level"] == {"up": None, "roll_deg": 0.0, "tilt_deg": None}
 
 
+def test_a_camera_tilted_beyond_the_training_cameras_flags_every_grasp(client, heldout):
+    assert client.model()["camera"]["tilt_range_deg"] == pytest.approx([0.0, 70.0])
+    depth, grasps = heldout[2]
+    sideways = [0.0, -np.cos(np.radians(10)), -np.sin(np.radians(10))]  # tilted 80 deg from straight down
+    r = client.score_details(client.upload(depth, up=sideways), grasps)
+    assert all("camera_tilt_outside_training" in f for f in r["ood"])
+    r = client.score_details(client.upload(depth, up=LEVEL_UP), grasps)
+    assert not any("camera_tilt_outside_training" in f for f in r["ood"])
+
+
 def test_a_one_shot_with_up_scores_as_the_upload_with_up(client, heldout):
     d, g, intr = rolled(*heldout[1], beta=np.radians(30))
     up = roll_matrix(np.radians(30)).T @ LEVEL_UP

@@ -17,6 +17,7 @@ from vgq.camera import (
     leveled_intrinsics,
     map_pixels,
     roll_matrix,
+    tilt_outside_training,
 )
 from vgq.pose import canonical_quaternion, matrix_from_quaternion, roll_quaternions
 
@@ -44,6 +45,13 @@ def test_the_roll_that_levels_a_rolled_camera_undoes_its_roll(beta):
     up_rolled = roll_matrix(beta).T @ LEVEL_UP  # the same up, seen by the camera rolled by beta
     assert level_roll(up_rolled) == pytest.approx(-beta)
     assert level_roll(5.0 * up_rolled) == pytest.approx(-beta)  # any length
+
+
+def test_a_tilt_beyond_the_training_range_is_outside_it():
+    tilted = [0.0, -np.sin(radians(75)), -np.cos(radians(75))]
+    assert tilt_outside_training(tilted) and not tilt_outside_training(LEVEL_UP)
+    assert not tilt_outside_training(tilted, (0.0, radians(80))) and not tilt_outside_training(None)
+    assert tilt_outside_training([0.0, 0.0, 1.0])  # looking up
 
 
 def test_a_camera_looking_straight_down_or_rolled_a_hair_is_served_as_it_is():

@@ -205,9 +205,9 @@ def resample_depth(depth: np.ndarray, camera: Intrinsics, model: Intrinsics) -> 
 
 #: A camera rolled by less than this about its optical axis is served as it is (radians).
 ROLL_TOLERANCE: float = radians(0.5)
-#: Camera tilts (radians from looking straight down) of the training cameras
-#: (``datagen.camera.CameraParams.phi_range``'s default): reported, not refused.
-TRAINING_TILT_RANGE: tuple[float, float] = (0.0, radians(70.0))
+#: Camera tilts (radians from looking straight down) of the training cameras when a model card
+#: does not record its dataset's (``datagen.camera.CameraParams.phi_range``'s default).
+DEFAULT_TILT_RANGE: tuple[float, float] = (0.0, radians(70.0))
 
 
 def level_roll(up) -> float:
@@ -234,6 +234,16 @@ def camera_tilt(up) -> float:
     direction ``up`` (3,) in the camera frame (the training cameras' phi: 0 to 70 deg)."""
     u = np.asarray(up, dtype=np.float64).reshape(3)
     return float(np.arccos(np.clip(-u[2] / np.linalg.norm(u), -1.0, 1.0)))
+
+
+def tilt_outside_training(up, tilt_range: tuple[float, float] = DEFAULT_TILT_RANGE) -> bool:
+    """True when the world's up direction ``up`` (3,) in the camera frame (None: unknown, False)
+    puts the camera's tilt from straight down outside ``tilt_range`` (radians; a model's:
+    ``ModelCard.tilt_range``)."""
+    if up is None:
+        return False
+    lo, hi = tilt_range
+    return not lo - 1e-9 <= camera_tilt(up) <= hi + 1e-9
 
 
 def roll_matrix(roll: float) -> np.ndarray:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from . import atomic
 from .calibration import Calibration
-from .camera import Intrinsics
+from .camera import DEFAULT_TILT_RANGE, Intrinsics
 from .crop import CropGeometry
 from .normalization import Normalization
 
@@ -46,6 +46,15 @@ class ModelCard:
     label_threshold: float = 0.002
     #: Calibration.to_dict() + how it was fitted and measured (export.calibrate); {} if none
     calibration: dict = field(default_factory=dict)
+
+    def tilt_range(self) -> tuple[float, float]:
+        """Camera tilts from straight down (radians) the model's training cameras had: its
+        dataset's ``camera.phi_range``, else datagen's default (``vgq.camera.DEFAULT_TILT_RANGE``)."""
+        try:
+            lo, hi = self.dataset["source"]["config"]["camera"]["phi_range"]
+            return float(lo), float(hi)
+        except (KeyError, TypeError, ValueError):
+            return DEFAULT_TILT_RANGE
 
     def calibrator(self) -> Calibration | None:
         """The map raw P(success) -> calibrated P(success) (None: the card has no calibration)."""

@@ -17,8 +17,9 @@ OOD_FLAGS: dict[int, str] = {
     2: "z_outside_training_range",  # TCP depth outside the z range the model was trained on
     4: "center_on_missing_depth",  # the grasp's pixel has no depth reading in the upload
     8: "window_mostly_missing",  # its crop window is mostly missing depth (inpainted)
+    16: "camera_tilt_outside_training",  # the camera (its up direction given) looks more sideways than any training camera
 }
-APPROACH_AWAY, Z_OUT_OF_RANGE, CENTER_MISSING, WINDOW_MISSING = OOD_FLAGS
+APPROACH_AWAY, Z_OUT_OF_RANGE, CENTER_MISSING, WINDOW_MISSING, CAMERA_TILT = OOD_FLAGS
 
 
 def approach_away(q: np.ndarray) -> np.ndarray:
@@ -42,11 +43,17 @@ def center_missing(uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
 
 
 def ood_flags(
-    grasps: np.ndarray, depth: np.ndarray, z_range: tuple[float, float], window_missing: np.ndarray | bool = False
+    grasps: np.ndarray,
+    depth: np.ndarray,
+    z_range: tuple[float, float],
+    window_missing: np.ndarray | bool = False,
+    camera_tilted: bool = False,
 ) -> np.ndarray:
     """(k,) uint8 bitmask of :data:`OOD_FLAGS` for grasp rows (k, 7) on ``depth`` (H, W,
     metres, the image as uploaded: missing pixels still 0). ``z_range`` (metres) is the
-    training range; ``window_missing`` per grasp (or one bool): its window is mostly missing."""
+    training range; ``window_missing`` per grasp (or one bool): its window is mostly missing;
+    ``camera_tilted``: the camera's tilt is outside the training cameras'
+    (:func:`vgq.camera.tilt_outside_training`)."""
     g = np.asarray(grasps, dtype=np.float64).reshape(-1, 7)
     z = g[:, 2]
     flags = np.zeros(len(g), dtype=np.uint8)
@@ -55,6 +62,7 @@ def ood_flags(
         (Z_OUT_OF_RANGE, (z < z_range[0]) | (z > z_range[1])),
         (CENTER_MISSING, center_missing(g[:, :2], depth)),
         (WINDOW_MISSING, np.asarray(window_missing, dtype=bool)),  # (k,) or one bool, broadcast by `where`
+        (CAMERA_TILT, bool(camera_tilted)),
     ):
         np.bitwise_or(flags, bit, out=flags, where=hit)
     return flags
