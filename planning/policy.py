@@ -18,12 +18,14 @@ from vgq.camera import (
     CameraMismatch,
     Intrinsics,
     focal_lengths,
+    footprint,
     level_depth,
     level_roll,
     map_pixels,
     project,
     resample_depth,
     roll_matrix,
+    source_pixels,
     tilt_outside_training,
 )
 from vgq.crop import grid_window_centers, pose_uv, window_center, window_origin
@@ -445,12 +447,11 @@ def plan_resampled(
         raise PlanningError("depth", "the image has no valid depth (every pixel is 0 or non-finite)")
     roi_m = roi_mask(roi, (cam.height, cam.width))
     if roi_m is not None and roll != 0.0:  # each level pixel takes the mask's value at its ray's pixel
-        u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
-        src = np.rint(map_pixels(np.stack([u.ravel(), v.ravel()], axis=1), intr, cam, -roll)).astype(np.int64)
-        inside = (src >= 0).all(axis=1) & (src[:, 0] < cam.width) & (src[:, 1] < cam.height)
-        m = np.zeros(len(src), dtype=bool)
-        m[inside] = roi_m[src[inside, 1], src[inside, 0]]
-        roi_m = m.reshape(intr.height, intr.width)
+        src = np.clip(np.rint(source_pixels(intr, cam, roll)), 0, (cam.width - 1, cam.height - 1)).astype(np.int64)
+        inside = footprint(intr, cam, roll)
+        m = np.zeros(inside.shape, dtype=bool)
+        m[inside] = roi_m[src[inside][:, 1], src[inside][:, 0]]
+        roi_m = m
     elif roi_m is not None and intr != cam:
         img = Image.fromarray(roi_m.astype(np.uint8) * 255).resize((intr.width, intr.height), Image.Resampling.NEAREST)
         roi_m = np.asarray(img) > 127
@@ -539,6 +540,7 @@ def plan_resampled(
         "contacts": cands.contacts,
         "scores": scores,
         "poses": np.concatenate(scorer.scored_poses),  # the head's pose rows (window-relative u, v)
+        # frames, contacts and poses above: in the (level) camera frame the plan was made in
         "widths": cands.widths,
         "seen": cands.seen,
         "scene": scene,  # what the sampler estimated (table, points): planning.features reads it

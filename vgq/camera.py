@@ -310,14 +310,20 @@ def level_depth(depth: np.ndarray, intr: Intrinsics, roll: float) -> tuple[np.nd
     return out, dst
 
 
-def footprint(canvas: Intrinsics, camera: Intrinsics, roll: float) -> np.ndarray:
-    """(H', W') bool: the pixels of a level ``canvas`` (:func:`leveled_intrinsics`) whose
-    viewing ray falls inside the image of ``camera``, the unrolled camera it was turned from
-    by ``roll`` radians."""
+def source_pixels(canvas: Intrinsics, camera: Intrinsics, roll: float) -> np.ndarray:
+    """(H', W', 2): for each pixel of a level ``canvas`` (:func:`leveled_intrinsics`), the
+    (u, v) its viewing ray has in the image of ``camera``, the camera it was turned from by
+    ``roll`` radians (outside that image for the canvas's corners)."""
     u, v = np.meshgrid(np.arange(canvas.width, dtype=np.float64), np.arange(canvas.height, dtype=np.float64))
     src = map_pixels(np.stack([u.ravel(), v.ravel()], axis=1), canvas, camera, -roll)
-    inside = (src >= -0.5).all(axis=1) & (src[:, 0] <= camera.width - 0.5) & (src[:, 1] <= camera.height - 0.5)
-    return inside.reshape(canvas.height, canvas.width)
+    return src.reshape(canvas.height, canvas.width, 2)
+
+
+def footprint(canvas: Intrinsics, camera: Intrinsics, roll: float) -> np.ndarray:
+    """(H', W') bool: the pixels of a level ``canvas`` whose viewing ray falls inside the image
+    of ``camera`` (:func:`source_pixels`)."""
+    src = source_pixels(canvas, camera, roll)
+    return (src >= -0.5).all(axis=2) & (src[..., 0] <= camera.width - 0.5) & (src[..., 1] <= camera.height - 0.5)
 
 
 def describe_level(up, roll: float) -> dict:
