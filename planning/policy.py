@@ -335,18 +335,6 @@ def cem_refine(
     return cands, scores, missing
 
 
-def z_training_range(model) -> tuple[float, float]:
-    """TCP depths (metres) the model was trained on: its dataset's camera distances widened
-    by 0.1 m (objects are ~0.1 m tall), else the mean +- 3 std of its z normalisation."""
-    try:
-        d = model.card.dataset["source"]["config"]["camera"]["d_range"]
-        return float(d[0]) - 0.1, float(d[1]) + 0.1
-    except (AttributeError, KeyError, TypeError, IndexError):
-        norm = model.card.normalization
-        i = list(norm.pose_columns).index("z")
-        return norm.pose_mean[i] - 3 * norm.pose_std[i], norm.pose_mean[i] + 3 * norm.pose_std[i]
-
-
 # ----------------------------------------------------------------------------- plan
 
 
@@ -507,7 +495,7 @@ def plan_resampled(
     top = cands[keep]
     rows = grasp_rows(top.frames, intr)
     tilted = tilt_outside_training(up, model.card.tilt_range()) if up is not None else False
-    flags = ood_flags(rows, d_model, z_training_range(model), missing[keep] > params.window_missing_fraction, tilted)
+    flags = ood_flags(rows, d_model, model.card.z_range()[0], missing[keep] > params.window_missing_fraction, tilted)
     uv = map_pixels(rows[:, :2], intr, cam, -roll) if intr != cam or roll != 0.0 else rows[:, :2]
     p_hold = hold_probability(cal, {k: v[keep] for k, v in feats.items()}) if cal is not None else [None] * len(keep)
     q, frames, contacts = rows[:, 3:7], top.frames, top.contacts

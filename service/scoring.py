@@ -34,25 +34,10 @@ from .metrics import Metrics
 from .preprocess import window_input
 from .runtime import FastModel
 
-#: z range derived from the card's normalisation when the card records none: mean +/- this many std
-Z_RANGE_STDS = 2.0
-
 
 def grasp_error(e: GraspError) -> ApiError:
     """The contract's GraspError as the HTTP edge answers it: 422 naming the rows."""
     return ApiError(422, str(e), {"grasps": e.indices} if e.indices else None)
-
-
-def training_z_range(card) -> tuple[tuple[float, float], str]:
-    """(z_min, z_max) metres of the grasps the model was trained on and where it comes from:
-    the card's ``dataset.z_range`` when recorded, else its pose normalisation (z mean +/- 2 std)."""
-    rec = card.dataset.get("z_range") if isinstance(card.dataset, dict) else None
-    if rec is not None and len(rec) == 2:
-        return (float(rec[0]), float(rec[1])), "model card dataset.z_range"
-    norm = card.normalization
-    i = list(norm.pose_columns).index("z")
-    m, s = float(norm.pose_mean[i]), float(norm.pose_std[i])
-    return (m - Z_RANGE_STDS * s, m + Z_RANGE_STDS * s), f"model card normalization: z mean +/- {Z_RANGE_STDS:g} std"
 
 
 @dataclass(frozen=True)
@@ -117,7 +102,7 @@ class Service:
                     encoder_precision=self.settings.encoder_precision,
                 )
             self.calibration = self.model.card.calibrator()
-            self.z_range, self.z_range_source = training_z_range(self.model.card)
+            self.z_range, self.z_range_source = self.model.card.z_range()
             self.tilt_range = self.model.card.tilt_range()
             self.model.warm_up()
             gc.collect()

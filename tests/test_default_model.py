@@ -162,3 +162,20 @@ def test_service_p_success_is_the_calibrated_raw_score(card):
         r = httpx.post(f"{url}/v1/images/{up.json()['image_id']}/scores", json={"grasps": grasps.tolist()}).json()
     assert r["calibrated"] is True
     np.testing.assert_allclose(r["p_success"], card.calibrator().apply(np.asarray(r["raw_score"])), atol=1e-6)
+
+
+def test_the_training_ranges_the_flags_use_come_from_the_card(card):
+    """One z range and one camera tilt range for the service's and the planner's flags: the
+    card's recorded training grasps and dataset cameras, else its normalisation and datagen's
+    default cameras."""
+    import dataclasses
+    from math import radians
+
+    (lo, hi), source = card.z_range()
+    assert (lo, hi) == tuple(card.dataset["z_range"]) and "dataset.z_range" in source
+    assert card.tilt_range() == pytest.approx((0.0, radians(70.0)))
+    bare = dataclasses.replace(card, dataset={})
+    (lo, hi), source = bare.z_range()
+    i = list(card.normalization.pose_columns).index("z")
+    assert lo < card.normalization.pose_mean[i] < hi and "normalization" in source
+    assert bare.tilt_range() == pytest.approx((0.0, radians(70.0)))

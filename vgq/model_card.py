@@ -31,6 +31,10 @@ VGQ_INPUTS = ("depth_crops", "poses")  # (k, 1, out, out), (k, n_pose)
 VGQ_OUTPUT = "p_success"
 
 
+#: z range derived from a card's normalisation when the card records none: mean +/- this many std
+Z_RANGE_STDS = 2.0
+
+
 @dataclass
 class ModelCard:
     model_version: str
@@ -46,6 +50,22 @@ class ModelCard:
     label_threshold: float = 0.002
     #: Calibration.to_dict() + how it was fitted and measured (export.calibrate); {} if none
     calibration: dict = field(default_factory=dict)
+
+    def z_range(self) -> tuple[tuple[float, float], str]:
+        """((z_min, z_max) metres of the grasps the model was trained on, where it comes from):
+        the card's ``dataset.z_range`` when recorded, else its pose normalisation (z mean +/-
+        :data:`Z_RANGE_STDS` std). The one range the service's and the planner's
+        ``z_outside_training_range`` flag use."""
+        rec = self.dataset.get("z_range") if isinstance(self.dataset, dict) else None
+        if rec is not None and len(rec) == 2:
+            return (float(rec[0]), float(rec[1])), "model card dataset.z_range"
+        norm = self.normalization
+        i = list(norm.pose_columns).index("z")
+        m, s = float(norm.pose_mean[i]), float(norm.pose_std[i])
+        return (
+            m - Z_RANGE_STDS * s,
+            m + Z_RANGE_STDS * s,
+        ), f"model card normalization: z mean +/- {Z_RANGE_STDS:g} std"
 
     def tilt_range(self) -> tuple[float, float]:
         """Camera tilts from straight down (radians) the model's training cameras had: its
