@@ -76,21 +76,18 @@ def check_resampled_side(camera: Intrinsics, model: Intrinsics, max_side: int, r
     by ``roll`` radians would. CameraMismatch when the model cannot serve the camera."""
     sx, sy = check_client_intrinsics(camera, model)
     dst = resampled_intrinsics(camera, sx, sy)
-    if max(dst.width, dst.height) > max_side:
-        raise ApiError(
-            422,
-            f"the image resampled to the model's focal length would be {dst.width}x{dst.height} px, "
-            f"over max_image_side {max_side}; send a smaller image",
-            {"field": "fx"},
-        )
     lev = leveled_intrinsics(dst, roll)
-    if max(lev.width, lev.height) > max_side:
-        raise ApiError(
-            422,
-            f"the image turned level (roll {degrees(roll):.1f} deg) would be {lev.width}x{lev.height} px, "
-            f"over max_image_side {max_side}; send a smaller image",
-            {"field": "up_x"},
-        )
+    for img, what, field in (
+        (dst, "resampled to the model's focal length", "fx"),
+        (lev, f"turned level (roll {degrees(roll):.1f} deg)", "up_x"),
+    ):
+        if max(img.width, img.height) > max_side:
+            raise ApiError(
+                422,
+                f"the image {what} would be {img.width}x{img.height} px, over max_image_side {max_side}; "
+                "send a smaller image",
+                {"field": field},
+            )
 
 
 def to_model_camera(

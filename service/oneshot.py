@@ -201,16 +201,14 @@ def parse_npz(body, max_total_bytes: int, max_side: int, max_grasps: int) -> One
         if center.shape != (2,):
             raise ApiError(422, "center must hold 2 values (u, v)")
         numbers["center_u"], numbers["center_v"] = CENTER_U.parse(center[0]), CENTER_V.parse(center[1])
-    if "intrinsics" in members:
-        intr = parse_npy(members["intrinsics"], "intrinsics", 4).reshape(-1)
-        if intr.shape != (4,):
-            raise ApiError(422, "intrinsics must hold 4 values (fx, fy, cx, cy) px")
-        for number, value in zip(INTRINSICS, intr):
-            numbers[number.name] = number.parse(value)
-    if "up" in members:
-        up = parse_npy(members["up"], "up", 3).reshape(-1)
-        if up.shape != (3,):
-            raise ApiError(422, "up must hold 3 values (the world's up direction in the camera frame)")
-        for number, value in zip(UP, up):
-            numbers[number.name] = number.parse(value)
+    for name, fields, what in (
+        ("intrinsics", INTRINSICS, "4 values (fx, fy, cx, cy) px"),
+        ("up", UP, "3 values (the world's up direction in the camera frame)"),
+    ):
+        if name in members:
+            values = parse_npy(members[name], name, len(fields)).reshape(-1)
+            if values.shape != (len(fields),):
+                raise ApiError(422, f"{name} must hold {what}")
+            for number, value in zip(fields, values):
+                numbers[number.name] = number.parse(value)
     return OneShot(members["depth"], NPY_TYPES[0], grasps.astype(np.float64), numbers, depth)

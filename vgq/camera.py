@@ -193,12 +193,19 @@ def resample_depth(depth: np.ndarray, camera: Intrinsics, model: Intrinsics) -> 
     def _resize(a: np.ndarray) -> np.ndarray:
         return np.asarray(Image.fromarray(a).resize(size, Image.Resampling.BILINEAR), dtype=np.float32)
 
-    w = _resize(valid.astype(np.float32))
-    s = _resize(np.where(valid, d, 0.0).astype(np.float32))
+    return valid_weighted(d, valid, _resize), dst
+
+
+def valid_weighted(depth: np.ndarray, valid: np.ndarray, resample) -> np.ndarray:
+    """``resample`` (a linear map of float32 images) applied to the valid readings only: each
+    output pixel is the weighted mean of the valid pixels under it, 0 (no reading) where less
+    than :data:`MIN_VALID_WEIGHT` of its weight was valid."""
+    w = resample(valid.astype(np.float32))
+    s = resample(np.where(valid, depth, 0.0).astype(np.float32))
     out = np.zeros_like(s)
     ok = w >= MIN_VALID_WEIGHT
     out[ok] = s[ok] / w[ok]
-    return out, dst
+    return out
 
 
 # ----------------------------------------------------------------------------- a level camera
@@ -302,12 +309,7 @@ def level_depth(depth: np.ndarray, intr: Intrinsics, roll: float) -> tuple[np.nd
             borderValue=0.0,
         )
 
-    w = _warp(valid.astype(np.float32))
-    v = _warp(np.where(valid, d, 0.0).astype(np.float32))
-    out = np.zeros_like(v)
-    ok = w >= MIN_VALID_WEIGHT
-    out[ok] = v[ok] / w[ok]
-    return out, dst
+    return valid_weighted(d, valid, _warp), dst
 
 
 def source_pixels(canvas: Intrinsics, camera: Intrinsics, roll: float) -> np.ndarray:
