@@ -25,7 +25,9 @@ from vgq.schema import SPLITS
 
 
 def crop_rows(data: str | Path, split: str, max_n: int, seed: int = 0) -> dict[str, np.ndarray]:
-    """``images``, ``poses``, ``labels`` and ``family`` of at most ``max_n`` random rows (sorted)."""
+    """``images``, ``poses``, ``labels``, ``family``, ``object_id`` and ``beta`` (radians, the
+    approach to the downward table normal; None when the dataset has none) of at most ``max_n``
+    random rows (sorted)."""
     arrays = storage.open_crops(data, split)
     n = len(arrays["labels"])
     if n == 0:
@@ -40,6 +42,7 @@ def crop_rows(data: str | Path, split: str, max_n: int, seed: int = 0) -> dict[s
         "labels": np.asarray(arrays["labels"][idx]).astype(bool),
         "family": np.array([fam.get(int(i), "") for i in oid]),
         "object_id": oid,
+        "beta": np.asarray(arrays["beta"][idx], np.float64) if "beta" in arrays else None,
     }
 
 
@@ -55,14 +58,25 @@ def raw_scores(model_dir: str | Path, images: np.ndarray, poses: np.ndarray, bat
     return out
 
 
-def evaluate(labels: np.ndarray, scores: np.ndarray, family: np.ndarray, object_id: np.ndarray | None = None) -> dict:
+def evaluate(
+    labels: np.ndarray,
+    scores: np.ndarray,
+    family: np.ndarray,
+    object_id: np.ndarray | None = None,
+    beta: np.ndarray | None = None,
+) -> dict:
     """Overall and per-family metrics at raw score 0.5, with ROC AUC; with ``object_id`` also the
-    balanced accuracy's 95% interval over the objects (``balanced_accuracy_ci95``)."""
+    balanced accuracy's 95% interval over the objects (``balanced_accuracy_ci95``); with
+    ``beta`` (radians) by the grasp's approach to the downward table normal, in 15 deg bins."""
     by_family = M.metrics_by_group(labels[family != ""], scores[family != ""], family[family != ""])
     out = {
         "all": M.nan_to_none(M.binary_metrics(labels, scores)),
         "by_family": {f: M.nan_to_none(m) for f, m in by_family.items()},
     }
+    if beta is not None:
+        out["by_approach_beta_deg"] = {
+            k: M.nan_to_none(m) for k, m in M.metrics_by_bin(labels, scores, np.degrees(beta), 15.0).items()
+        }
     if object_id is not None:
         out["all"]["balanced_accuracy_ci95"] = M.object_bootstrap_ci(labels, scores, object_id)
         for f, m in out["by_family"].items():
@@ -99,7 +113,8 @@ def main(argv=None) -> dict:
         sys.exit(2)
     results = {}
     for d in a.model_dir:
-        r = evaluate(rows["labels"], raw_scores(d, rows["images"], rows["poses"]), rows["family"], rows["object_id"])
+        scores = raw_scores(d, rows["images"], rows["poses"])
+        r = evaluate(rows["labels"], scores, rows["family"], rows["object_id"], rows["beta"])
         results[d] = r
         print(f"\n{d} on {a.data} {a.split} ({len(rows['labels'])} crops):")
         print(
@@ -112,6 +127,12 @@ def main(argv=None) -> dict:
                 f"| {name} | {m['n']} | {M.pct(m['balanced_accuracy'])} | {_ci(m)} | {M.pct(m['tpr'])} | "
                 f"{M.pct(m['tnr'])} | {auc} |"
             )
+        if "by_approach_beta_deg" in r:
+            bins = r["by_approach_beta_deg"]
+            print("\n| approach to straight down, beta (deg) | " + " | ".join(bins) + " |")
+            print("|---|" + "---:|" * len(bins))
+            print("| balanced accuracy | " + " | ".join(M.pct(m["balanced_accuracy"]) for m in bins.values()) + " |")
+            print("| grasps | " + " | ".join(f"{m['n']:,}" for m in bins.values()) + " |")
     if a.json:
         from vgq import atomic
 

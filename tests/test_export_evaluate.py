@@ -41,10 +41,20 @@ def test_metrics_split_by_family_and_agree_with_the_whole():
     assert r["by_family"]["b"]["tpr"] == 0.5 and r["by_family"]["b"]["tnr"] == 0.0
 
 
+def test_metrics_by_the_approach_to_straight_down_in_15_degree_bins():
+    y = np.array([1, 0, 1, 0], bool)
+    s = np.array([0.9, 0.2, 0.4, 0.6], np.float32)
+    r = evaluate(y, s, np.array(["a"] * 4), beta=np.radians([5.0, 10.0, 50.0, 55.0]))
+    bins = r["by_approach_beta_deg"]
+    assert list(bins) == ["0-15", "45-60"]
+    assert bins["0-15"]["balanced_accuracy"] == 1.0 and bins["45-60"]["balanced_accuracy"] == 0.0
+
+
 def test_cli_prints_a_row_per_family_and_refuses_a_folder_without_a_card(model_dir, crops, capsys, tmp_path):
     res = main(["--model-dir", str(model_dir), "--data", str(crops), "--split", "train", "--max-n", "40"])
     out = capsys.readouterr().out
     assert "| box |" in out and "| mug |" in out and set(res[str(model_dir)]["by_family"]) == {"box", "mug"}
+    assert "beta (deg)" in out and res[str(model_dir)]["by_approach_beta_deg"]
     with pytest.raises(SystemExit) as e:
         main(["--model-dir", str(tmp_path), "--data", str(crops)])
     assert e.value.code == 2

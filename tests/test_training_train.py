@@ -138,7 +138,13 @@ def test_evaluate_writes_metrics_heatmap_and_curves(data, run):
     )
     assert o["balanced_accuracy"] == pytest.approx(((pred & y).sum() / y.sum() + (~pred & ~y).sum() / (~y).sum()) / 2)
     assert np.nansum(np.array(saved["grid"]["n_positive"], dtype=float)) == saved["overall"]["n_positive"]
-    margins = ("by_camera_distance_m", "by_camera_elevation_deg", "by_approach_psi_deg", "by_window_offset_px")
+    margins = (
+        "by_camera_distance_m",
+        "by_camera_elevation_deg",
+        "by_approach_psi_deg",
+        "by_approach_beta_deg",
+        "by_window_offset_px",
+    )
     for margin in margins:  # every row in one bin of each
         assert sum(m["n"] for m in saved[margin].values()) == 32
     for png in ("heatmap_test.png", "curves.png"):

@@ -147,6 +147,7 @@ def main(argv: list[str] | None = None) -> int:
                 ("by_camera_distance_m", "camera_d_m"),
                 ("by_camera_elevation_deg", "camera_phi_deg"),
                 ("by_approach_psi_deg", "approach_psi_deg"),
+                ("by_approach_beta_deg", "approach_beta_deg"),
                 ("by_window_offset_px", "window_offset_px"),
             ):
                 for b, m in rec[key].items():

@@ -87,6 +87,15 @@ def evaluate(
             labels, p, np.degrees(approach_angle(pose[:, cols.index("qw") : cols.index("qz") + 1])), 15.0, threshold
         ).items()
     }
+    # and its approach to the downward table normal beta (0 = straight down: what gravity pulls along)
+    by_beta = (
+        {
+            k: M.nan_to_none(m)
+            for k, m in M.metrics_by_bin(labels, p, np.degrees(sp.arrays["beta"][rows]), 15.0, threshold).items()
+        }
+        if "beta" in sp.arrays
+        else {}
+    )
     offset = np.abs(pose[:, [cols.index("u"), cols.index("v")]]).max(axis=1)
     by_offset = {k: M.nan_to_none(m) for k, m in M.metrics_by_bin(labels, p, offset, 2.0, threshold).items()}
     grid = M.grid_metrics(
@@ -118,6 +127,7 @@ def evaluate(
         "by_camera_distance_m": by_distance,
         "by_camera_elevation_deg": by_elevation,
         "by_approach_psi_deg": by_psi,
+        "by_approach_beta_deg": by_beta,
         "by_window_offset_px": by_offset,
         "rows": {"evaluated": int(len(rows)), "of": int(len(sp)), "seed": int(seed) if len(rows) < len(sp) else None},
         "grid": {"d_step_m": d_step, "phi_step_deg": phi_step_deg, **M.grid_to_json(grid)},
