@@ -6,6 +6,7 @@ Bad up directions answer 422 naming the field."""
 from __future__ import annotations
 
 import io
+import json
 
 import httpx
 import numpy as np
@@ -88,6 +89,20 @@ def test_a_one_shot_with_up_scores_as_the_upload_with_up(client, heldout):
     uploaded = client.score_details(client.upload(d, intrinsics=intr, up=up), g)["raw_score"]
     once = client.score_once(d, g, intrinsics=intr, up=up, details=True)["raw_score"]
     np.testing.assert_allclose(once, uploaded, atol=1e-6)
+    b = io.BytesIO()
+    np.save(b, d)
+    fields = {k: repr(float(getattr(intr, k))) for k in ("fx", "fy", "cx", "cy")}
+    fields.update({f"up_{a}": repr(float(x)) for a, x in zip("xyz", up)})
+    r = httpx.post(
+        f"{client.http.base_url}/v1/score",
+        files={
+            "depth": ("d.npy", b.getvalue(), "application/x-npy"),
+            "grasps": ("g.json", json.dumps({"grasps": g.tolist()}), "application/json"),
+        },
+        data=fields,
+    )
+    assert r.status_code == 200, r.text
+    np.testing.assert_allclose(r.json()["raw_score"], uploaded, atol=1e-6)  # multipart fields: the same
 
 
 @pytest.mark.parametrize(
