@@ -201,10 +201,9 @@ def valid_weighted(depth: np.ndarray, valid: np.ndarray, resample) -> np.ndarray
     output pixel is the weighted mean of the valid pixels under it, 0 (no reading) where less
     than :data:`MIN_VALID_WEIGHT` of its weight was valid."""
     w = resample(valid.astype(np.float32))
-    s = resample(np.where(valid, depth, 0.0).astype(np.float32))
+    s = resample(np.where(valid, depth, np.float32(0.0)).astype(np.float32, copy=False))
     out = np.zeros_like(s)
-    ok = w >= MIN_VALID_WEIGHT
-    out[ok] = s[ok] / w[ok]
+    np.divide(s, w, out=out, where=w >= MIN_VALID_WEIGHT)
     return out
 
 
