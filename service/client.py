@@ -276,16 +276,13 @@ class ServiceClient:
         the model's; with ``image_id`` the upload's, which they may repeat, not change);
         ``roi``: (u0, v0, u1, v1) px where grasps may lie; ``seed``: repeatable sampling;
         ``cem``: refinement iterations; ``up``: the world's up direction in the camera frame
-        (as for ``upload``; with ``image_id`` the upload's is used). Raises ServiceError (422 naming the field) for input
+        (as for ``upload``; with ``image_id`` the upload's, which it may repeat, not change). Raises ServiceError (422 naming the field) for input
         it cannot plan on, 404 for an unknown or evicted ``image_id``."""
         if (depth is None) == (image_id is None):
             raise ValueError("plan needs a depth image or an image_id (one of the two)")
         params: dict = {"k": k, "seed": seed, "cem": cem}
         params.update({name: repr(v) for name, v in intrinsics_params(intrinsics).items()})
-        if image_id is None:
-            params.update({name: repr(v) for name, v in up_params(up).items()})
-        elif up is not None:
-            raise ValueError("plan on an image_id uses the up direction given at upload; do not pass up")
+        params.update({name: repr(v) for name, v in up_params(up).items()})
         if roi is not None:
             params["roi"] = ",".join(repr(float(x)) for x in roi)
         if image_id is not None:

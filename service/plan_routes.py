@@ -77,7 +77,7 @@ ROI = tuple(
 )
 PLAN_NUMBERS = (K, FX, FY, CX, CY, SEED, CEM, WIDTH, HEIGHT, *UP)
 #: the query of a plan on an uploaded image (no body to describe: no width / height)
-IMAGE_PLAN_NUMBERS = (K, FX, FY, CX, CY, SEED, CEM)
+IMAGE_PLAN_NUMBERS = (K, FX, FY, CX, CY, SEED, CEM, *UP)
 
 
 def roi_parameter() -> dict:
@@ -125,6 +125,11 @@ def image_plan_parameters() -> list[dict]:
                 f"{p['name']} (px) of the camera the image was uploaded with; optional, and when given it must "
                 "equal the upload's (the answer's intrinsics)"
             )
+        elif p["name"].startswith("up_"):
+            p["description"] = p["schema"]["description"] = (
+                f"{p['name']} of the up direction the image was uploaded with; optional, and when given it must "
+                "equal the upload's (the answer's level.up)"
+            )
     return out
 
 
@@ -153,7 +158,17 @@ def body_image_id(body: bytes) -> str:
 
 def check_upload_camera(image_id: str, entry: CachedImage, numbers: dict) -> None:
     """422 naming the first of ``fx``, ``fy``, ``cx``, ``cy`` given in the query that differs
-    from the camera the image was uploaded with (a cached image is planned with that one)."""
+    from the camera the image was uploaded with, or ``up_x`` for an up direction other than the
+    upload's (a cached image is planned with that camera, turned level as it was at upload)."""
+    up, _ = client_up(numbers)
+    if up is not None and (entry.up is None or not np.allclose(up, entry.up, rtol=1e-9, atol=1e-12)):
+        was = "without up (taken as level)" if entry.up is None else f"with up {list(entry.up)}"
+        raise ApiError(
+            422,
+            f"field up_x: image {image_id[:64]!r} was uploaded {was}, not up {list(up)}; a plan on it uses the "
+            "upload's: omit up_x, up_y, up_z, or upload the image again with this up direction",
+            {"field": "up_x"},
+        )
     for name in ("fx", "fy", "cx", "cy"):
         v, was = numbers.get(name), float(getattr(entry.camera, name))
         if v is not None and not math.isclose(v, was, rel_tol=1e-9, abs_tol=1e-9):

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from servers import ROOT, running_service
 
-from service.client import ServiceClient
+from service.client import ServiceClient, ServiceError
 from vgq.camera import DEFAULT_INTRINSICS, level_depth, leveled_intrinsics, map_pixels, roll_matrix
 from vgq.pose import roll_quaternions
 
@@ -159,8 +159,14 @@ def test_a_rolled_camera_with_its_up_plans_the_level_cameras_grasps_in_its_own_f
     np.testing.assert_allclose(turned_roi.scores, level_roi.scores, atol=1e-6)
     cached = client.plan(k=3, seed=0, image_id=client.upload(d, intrinsics=intr, up=UP))
     np.testing.assert_allclose(cached.poses, turned.poses, atol=1e-9)
-    with pytest.raises(ValueError, match="up"):
-        client.plan(k=3, image_id="0" * 32, up=UP)
+    image_id = client.upload(d, intrinsics=intr, up=UP)
+    again = client.plan(k=3, seed=0, image_id=image_id, up=UP)  # repeating the upload's up
+    np.testing.assert_allclose(again.poses, turned.poses, atol=1e-9)
+    for other in (LEVEL_UP, None):  # another up, or one on an image uploaded without
+        iid = image_id if other is not None else client.upload(d, intrinsics=intr)
+        with pytest.raises(ServiceError) as e:
+            client.plan(k=3, image_id=iid, up=UP if other is None else other)
+        assert e.value.status == 422 and e.value.details["field"] == "up_x"
 
 
 def test_a_plan_with_a_partial_up_answers_422_naming_it(url):
