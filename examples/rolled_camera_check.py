@@ -25,17 +25,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from datagen import storage  # noqa: E402
 from export.evaluate import crop_rows, raw_scores  # noqa: E402
 from training import metrics as M  # noqa: E402
+from vgq.camera import Intrinsics, map_pixels  # noqa: E402
 from vgq.pose import canonical_quaternion, roll_quaternions  # noqa: E402
 
 PHI_BINS_DEG = (0, 10, 20, 35, 50, 70)
+#: a camera whose pixels are offsets from the window centre (unit focal length, centre at 0)
+OFFSETS = Intrinsics(fx=1.0, fy=1.0, cx=0.0, cy=0.0, width=1, height=1)
 
 
 def rolled_inputs(images: np.ndarray, poses: np.ndarray, quarter_turns: int) -> tuple[np.ndarray, np.ndarray]:
     """Crops (n, S, S) and pose rows (n, 7) as the camera rolled by ``quarter_turns`` x 90 deg sees them."""
     roll = quarter_turns * np.pi / 2
-    c, s = round(np.cos(roll)), round(np.sin(roll))
     p = poses.astype(np.float64).copy()
-    p[:, 0], p[:, 1] = c * poses[:, 0] + s * poses[:, 1], -s * poses[:, 0] + c * poses[:, 1]
+    p[:, :2] = map_pixels(p[:, :2], OFFSETS, OFFSETS, roll)  # offsets from the window centre turn as pixels do
     p[:, 3:7] = canonical_quaternion(roll_quaternions(poses[:, 3:7], roll))  # the network reads w >= 0
     # a pixel at offset (du, dv) moves to (c du + s dv, -s du + c dv): np.rot90 by +1 maps (du, dv) -> (dv, -du)
     return np.ascontiguousarray(np.rot90(images, k=quarter_turns, axes=(1, 2))), p.astype(np.float32)
