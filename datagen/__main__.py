@@ -213,6 +213,7 @@ def cmd_crops(args) -> int:
         sensor_overrides=dict(parse_override(o) for o in args.sensor_set),
         splits=tuple(args.splits),
         workers=args.workers or default_workers(),
+        window=args.window,
     )
     return 0
 
@@ -549,7 +550,17 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--in", dest="inp", required=True, help="grasp dataset folder (normally `datagen sample` output)")
     c.add_argument("--out", required=True, help="output folder")
     c.add_argument("--arch", required=True, choices=("fast_vgqcnn", "vgqcnn", "gqcnn"))
-    c.add_argument("--kappa", type=float, help="Fast-VGQ-CNN offset range, source px (default 36)")
+    c.add_argument(
+        "--kappa",
+        type=float,
+        help="Fast-VGQ-CNN offset range, source px (default 36 for the 96 px window, in proportion)",
+    )
+    c.add_argument(
+        "--window",
+        type=_positive_int("--window"),
+        default=96,
+        help="crop window side, source px, a multiple of 32 (each window is resized to 32 x 32; default 96)",
+    )
     c.add_argument(
         "--seed", type=_count("--seed"), default=0, help="window offsets and the sensor model's noise (default 0)"
     )

@@ -42,12 +42,13 @@ DEFAULT_KAPPA_PX = 36.0  # the authors' default for the 96 px window (12 px at 3
 
 
 def geometry_for(arch: str, kappa_px: float | None = None, window: int = 96, out: int = 32) -> vcrop.CropGeometry:
-    """Crop geometry of ``arch``: Fast-VGQ-CNN uses ``kappa_px`` (default 36), the centred
-    architectures kappa 0 (a non-zero kappa for them is an error)."""
+    """Crop geometry of ``arch``: a ``window`` x ``window`` source px window resized to ``out``;
+    Fast-VGQ-CNN uses ``kappa_px`` (default 36 px for the 96 px window, in proportion for
+    another), the centred architectures kappa 0 (a non-zero kappa for them is an error)."""
     if arch not in ARCHS:
         raise ValueError(f"unknown architecture {arch!r}; expected one of {', '.join(ARCHS)}")
     if arch == "fast_vgqcnn":
-        k = DEFAULT_KAPPA_PX if kappa_px is None else float(kappa_px)
+        k = DEFAULT_KAPPA_PX * window / 96 if kappa_px is None else float(kappa_px)
     else:
         if kappa_px not in (None, 0, 0.0):
             raise ValueError(f"kappa applies to fast_vgqcnn only; {arch} crops are centred (got kappa {kappa_px})")
@@ -164,6 +165,7 @@ def make_crops(
     sensor_overrides: dict | None = None,
     splits: tuple[str, ...] = SPLITS,
     workers: int = 1,
+    window: int = 96,
 ) -> dict:
     """Crop every grasp of the grasp dataset ``src`` into the ``vgq-crops`` dataset ``out``.
 
@@ -173,8 +175,9 @@ def make_crops(
     ``sensor_overrides`` (field -> value). ``splits``: the splits to crop (the others are
     written empty), e.g. ``("test",)`` for a second, differently corrupted copy of the test
     split. ``workers``: processes cropping objects in parallel (the result does not depend on
-    it). Returns the written manifest."""
-    geom = geometry_for(arch, kappa_px)
+    it). ``window``: source px a side of each crop window (resized to 32 x 32). Returns the
+    written manifest."""
+    geom = geometry_for(arch, kappa_px, window=window)
     bad = sorted(set(splits) - set(SPLITS))
     if bad or not splits:
         raise ValueError(f"splits must be a non-empty subset of {SPLITS}, got {tuple(splits)}")

@@ -90,6 +90,17 @@ def test_kappa_with_centred_arch_is_refused(tmp_path, capsys):
     assert rc == 2 and "fast_vgqcnn only" in err
 
 
+def test_a_window_not_a_multiple_of_the_crop_is_refused(tmp_path, capsys):
+    from datagen_fakes import fake_dataset
+
+    fake_dataset(tmp_path / "g", n_objects=1, n_images=1, n_grasps=3)
+    rc, _, err = run_main(
+        capsys, "crops", "--in", tmp_path / "g", "--out", tmp_path / "c", "--arch", "fast_vgqcnn", "--window", 50
+    )
+    assert rc == 2 and "window (50) must be a multiple of out (32)" in err
+    assert not (tmp_path / "c" / "manifest.json").exists()
+
+
 def test_ray_missing_names_the_extra(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # as if Ray were not installed
     src = tmp_path / "meshes"

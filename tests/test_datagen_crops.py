@@ -70,6 +70,20 @@ def test_fast_vgqcnn_crops_keep_grasps_within_kappa(one_image_dataset, tmp_path)
     assert saved["kappa_px"] == 24 and saved["architecture"] == "fast_vgqcnn" == m["architecture"]
 
 
+def test_a_smaller_window_crops_vgq_crops_at_its_scale(one_image_dataset, tmp_path):
+    m = make_crops(one_image_dataset, tmp_path, "fast_vgqcnn", log=lambda s: None, sensor="clean", window=64)
+    depth, g = _first(one_image_dataset)
+    a = storage.open_crops(tmp_path, "train")
+    geom = vcrop.CropGeometry(64, 32, 24.0)  # kappa in proportion to the default 36 px of 96
+    assert m["geometry"] == geom.to_dict()
+    uv = np.stack([g["u"], g["v"]], 1).astype(np.float64)
+    centres = uv - a["poses"][:, :2].astype(np.float64) * geom.scale
+    assert np.all(vcrop.in_training_range(uv, centres, geom))
+    for i in range(0, len(uv), 9):
+        expected, _ = vcrop.crop(depth, centres[i], geom)
+        np.testing.assert_array_equal(a["images"][i], expected)
+
+
 def test_fast_window_offsets_are_uniform_within_kappa():
     geom = vcrop.CropGeometry(96, 32, 12.0)
     g = np.tile([[150.3, 80.8]], (20000, 1))
