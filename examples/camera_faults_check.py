@@ -139,6 +139,7 @@ def main() -> int:
             for name, given in (
                 (f"camera rolled {deg} deg, up not given", None),
                 (f"camera rolled {deg} deg, up given", up),
+                (f"camera rolled {deg} deg, level=table", "table"),
             ):
                 run(
                     client,
@@ -149,6 +150,29 @@ def main() -> int:
                     camera,
                     given,
                 )
+        beta = np.radians(30)
+        rolled = leveled_intrinsics(DEFAULT_INTRINSICS, beta)
+
+        def turned30(g):
+            g[:, :2] = map_pixels(g[:, :2], DEFAULT_INTRINSICS, rolled, beta)
+            g[:, 3:7] = roll_quaternions(g[:, 3:7], beta)
+            return g
+
+        for name, given in (
+            ("rolled 30 deg + sensor model, up given", roll_matrix(beta).T @ np.array([0.0, -0.5, -0.866])),
+            ("rolled 30 deg + sensor model, level=table", "table"),
+        ):
+            run(
+                client,
+                data,
+                name,
+                lambda d, i: sensor.apply(
+                    level_depth(d, DEFAULT_INTRINSICS, beta)[0], np.random.default_rng(i), rolled
+                ),
+                turned30,
+                {k: getattr(rolled, k) for k in ("fx", "fy", "cx", "cy")},
+                given,
+            )
         run(
             client,
             data,

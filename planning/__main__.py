@@ -76,13 +76,20 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--model", default=DEFAULT_MODEL, help="model folder (default: %(default)s)")
     for name in ("fx", "fy", "cx", "cy"):
         ap.add_argument(f"--{name}", type=float, default=None, help=f"{name} in pixels (default: the model's camera)")
-    ap.add_argument(
+    level = ap.add_mutually_exclusive_group()
+    level.add_argument(
         "--up",
         type=float,
         nargs=3,
         metavar=("X", "Y", "Z"),
         help="the world's up direction in the camera frame (x right, y down, z forward): the image is turned level "
         "about the optical axis (default: the camera is taken as level)",
+    )
+    level.add_argument(
+        "--level",
+        choices=("table",),
+        help="table: read the up direction from the table plane in the image (for a camera whose mounting is "
+        "not known)",
     )
     ap.add_argument("--k", type=int, default=5, help=f"grasps to return, 1 to {MAX_K} (default: %(default)s)")
     ap.add_argument("--roi", help="region of interest u0,v0,u1,v1 in pixels (inclusive)")
@@ -105,6 +112,10 @@ def main(argv=None) -> int:
     except ImportError as e:
         print(f"vgq-plan: error: onnxruntime is needed ({e}); install the service extra", file=sys.stderr)
         return 2
+    from vgq.camera import describe_level, level_roll
+
+    from .level import PARAMS as LEVEL_PARAMS
+    from .level import table_level
     from .policy import camera_for, plan
     from .types import PlanParams
 
@@ -120,14 +131,25 @@ def main(argv=None) -> int:
         model = FastModel(args.model, threads=args.threads)
         intr = camera_for(depth.shape, model.card.intrinsics, args.fx, args.fy, args.cx, args.cy)
         params = dataclasses.replace(PlanParams(), cem_iterations=args.cem)
-        result = plan(depth, intr, model, k=args.k, roi=roi, seed=args.seed, params=params, up=args.up)
+        up, source = args.up, None if args.up is None else "client"
+        if args.level == "table":
+            found = table_level(depth, intr)
+            if found is None:
+                raise InputError(
+                    f"--level table: no table plane in {args.depth} (no plane holds "
+                    f"{LEVEL_PARAMS.min_table_fraction:.0%} of its valid pixels); give --up X Y Z instead"
+                )
+            up, source = found.up, "table"
+        result = plan(depth, intr, model, k=args.k, roi=roi, seed=args.seed, params=params, up=up)
     except (InputError, ModelError) as e:
         print(f"vgq-plan: error: {e}", file=sys.stderr)
         return 2
     except PlanningError as e:
         print(f"vgq-plan: error: {e.field}: {e}", file=sys.stderr)
         return 2
-    doc = {"depth": args.depth, "intrinsics": intr.to_dict(), "k": args.k, "seed": args.seed, **result.to_dict()}
+    level = describe_level(up, 0.0 if up is None else level_roll(up), source)
+    doc = {"depth": args.depth, "intrinsics": intr.to_dict(), "level": level, "k": args.k, "seed": args.seed}
+    doc.update(result.to_dict())
     text = json.dumps(doc, indent=1)
     if args.out:
         atomic.write_bytes(Path(args.out), text.encode())

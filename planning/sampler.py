@@ -151,6 +151,22 @@ class Candidates:
         return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("frames", "contacts", "widths", "seen")))
 
 
+def find_table(
+    points: np.ndarray, valid: np.ndarray, params: PlanParams, rng: np.random.Generator
+) -> TablePlane | None:
+    """The table under the objects: the dominant plane (RANSAC) of ``params.ransac_points`` of
+    the valid ``points`` (H, W, 3, camera frame, metres) drawn at random, or None when there is
+    none or it holds under ``params.min_table_fraction`` of them."""
+    flat = np.flatnonzero(valid.ravel())
+    if len(flat) == 0:
+        return None
+    sub = points.reshape(-1, 3)[flat[rng.integers(0, len(flat), size=min(params.ransac_points, len(flat)))]]
+    table = fit_table(sub, rng, params.ransac_iterations, params.table_inlier_distance)
+    if table is not None and table.inlier_fraction < params.min_table_fraction:
+        return None
+    return table
+
+
 def analyse_scene(
     depth: np.ndarray, intr: Intrinsics, params: PlanParams, rng: np.random.Generator, roi: np.ndarray | None = None
 ) -> Scene:
@@ -158,11 +174,7 @@ def analyse_scene(
     ``roi`` (H, W) bool restricts the objects (None: the whole image). Normals are computed
     only around the objects."""
     pts, valid = backproject(depth, intr)
-    flat = np.flatnonzero(valid.ravel())
-    sub = pts.reshape(-1, 3)[flat[rng.integers(0, len(flat), size=min(params.ransac_points, len(flat)))]]
-    table = fit_table(sub, rng, params.ransac_iterations, params.table_inlier_distance)
-    if table is not None and table.inlier_fraction < params.min_table_fraction:
-        table = None
+    table = find_table(pts, valid, params, rng)
     objects = valid.copy()
     if table is not None:
         objects &= table.height(pts) > params.object_height

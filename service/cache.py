@@ -47,7 +47,8 @@ class CachedImage:
     ``assumed``: the intrinsics the client did not send (model's focal lengths, image centre).
     ``up``: the world's up direction in the client's camera frame as sent (None: not sent);
     ``roll``: radians the image was turned about the optical axis to be level
-    (``vgq.camera.level_roll``; ``resampled`` is then the level camera's canvas)."""
+    (``vgq.camera.level_roll``; ``resampled`` is then the level camera's canvas); ``up_from``:
+    "client" (sent) or "table" (read from the image's table plane, ``level=table``)."""
 
     depth: np.ndarray
     camera: Intrinsics
@@ -56,6 +57,7 @@ class CachedImage:
     fixed_center: np.ndarray | None = None
     up: tuple[float, float, float] | None = None
     roll: float = 0.0
+    up_from: str | None = None
     windows: dict[Origin, EncodedWindow] = field(default_factory=dict)
 
     @property

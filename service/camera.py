@@ -63,6 +63,31 @@ def client_up(numbers: dict) -> tuple[tuple[float, float, float] | None, float]:
         raise ApiError(422, f"field up_x: {e}", {"field": "up_x"}) from None
 
 
+def client_level(numbers: dict, depth: np.ndarray, camera: Intrinsics) -> tuple[tuple | None, float, str | None]:
+    """(up or None, roll in radians, where up came from: "client", "table" or None) of a request:
+    ``up_x``, ``up_y``, ``up_z`` as sent (:func:`client_up`), or with ``level`` "table" read from
+    the table plane of ``depth`` (H, W, metres) seen by ``camera`` (:func:`planning.level.table_level`).
+    422 (field ``level``) for both at once, or when the image shows no table."""
+    up, roll = client_up(numbers)
+    if numbers.get("level") != "table":
+        return up, roll, None if up is None else "client"
+    if up is not None:
+        raise ApiError(
+            422, "field level: give level=table or up_x, up_y, up_z (the up direction), not both", {"field": "level"}
+        )
+    from planning.level import PARAMS, table_level  # the planner's table fit (numpy + SciPy)
+
+    found = table_level(depth, camera)
+    if found is None:
+        raise ApiError(
+            422,
+            f"field level: level=table found no table in the image (no plane holds {PARAMS.min_table_fraction:.0%} "
+            "of its valid pixels); send the world's up direction in the camera frame (up_x, up_y, up_z) instead",
+            {"field": "level"},
+        )
+    return tuple(float(x) for x in found.up), found.roll, "table"
+
+
 def focal_range(model: Intrinsics) -> dict:
     """Focal lengths (px) this model serves, per axis: the image is resampled by model / camera."""
     lo, hi = FOCAL_RATIO_RANGE

@@ -40,9 +40,15 @@ def intrinsics_params(intrinsics) -> dict:
 
 
 def up_params(up) -> dict:
-    """``{"up_x": ..., "up_y": ..., "up_z": ...}`` of the world's up direction (3 numbers, camera frame; None: {})."""
+    """``{"up_x": ..., "up_y": ..., "up_z": ...}`` of the world's up direction (3 numbers, camera
+    frame), ``{"level": "table"}`` for ``up="table"`` (the service reads it from the image's table
+    plane); None: {}."""
     if up is None:
         return {}
+    if isinstance(up, str):
+        if up != "table":
+            raise ValueError(f"up must be 3 numbers or 'table', got {up!r}")
+        return {"level": "table"}
     u = [float(x) for x in np.asarray(up, dtype=np.float64).reshape(-1)]
     if len(u) != 3:
         raise ValueError(f"up must be 3 numbers (the world's up direction in the camera frame), got {len(u)}")
@@ -166,7 +172,8 @@ class ServiceClient:
         """Upload a (H, W) depth image in metres; returns its id. ``intrinsics``: the camera's
         (fx, fy, cx, cy) px. ``center``: one fixed crop window centre (u, v) px (default: grasps
         anywhere, windows placed by the service). ``up``: the world's up direction in the camera
-        frame, e.g. ``R_world_camera.T @ (0, 0, 1)`` (default: the camera is taken as level)."""
+        frame, e.g. ``R_world_camera.T @ (0, 0, 1)``, or ``"table"``: the service reads it from the
+        table plane in the image (default: the camera is taken as level)."""
         params = {} if center is None else {"center_u": center[0], "center_v": center[1]}
         params.update(intrinsics_params(intrinsics))
         params.update(up_params(up))
@@ -239,7 +246,8 @@ class ServiceClient:
             if len(intr) != 4:
                 raise ValueError("score_once needs all four intrinsics (fx, fy, cx, cy) or none")
             arrays["intrinsics"] = np.array([intr[k] for k in ("fx", "fy", "cx", "cy")], np.float64)
-        if up is not None:
+        level = up_params(up) if isinstance(up, str) else {}  # a query parameter
+        if up is not None and not level:
             arrays["up"] = np.array(list(up_params(up).values()), np.float64)
         buf = io.BytesIO()
         np.savez(buf, **arrays)
@@ -248,7 +256,7 @@ class ServiceClient:
             "POST",
             "/v1/score",
             content=buf.getvalue(),
-            params=self._strict(strict),
+            params={**self._strict(strict), **level},
             headers={"content-type": "application/x-npz", **accept},
         )
         self._raise(r)
@@ -275,14 +283,15 @@ class ServiceClient:
         (as for ``upload``: a tuple, a mapping or ``vgq.camera.Intrinsics``; default:
         the model's; with ``image_id`` the upload's, which they may repeat, not change);
         ``roi``: (u0, v0, u1, v1) px where grasps may lie; ``seed``: repeatable sampling;
-        ``cem``: refinement iterations; ``up``: the world's up direction in the camera frame
-        (as for ``upload``; with ``image_id`` the upload's, which it may repeat, not change). Raises ServiceError (422 naming the field) for input
+        ``cem``: refinement iterations; ``up``: the world's up direction in the camera frame or
+        "table" (as for ``upload``; with ``image_id`` the upload's, which it may repeat, not
+        change). Raises ServiceError (422 naming the field) for input
         it cannot plan on, 404 for an unknown or evicted ``image_id``."""
         if (depth is None) == (image_id is None):
             raise ValueError("plan needs a depth image or an image_id (one of the two)")
         params: dict = {"k": k, "seed": seed, "cem": cem}
         params.update({name: repr(v) for name, v in intrinsics_params(intrinsics).items()})
-        params.update({name: repr(v) for name, v in up_params(up).items()})
+        params.update({name: v if isinstance(v, str) else repr(v) for name, v in up_params(up).items()})
         if roi is not None:
             params["roi"] = ",".join(repr(float(x)) for x in roi)
         if image_id is not None:

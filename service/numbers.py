@@ -122,6 +122,39 @@ UP_Y = Number("up_y", f"y {_UP}")
 UP_Z = Number("up_z", f"z {_UP}")
 UP = (UP_X, UP_Y, UP_Z)
 
+
+@dataclass(frozen=True)
+class Choice:
+    """A text query parameter that takes one of ``values`` (absent or "" -> None)."""
+
+    name: str
+    description: str
+    values: tuple[str, ...]
+
+    def parse(self, raw) -> str | None:
+        if raw is None or raw == "":
+            return None
+        text = str(raw).strip().lower()
+        if text in self.values:
+            return text
+        shown = text if len(text) <= 24 else text[:20] + "..."
+        allowed = " or ".join(repr(v) for v in self.values)
+        raise ApiError(422, f"field {self.name} must be {allowed} (or absent), got {shown!r}", {"field": self.name})
+
+    def query_parameter(self) -> dict:
+        schema = {"type": "string", "enum": list(self.values), "description": self.description}
+        return {"name": self.name, "in": "query", "required": False, "schema": schema, "description": self.description}
+
+
+LEVEL = Choice(
+    "level",
+    "'table': the service reads the world's up direction from the image itself, as the normal of the table "
+    "plane the objects stand on (RANSAC), and turns the image level with it, for a camera whose mounting is "
+    "not known (the answer's level.up says what it read; 422 when the image shows no table); instead of "
+    "up_x, up_y, up_z",
+    ("table",),
+)
+
 #: the numeric query parameters of an upload, and the numeric fields of a multipart one-shot
 UPLOAD_NUMBERS = (CENTER_U, CENTER_V, WIDTH, HEIGHT, *INTRINSICS, *UP)
 ONE_SHOT_NUMBERS = UPLOAD_NUMBERS
@@ -144,8 +177,12 @@ def parse_flag(name: str, raw) -> bool:
 
 
 def request_key(content_type: str, numbers: dict) -> str:
-    """The parameters that, with the body, make an upload's cache id (content type, shape, window, camera)."""
-    return ";".join([content_type, *(repr(numbers.get(n.name)) for n in UPLOAD_NUMBERS)])
+    """The parameters that, with the body, make an upload's cache id (content type, shape, window,
+    camera, and ``level`` when given)."""
+    key = [content_type, *(repr(numbers.get(n.name)) for n in UPLOAD_NUMBERS)]
+    if numbers.get(LEVEL.name) is not None:
+        key.append(f"{LEVEL.name}={numbers[LEVEL.name]}")
+    return ";".join(key)
 
 
 def parse_all(numbers, source) -> dict:

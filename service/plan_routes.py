@@ -33,12 +33,12 @@ from vgq.camera import CameraMismatch, describe_level
 from . import openapi as doc
 from .body import ClientGone, read_body
 from .cache import CachedImage, EncodedWindow
-from .camera import check_resampled_side, client_up
+from .camera import check_resampled_side, client_level, client_up
 from .depth_io import decode_depth
 from .errors import ApiError
 from .limits import RETRY_AFTER_S
 from .media import JSON, media_type
-from .numbers import HEIGHT, UP, WIDTH, Number, parse_all
+from .numbers import HEIGHT, LEVEL, UP, WIDTH, Number, parse_all
 from .routes import Authorized, json_response
 from .scoring import Service
 
@@ -113,7 +113,7 @@ def parse_roi(raw: str | None) -> tuple[float, float, float, float] | None:
 
 
 def plan_parameters(numbers=PLAN_NUMBERS) -> list[dict]:
-    return [n.query_parameter() for n in numbers] + [roi_parameter()]
+    return [n.query_parameter() for n in numbers] + [LEVEL.query_parameter(), roi_parameter()]
 
 
 def image_plan_parameters() -> list[dict]:
@@ -124,6 +124,10 @@ def image_plan_parameters() -> list[dict]:
             p["description"] = p["schema"]["description"] = (
                 f"{p['name']} (px) of the camera the image was uploaded with; optional, and when given it must "
                 "equal the upload's (the answer's intrinsics)"
+            )
+        elif p["name"] == LEVEL.name:
+            p["description"] = p["schema"]["description"] = (
+                "table: only for an image uploaded with level=table (the plan uses the upload's up direction)"
             )
         elif p["name"].startswith("up_"):
             p["description"] = p["schema"]["description"] = (
@@ -160,7 +164,16 @@ def check_upload_camera(image_id: str, entry: CachedImage, numbers: dict) -> Non
     """422 naming the first of ``fx``, ``fy``, ``cx``, ``cy`` given in the query that differs
     from the camera the image was uploaded with, or ``up_x`` for an up direction other than the
     upload's (a cached image is planned with that camera, turned level as it was at upload)."""
+    if numbers.get(LEVEL.name) == "table" and entry.up_from != "table":
+        raise ApiError(
+            422,
+            f"field level: image {image_id[:64]!r} was uploaded without level=table; a plan on it uses the upload's "
+            "up direction: omit level, or upload the image again with level=table",
+            {"field": "level"},
+        )
     up, _ = client_up(numbers)
+    if numbers.get(LEVEL.name) == "table":
+        up = None  # the upload's, read from its table
     if up is not None and (entry.up is None or not np.allclose(up, entry.up, rtol=1e-9, atol=1e-12)):
         was = "without up (taken as level)" if entry.up is None else f"with up {list(entry.up)}"
         raise ApiError(
@@ -284,7 +297,7 @@ async def plan_cached(svc: Service, request: Request, image_id: str, n: dict, ro
         entry.camera.to_dict(),
         image_id=image_id,
         intrinsics_assumed=list(entry.assumed),
-        level=describe_level(entry.up, entry.roll),
+        level=describe_level(entry.up, entry.roll, entry.up_from),
     )
 
 
@@ -304,6 +317,7 @@ async def plan_grasps(request: Request, svc: Authorized):
     contacts (camera frame, metres), the jaw width, the network's score and out-of-distribution
     flags; ``reason`` says why when none."""
     n = parse_all(PLAN_NUMBERS, request.query_params)
+    n[LEVEL.name] = LEVEL.parse(request.query_params.get(LEVEL.name))
     roi = parse_roi(request.query_params.get("roi"))
     s = svc.settings
     body = await read_body(request, s.max_body_bytes, s.request_timeout_s)
@@ -312,9 +326,9 @@ async def plan_grasps(request: Request, svc: Authorized):
         return await plan_cached(svc, request, body_image_id(body), n, roi)
     depth = decode_depth(body, ct, width=n["width"], height=n["height"], max_side=s.max_image_side)
     k, seed, params = plan_params(n)
-    up, roll = client_up(n)
     try:
         intr = camera_for(depth.shape, svc.model.card.intrinsics, n["fx"], n["fy"], n["cx"], n["cy"])
+        up, roll, up_from = client_level(n, depth, intr)
         try:
             check_resampled_side(intr, svc.model.card.intrinsics, s.max_image_side, roll)  # as for uploads
         except CameraMismatch:
@@ -322,7 +336,7 @@ async def plan_grasps(request: Request, svc: Authorized):
         result = await run_plan(svc, request, plan, depth, intr, svc.model, k, roi, seed, params, up)
     except PlanningError as e:
         raise ApiError(422, f"{e.field}: {e}", {"field": e.field}) from None
-    return plan_answer(svc, result, k, seed, params, intr.to_dict(), level=describe_level(up, roll))
+    return plan_answer(svc, result, k, seed, params, intr.to_dict(), level=describe_level(up, roll, up_from))
 
 
 @router.post(
@@ -339,6 +353,7 @@ async def plan_image(image_id: str, request: Request, svc: Authorized):
     cached. The same depth, camera, parameters and seed plan the same grasps as ``POST
     /v1/plan`` with the depth in the body. Unknown or evicted id: 404, upload again."""
     n = parse_all(IMAGE_PLAN_NUMBERS, request.query_params)
+    n[LEVEL.name] = LEVEL.parse(request.query_params.get(LEVEL.name))
     roi = parse_roi(request.query_params.get("roi"))
     s = svc.settings
     body = await read_body(request, s.max_body_bytes, s.request_timeout_s)

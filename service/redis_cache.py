@@ -57,6 +57,7 @@ def pack_entry(entry: CachedImage) -> bytes:
         "fixed_center": None if entry.fixed_center is None else [float(x) for x in entry.fixed_center],
         "up": None if entry.up is None else list(entry.up),
         "roll": entry.roll,
+        "up_from": entry.up_from,
     }
     m = orjson.dumps(meta)
     depth = zlib.compress(np.ascontiguousarray(entry.depth, dtype="<f4").tobytes(), 1)
@@ -86,6 +87,7 @@ def unpack_entry(data: bytes) -> CachedImage:
             None if fc is None else np.array(fc, dtype=np.float64),
             None if meta.get("up") is None else tuple(float(x) for x in meta["up"]),
             float(meta.get("roll", 0.0)),  # entries of replicas that predate the up direction: level
+            meta.get("up_from", None if meta.get("up") is None else "client"),
         )
     except (orjson.JSONDecodeError, zlib.error, KeyError, TypeError) as e:
         raise ValueError(f"cache entry is corrupt: {e}") from None

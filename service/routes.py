@@ -29,7 +29,7 @@ from .depth_io import DEPTH_TYPES, decode_depth
 from .errors import ApiError, redact_paths
 from .grasps import parse_binary, parse_json
 from .media import JSON, MULTIPART, NPZ, OCTET, accepts, media_type
-from .numbers import UPLOAD_NUMBERS, parse_all, parse_flag, request_key
+from .numbers import LEVEL, UPLOAD_NUMBERS, parse_all, parse_flag, request_key
 from .oneshot import parse_multipart, parse_npz
 from .scoring import Scores, Service
 
@@ -213,7 +213,10 @@ async def metrics(request: Request):
 @router.post(
     "/v1/images",
     summary="Upload a depth image: crop, encode once, cache",
-    openapi_extra={"requestBody": doc.UPLOAD_BODY, "parameters": [n.query_parameter() for n in UPLOAD_NUMBERS]},
+    openapi_extra={
+        "requestBody": doc.UPLOAD_BODY,
+        "parameters": [n.query_parameter() for n in (*UPLOAD_NUMBERS, LEVEL)],
+    },
     responses={200: doc.UPLOAD_RESPONSE, **doc.errors(doc.BODY_ERRORS)},
 )
 async def upload(request: Request, svc: Authorized):
@@ -222,8 +225,11 @@ async def upload(request: Request, svc: Authorized):
     assumed, and the answer's ``intrinsics_assumed`` says so). Grasps may then lie anywhere in the
     image: each gets a window on the training grid, encoded when first needed. ``center_u`` /
     ``center_v`` (image px): one fixed window instead, encoded now; grasps must lie within
-    ``kappa_px`` of it. ``width`` / ``height``: only for raw float32 bodies."""
+    ``kappa_px`` of it. ``width`` / ``height``: only for raw float32 bodies. ``up_x``, ``up_y``,
+    ``up_z``: the world's up in the camera frame, to turn the image level; or ``level=table``: read
+    it from the table plane in the image."""
     n = parse_all(UPLOAD_NUMBERS, request.query_params)
+    n[LEVEL.name] = LEVEL.parse(request.query_params.get(LEVEL.name))
     body = await _body(request, svc)
     ct = media_type(request.headers.get("content-type"))
     key = image_id(body, request_key(ct, n), svc.model.version)
@@ -257,7 +263,7 @@ async def score(image_id: str, request: Request, svc: Authorized):
 @router.post(
     "/v1/score",
     summary="One-shot: upload + score in one request (fills the cache)",
-    openapi_extra={"requestBody": doc.ONE_SHOT_BODY, "parameters": [doc.STRICT]},
+    openapi_extra={"requestBody": doc.ONE_SHOT_BODY, "parameters": [doc.STRICT, LEVEL.query_parameter()]},
     responses={200: doc.SCORE_RESPONSE, **doc.errors(doc.BODY_ERRORS)},
 )
 async def score_once(request: Request, svc: Authorized):
@@ -265,10 +271,13 @@ async def score_once(request: Request, svc: Authorized):
     ``width``/``height`` fields) and ``grasps`` (JSON text or a float32 k x 7 file), optional fields
     ``fx``, ``fy``, ``cx``, ``cy``, ``center_u``, ``center_v``; or ``application/x-npz`` with arrays
     ``depth`` (H, W) metres, ``grasps`` (k, 7) and optional ``intrinsics`` (4,) = fx, fy, cx, cy and
-    ``center`` (2,). Answers as the score route; ``strict=true`` likewise."""
+    ``center`` (2,), ``up`` (3,). Answers as the score route; ``strict=true`` likewise; ``level=table``
+    (query) as for an upload."""
     strict = _strict(request)
+    level = LEVEL.parse(request.query_params.get(LEVEL.name)) if request.scope.get("query_string") else None
     body = await _body(request, svc)
-    return score_one_shot(svc, body, request.headers.get("content-type", ""), request.headers.get("accept"), strict)
+    ct, accept = request.headers.get("content-type", ""), request.headers.get("accept")
+    return score_one_shot(svc, body, ct, accept, strict, level)
 
 
 # ---- the scoring routes without the router ---------------------------------------------------------
@@ -312,8 +321,9 @@ class ScoringFastPath:
             svc = self.fastapi_app.state.service
             headers = _request_headers(scope)
             check_access(svc, headers.get(b"x-api-key", ""))
-            query = scope.get("query_string")
-            strict = parse_flag("strict", QueryParams(query).get("strict")) if query else False
+            query = QueryParams(scope["query_string"]) if scope.get("query_string") else None
+            strict = parse_flag("strict", query.get("strict")) if query else False
+            level = LEVEL.parse(query.get(LEVEL.name)) if query and image_id is None else None
             s = svc.settings
             body = await read_asgi_body(
                 receive,
@@ -325,7 +335,7 @@ class ScoringFastPath:
             )
             ct, accept = headers.get(b"content-type"), headers.get(b"accept")
             if image_id is None:
-                response = score_one_shot(svc, body, ct or "", accept, strict)
+                response = score_one_shot(svc, body, ct or "", accept, strict, level)
             else:
                 response = score_cached(svc, image_id, body, ct, accept, strict)
         except Exception as e:
@@ -371,8 +381,9 @@ def score_cached(svc: Service, image_id: str, body, content_type: str | None, ac
     return _scores_response(accept, svc, image_id, None, entry, result)
 
 
-def score_one_shot(svc: Service, body, header: str, accept: str | None, strict: bool):
-    """``POST /v1/score`` once its body is in memory (``header``: the request's Content-Type)."""
+def score_one_shot(svc: Service, body, header: str, accept: str | None, strict: bool, level: str | None = None):
+    """``POST /v1/score`` once its body is in memory (``header``: the request's Content-Type;
+    ``level``: the query's, see ``service.numbers.LEVEL``)."""
     s = svc.settings
     ct = media_type(header)
     if ct == MULTIPART:
@@ -381,6 +392,7 @@ def score_one_shot(svc: Service, body, header: str, accept: str | None, strict: 
         shot = parse_npz(body, s.max_body_bytes, s.max_image_side, s.max_grasps)
     else:
         raise ApiError(415, f"unsupported content type {ct!r} for one-shot scoring; use {MULTIPART} or {NPZ}")
+    shot.numbers[LEVEL.name] = level
     key = image_id(shot.depth_body, shot.cache_params(), svc.model.version)
     entry = svc.cache.get(key)
     cached = entry is not None

@@ -27,7 +27,7 @@ from vgq.pose import roll_quaternions
 
 from . import logs
 from .cache import CachedImage, EncodedWindow, MemoryCache
-from .camera import client_camera, client_up, to_model_camera
+from .camera import client_camera, client_level, to_model_camera
 from .config import Settings
 from .errors import ApiError
 from .metrics import Metrics
@@ -129,7 +129,7 @@ class Service:
         yet encoded; with ``center_u`` / ``center_v`` (client px) its one fixed window placed."""
         model = self.model.card.intrinsics
         camera, assumed = client_camera(numbers, depth.shape, model)
-        up, roll = client_up(numbers)
+        up, roll, up_from = client_level(numbers, depth, camera)
         cu, cv = numbers.get("center_u"), numbers.get("center_v")
         if cu is not None or cv is not None:
             h, w = depth.shape
@@ -142,7 +142,7 @@ class Service:
                     f"(u in [0, {w - 1}], v in [0, {h - 1}])",
                 )
         resampled_depth, resampled = to_model_camera(depth, camera, model, self.settings.max_image_side, assumed, roll)
-        entry = CachedImage(resampled_depth, camera, resampled, assumed, up=up, roll=roll)
+        entry = CachedImage(resampled_depth, camera, resampled, assumed, up=up, roll=roll, up_from=up_from)
         if cu is not None:
             c = map_pixels([[cu, cv]], camera, resampled, roll)[0]
             geom = self.model.geometry
@@ -299,7 +299,7 @@ class Service:
                 "scale": list(entry.scale),
                 "intrinsics": {k: getattr(r, k) for k in ("fx", "fy", "cx", "cy")},
             },
-            "level": describe_level(entry.up, entry.roll),
+            "level": describe_level(entry.up, entry.roll, entry.up_from),
         }
 
     def grasp_range(self, entry: CachedImage) -> dict:

@@ -60,6 +60,32 @@ def test_cli_bad_input_exits_2_with_one_line(depth_file, args, words):
     assert len(lines) == 1 and words in lines[0] and "Traceback" not in r.stderr
 
 
+def test_cli_level_table_reads_the_up_from_the_table(depth_file, tmp_path):
+    out = tmp_path / "g.json"
+    r = _run(depth_file / "depth.npy", "--k", 1, "--level", "table", "--out", out)
+    assert r.returncode == 0, r.stderr
+    level = json.loads(out.read_text())["level"]
+    assert level["from"] == "table" and level["roll_deg"] == 0.0 and level["tilt_deg"] == pytest.approx(20.05, abs=0.1)
+    r = _run(depth_file / "depth.npy", "--k", 1, "--out", out)
+    assert json.loads(out.read_text())["level"] == {"up": None, "roll_deg": 0.0, "tilt_deg": None, "from": None}
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [(["--up", "0", "0", "-1", "--level", "table"], "not allowed with"), (["--level", "floor"], "invalid choice")],
+)
+def test_cli_usage_errors_exit_2_naming_the_argument(depth_file, args, words):
+    r = _run(depth_file / "depth.npy", *args)
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 2 and last.startswith("vgq-plan: error: argument --level") and words in last
+
+
+def test_cli_level_table_without_a_table_exits_2(tmp_path):
+    np.save(tmp_path / "scattered.npy", np.random.default_rng(0).uniform(0.4, 1.2, (300, 300)).astype(np.float32))
+    r = _run(tmp_path / "scattered.npy", "--level", "table")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "no table plane" in r.stderr, r.stderr
+
+
 def test_cli_rejects_missing_and_empty_images(tmp_path):
     np.save(tmp_path / "zeros.npy", np.zeros((300, 300), np.float32))
     (tmp_path / "junk.npy").write_bytes(b"not a numpy file")

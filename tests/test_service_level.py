@@ -68,9 +68,9 @@ def test_the_upload_reports_the_roll_and_tilt(client, heldout):
     client.upload(d, intrinsics=intr, up=5 * UP)
     level = client.last_upload["level"]
     assert level["roll_deg"] == pytest.approx(-90.0) and level["tilt_deg"] == pytest.approx(30.0, abs=0.01)
-    assert level["up"] == pytest.approx((5 * UP).tolist())
+    assert level["up"] == pytest.approx((5 * UP).tolist()) and level["from"] == "client"
     client.upload(heldout[0][0])
-    assert client.last_upload["level"] == {"up": None, "roll_deg": 0.0, "tilt_deg": None}
+    assert client.last_upload["level"] == {"up": None, "roll_deg": 0.0, "tilt_deg": None, "from": None}
 
 
 def test_a_camera_tilted_beyond_the_training_cameras_flags_every_grasp(client, heldout):
@@ -179,3 +179,59 @@ def test_a_plan_with_a_partial_up_answers_422_naming_it(url):
         headers={"content-type": "application/x-npy"},
     )
     assert r.status_code == 422 and r.json()["error"]["details"]["field"] == "up_x"
+
+
+# ---- level=table: the up direction read from the image's table plane ------------------------------
+def test_level_table_reads_the_up_from_the_table_and_scores_as_the_level_camera(client, heldout):
+    for depth, grasps in (heldout[0], heldout[3], heldout[5]):  # cameras 63, 18 and 20 deg off straight down
+        level = client.score_details(client.upload(depth), grasps)["raw_score"]
+        d, g, intr = rolled(depth, grasps)
+        read = client.score_details(client.upload(d, intrinsics=intr, up="table"), g)["raw_score"]
+        lv = client.last_upload["level"]
+        assert lv["from"] == "table" and lv["roll_deg"] == pytest.approx(-90.0, abs=0.1)
+        assert np.abs(read - level).mean() < 0.01
+        assert client.last_upload["image_id"] != client.upload(d, intrinsics=intr)  # level is part of the id
+
+
+def test_a_one_shot_and_a_plan_with_level_table_are_the_upload_with_the_up_it_read(client, heldout):
+    d, g, intr = rolled(*heldout[0], beta=np.radians(30))
+    uploaded = client.score_details(client.upload(d, intrinsics=intr, up="table"), g)["raw_score"]
+    read = client.last_upload["level"]["up"]
+    once = client.score_once(d, g, intrinsics=intr, up="table", details=True)["raw_score"]
+    np.testing.assert_allclose(once, uploaded, atol=1e-6)
+    plan = client.plan(d, k=2, seed=0, intrinsics=intr, up="table")
+    given = client.plan(d, k=2, seed=0, intrinsics=intr, up=read)
+    np.testing.assert_allclose(plan.poses, given.poses, atol=1e-9)
+    assert plan.answer["level"]["from"] == "table" and given.answer["level"]["from"] == "client"
+
+
+def test_a_plan_on_an_image_takes_level_table_only_from_its_upload(client, heldout):
+    d, _, intr = rolled(*heldout[0])
+    by_table = client.upload(d, intrinsics=intr, up="table")
+    assert client.plan(k=1, seed=0, image_id=by_table, up="table").answer["level"]["from"] == "table"
+    with pytest.raises(ServiceError) as e:
+        client.plan(k=1, seed=0, image_id=client.upload(d, intrinsics=intr), up="table")
+    assert e.value.status == 422 and e.value.details["field"] == "level"
+
+
+@pytest.mark.parametrize(
+    ("params", "depth", "says"),
+    [
+        ({"level": "table", "up_x": "0", "up_y": "-1", "up_z": "0"}, "heldout", "not both"),
+        ({"level": "floor"}, "heldout", "must be 'table'"),
+        ({"level": "table"}, "no table", "found no table"),
+    ],
+)
+def test_a_bad_level_answers_422_naming_it(url, heldout, params, depth, says):
+    if depth == "no table":  # depth readings scattered over 0.4-1.2 m: no plane holds 10% of them
+        img = np.random.default_rng(0).uniform(0.4, 1.2, (300, 300)).astype(np.float32)
+    else:
+        img = heldout[0][0]
+    b = io.BytesIO()
+    np.save(b, img)
+    for route in ("/v1/images", "/v1/plan"):
+        r = httpx.post(
+            f"{url}{route}", content=b.getvalue(), params=params, headers={"content-type": "application/x-npy"}
+        )
+        assert r.status_code == 422, (route, r.text)
+        assert r.json()["error"]["details"]["field"] == "level" and says in r.text

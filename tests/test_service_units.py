@@ -190,7 +190,9 @@ def test_a_level_entry_keeps_its_up_and_roll_through_the_bytes():
     e = _entry(False)
     e.up, e.roll = (0.5, 0.1, -0.8), -1.37340076694502
     back = unpack_entry(pack_entry(e))
-    assert back.up == e.up and back.roll == e.roll
+    assert back.up == e.up and back.roll == e.roll and back.up_from is None
+    e.up_from = "table"
+    assert unpack_entry(pack_entry(e)).up_from == "table"
 
 
 def test_window_entry_bytes_round_trip():

@@ -59,6 +59,15 @@ def test_a_camera_looking_straight_down_or_rolled_a_hair_is_served_as_it_is():
     assert level_roll(roll_matrix(radians(0.2)).T @ LEVEL_UP) == 0.0
 
 
+@pytest.mark.parametrize("turns", [1, -1, 2])
+def test_a_roll_a_hair_off_a_quarter_or_half_turn_is_that_turn(turns):
+    for off in (0.3, -0.3):
+        assert abs(level_roll(roll_matrix(radians(turns * 90 + off)).T @ LEVEL_UP)) == pytest.approx(
+            abs(turns) * np.pi / 2, abs=1e-15
+        )
+    assert level_roll(roll_matrix(radians(90.8)).T @ LEVEL_UP) == pytest.approx(-radians(90.8))
+
+
 @pytest.mark.parametrize("up", [[0.0, 0.0, 0.0], [np.nan, -1.0, 0.0], [1.0, 2.0]])
 def test_a_zero_non_finite_or_short_up_is_refused(up):
     with pytest.raises(ValueError, match="up"):

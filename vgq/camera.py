@@ -7,7 +7,7 @@ coordinates, so the centre of a 300 px wide image is u = 149.5.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from math import atan2, degrees, hypot, radians
+from math import atan2, degrees, hypot, pi, radians
 
 import cv2
 import numpy as np
@@ -209,7 +209,8 @@ def valid_weighted(depth: np.ndarray, valid: np.ndarray, resample) -> np.ndarray
 
 # ----------------------------------------------------------------------------- a level camera
 
-#: A camera rolled by less than this about its optical axis is served as it is (radians).
+#: A camera rolled by less than this about its optical axis is served as it is, and one this near
+#: a quarter or half turn is turned by exactly that (pixels move without resampling) (radians).
 ROLL_TOLERANCE: float = radians(0.5)
 #: Camera tilts (radians from looking straight down) of the training cameras when a model card
 #: does not record its dataset's (``datagen.camera.CameraParams.phi_range``'s default).
@@ -222,7 +223,8 @@ def level_roll(up) -> float:
     gravity) as ``up`` (3,), any length: the rolled camera's x-axis is horizontal and world up
     points towards -v, as every training camera's (``datagen.camera.look_at_table_origin``).
     0 when the roll is under :data:`ROLL_TOLERANCE` or the camera looks straight down or up
-    (any roll is level then). ValueError for a zero or non-finite ``up``."""
+    (any roll is level then); a roll within ROLL_TOLERANCE of a quarter or half turn is that
+    turn exactly. ValueError for a zero or non-finite ``up``."""
     u = np.asarray(up, dtype=np.float64).reshape(-1)
     if u.shape != (3,) or not np.isfinite(u).all():
         raise ValueError(f"up must be 3 finite numbers (camera frame), got {u.tolist()}")
@@ -232,7 +234,10 @@ def level_roll(up) -> float:
     if hypot(u[0], u[1]) <= 1e-9 * n:
         return 0.0
     a = atan2(u[0], -u[1])
-    return 0.0 if abs(a) < ROLL_TOLERANCE else a
+    turns = round(a / (pi / 2))
+    if abs(a - turns * pi / 2) < ROLL_TOLERANCE:
+        return turns * (pi / 2) if turns != 0 else 0.0
+    return a
 
 
 def camera_tilt(up) -> float:
@@ -327,12 +332,14 @@ def footprint(canvas: Intrinsics, camera: Intrinsics, roll: float) -> np.ndarray
     return (src >= -0.5).all(axis=2) & (src[..., 0] <= camera.width - 0.5) & (src[..., 1] <= camera.height - 0.5)
 
 
-def describe_level(up, roll: float) -> dict:
-    """What an answer reports of a camera's ``up`` (None: not given, nothing levelled)."""
+def describe_level(up, roll: float, source: str | None = None) -> dict:
+    """What an answer reports of a camera's ``up`` (None: not given, nothing levelled) and where
+    it came from (``source``: "client", "table"; default "client" when ``up`` is given)."""
     if up is None:
-        return {"up": None, "roll_deg": 0.0, "tilt_deg": None}
+        return {"up": None, "roll_deg": 0.0, "tilt_deg": None, "from": None}
     return {
         "up": [float(x) for x in np.asarray(up, dtype=np.float64).reshape(3)],
         "roll_deg": degrees(roll),
         "tilt_deg": degrees(camera_tilt(up)),
+        "from": source or "client",
     }
