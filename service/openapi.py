@@ -137,18 +137,20 @@ _CAMERA = {
     },
     "level": {
         "type": "object",
-        "description": "the world's up direction as sent (up_x, up_y, up_z; null: not sent, the camera taken as "
-        "level), the roll (deg) the image was turned about the optical axis to make its rows level as the training "
-        "cameras' were (0 under 0.5 deg or looking straight down), and the camera's tilt from straight down (deg; "
-        "the training cameras': 0 to 70)",
+        "description": "the world's up direction as sent (up_x, up_y, up_z) or read from the table plane "
+        "(level=table; null: neither, the camera taken as level), the roll (deg) the image was turned about the "
+        "optical axis to make its rows level as the training cameras' were (0 under 0.5 deg or looking straight "
+        "down; a quarter or half turn within 0.5 deg is that turn), the camera's tilt from straight down (deg; the "
+        "training cameras': 0 to 70), and where the up came from",
         "properties": {
             "up": {"type": ["array", "null"], "items": {"type": "number"}},
             "roll_deg": {"type": "number"},
             "tilt_deg": {"type": ["number", "null"]},
+            "from": {"type": ["string", "null"], "enum": ["client", "table", None]},
         },
     },
 }
-_NOT_LEVELLED = {"up": None, "roll_deg": 0.0, "tilt_deg": None}
+_NOT_LEVELLED = {"up": None, "roll_deg": 0.0, "tilt_deg": None, "from": None}
 _CAMERA_EXAMPLE = {
     "intrinsics": {"fx": 615.0, "fy": 615.0, "cx": 319.5, "cy": 239.5},
     "intrinsics_assumed": [],
