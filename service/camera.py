@@ -63,6 +63,13 @@ def client_up(numbers: dict) -> tuple[tuple[float, float, float] | None, float]:
         raise ApiError(422, f"field up_x: {e}", {"field": "up_x"}) from None
 
 
+def level_and_up() -> ApiError:
+    """The 422 for a request with both ``level=table`` and ``up_x``, ``up_y``, ``up_z``."""
+    return ApiError(
+        422, "field level: give level=table or up_x, up_y, up_z (the up direction), not both", {"field": "level"}
+    )
+
+
 def client_level(numbers: dict, depth: np.ndarray, camera: Intrinsics) -> tuple[tuple | None, float, str | None]:
     """(up or None, roll in radians, where up came from: "client", "table" or None) of a request:
     ``up_x``, ``up_y``, ``up_z`` as sent (:func:`client_up`), or with ``level`` "table" read from
@@ -72,9 +79,7 @@ def client_level(numbers: dict, depth: np.ndarray, camera: Intrinsics) -> tuple[
     if numbers.get("level") != "table":
         return up, roll, None if up is None else "client"
     if up is not None:
-        raise ApiError(
-            422, "field level: give level=table or up_x, up_y, up_z (the up direction), not both", {"field": "level"}
-        )
+        raise level_and_up()
     from planning.level import PARAMS, table_level  # the planner's table fit (numpy + SciPy)
 
     found = table_level(depth, camera)

@@ -33,7 +33,7 @@ from vgq.camera import CameraMismatch, describe_level
 from . import openapi as doc
 from .body import ClientGone, read_body
 from .cache import CachedImage, EncodedWindow
-from .camera import check_resampled_side, client_level, client_up
+from .camera import check_resampled_side, client_level, client_up, level_and_up
 from .depth_io import decode_depth
 from .errors import ApiError
 from .limits import RETRY_AFTER_S
@@ -173,8 +173,9 @@ def check_upload_camera(image_id: str, entry: CachedImage, numbers: dict) -> Non
         )
     up, _ = client_up(numbers)
     if numbers.get(LEVEL.name) == "table":
-        up = None  # the upload's, read from its table
-    if up is not None and (entry.up is None or not np.allclose(up, entry.up, rtol=1e-9, atol=1e-12)):
+        if up is not None:
+            raise level_and_up()
+    elif up is not None and (entry.up is None or not np.allclose(up, entry.up, rtol=1e-9, atol=1e-12)):
         was = "without up (taken as level)" if entry.up is None else f"with up {list(entry.up)}"
         raise ApiError(
             422,

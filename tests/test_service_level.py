@@ -212,6 +212,11 @@ def test_a_plan_on_an_image_takes_level_table_only_from_its_upload(client, heldo
     with pytest.raises(ServiceError) as e:
         client.plan(k=1, seed=0, image_id=client.upload(d, intrinsics=intr), up="table")
     assert e.value.status == 422 and e.value.details["field"] == "level"
+    r = httpx.post(
+        f"{client.http.base_url}/v1/images/{by_table}/plan",
+        params={"level": "table", "up_x": "0", "up_y": "-1", "up_z": "0"},
+    )
+    assert r.status_code == 422 and r.json()["error"]["details"]["field"] == "level" and "not both" in r.text
 
 
 @pytest.mark.parametrize(
