@@ -34,12 +34,16 @@ def _metrics(r: dict, path: str | Path) -> dict:
     held = r["held_out_families"]
     if not held:
         raise ValueError(f"{path}: evaluated on a dataset without held-out families")
-    return {**held, "by_family": {f: r["by_family"][f] for f in held["families"] if f in r.get("by_family", {})}}
+    out = {**held, "by_family": {f: r["by_family"][f] for f in held["families"] if f in r.get("by_family", {})}}
+    if r.get("samples_seen") is not None:  # which checkpoint of the run: its training samples
+        out["samples_seen"] = int(r["samples_seen"])
+    return out
 
 
 def leave_family_out_metrics(path: str | Path) -> dict:
     """The card's ``leave_family_out`` entry from a `training evaluate` result of a leave-family-out
-    run (its held-out families' rows together, plus their own metrics under ``by_family``);
+    run (its held-out families' rows together, plus their own metrics under ``by_family`` and the
+    checkpoint's ``samples_seen``);
     ValueError naming the file when it is not such a result."""
     return _metrics(_read_result(path), path)
 

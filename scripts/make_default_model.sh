@@ -19,7 +19,8 @@
 # On this project's 2-core CPU: v1's dataset takes ~17 min and training ~2.5 h per 1M samples;
 # v2's dataset ~40 min (1,040 objects; their physics trials replayed from datagen/recipes/v2_physics_trials.npz,
 # ~3 h when simulated), training ~50 min per 1M samples
-# with bf16 steps (CPUs with AVX-512 BF16; ~2.5 h without); the leave-family-out run SAMPLES_LFO (1 M).
+# with bf16 steps (CPUs with AVX-512 BF16; ~2.5 h without); the leave-family-out run SAMPLES_LFO (3 M: the
+# card's 79.4% on the never-seen families; 71.7% at 1 M).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # the whole script is read before it runs (a function), so editing this file cannot break a running build
@@ -58,8 +59,8 @@ main() {
   }
   export_model
   $PY -m datagen recipe --version "$VERSION" --out "$DATA"  # the rest of the recipe: the leave-family-out split
-  if [ -d "$DATA/crops_lfo" ]; then  # leave-family-out: a second, shorter run that never sees the held-out families
-    $PY -m training train --data "$DATA/crops_lfo" --out "$RUN-lfo" --samples "${SAMPLES_LFO:-1000000}" \
+  if [ -d "$DATA/crops_lfo" ]; then  # leave-family-out: a second run that never sees the held-out families
+    $PY -m training train --data "$DATA/crops_lfo" --out "$RUN-lfo" --samples "${SAMPLES_LFO:-3000000}" \
       "${TRAIN_OPTS[@]}"
     $PY -m training evaluate --run "$RUN-lfo" --data "$DATA/crops_lfo" "${EVAL_OPTS[@]}"
     $PY -m export.leave_family_out --model-dir "$OUT" "$RUN-lfo/eval/metrics_test.json"  # into the card, no re-export
