@@ -341,3 +341,25 @@ def test_fine_tune_from_the_bundled_model_folder(data, tmp_path):
     bundled, card = fast_net_from_model_dir(model)
     assert (net.pose_features, net.pose_units) == ("rotation", 32) and meta["training"]["config"]["init"] == str(model)
     assert net.normalization().to_dict() == card.normalization.to_dict()  # the bundle's input normalisation
+
+
+def test_mirror_augmentation_flips_the_drawn_rows_the_same_way_on_resume(data):
+    from training.train import _mirror_rows
+    from vgq.pose import POSE_COLUMNS, mirror_poses
+
+    batch = open_crop_dataset(data).split("train").batch(np.arange(16), "fast_vgqcnn")
+    cfg = TrainConfig(mirror=0.5, **FAST)
+    img, pose, lab = _mirror_rows(cfg, batch, step=7, rank=0)
+    again = _mirror_rows(cfg, batch, step=7, rank=0)
+    torch.testing.assert_close(img, again[0])  # rows drawn by (seed, step, rank): a resume redraws them
+    flipped = ~torch.isclose(img, batch[0]).flatten(1).all(1)
+    assert 0 < int(flipped.sum()) < 16
+    torch.testing.assert_close(img[flipped], torch.flip(batch[0][flipped], dims=(-1,)))
+    expect = mirror_poses(batch[1][flipped].numpy(), POSE_COLUMNS["fast_vgqcnn"])
+    np.testing.assert_allclose(pose[flipped].numpy(), expect, atol=1e-6)
+    torch.testing.assert_close(pose[~flipped], batch[1][~flipped])
+    torch.testing.assert_close(lab, batch[2])  # a mirrored grasp keeps its label
+    img0, _, _ = _mirror_rows(TrainConfig(mirror=0.0, **FAST), batch, step=7, rank=0)
+    torch.testing.assert_close(img0, batch[0])
+    with pytest.raises(ValueError, match="mirror"):
+        TrainConfig(mirror=1.5)

@@ -75,6 +75,13 @@ class TrainConfig:
             "physics label's trials that held, as a soft two-class target; physics-label crops only)",
         },
     )
+    mirror: float = field(
+        default=0.0,
+        metadata={
+            "help": "augmentation: the share of training rows shown as their left-right mirror image (crop "
+            "flipped, pose by vgq.pose.mirror_poses; the label kept), drawn per step; 0 = off"
+        },
+    )
     seed: int = 0
     num_threads: int = 0  # torch intra-op threads per process; 0: torch default
     precision: str = field(
@@ -127,6 +134,8 @@ class TrainConfig:
         ):
             if int(getattr(self, name)) <= 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 <= self.mirror <= 1.0:
+            raise ValueError(f"mirror must be in [0, 1], got {self.mirror}")
         if self.val_max_samples < 0 or self.num_threads < 0:
             raise ValueError("val_max_samples and num_threads must be >= 0")
         if not (self.base_lr > 0 and 0 < self.lr_decay <= 1 and 0 <= self.momentum < 1 and self.weight_decay >= 0):

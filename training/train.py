@@ -35,6 +35,7 @@ from tqdm import tqdm
 
 from vgq import atomic
 from vgq.normalization import Normalization
+from vgq.pose import POSE_COLUMNS, mirror_poses
 
 from . import metrics as M
 from .checkpoint import (
@@ -214,6 +215,21 @@ def _mix_index(cfg: TrainConfig, step: int, rank: int, n_rows: int, k: int) -> n
     """Rows of the mix dataset's train split for optimizer step ``step`` on process ``rank``:
     drawn from a stream of (seed, step, rank) alone, so a resumed run draws the same rows."""
     return np.random.default_rng((cfg.seed, 0x6D6978, step, rank)).integers(0, n_rows, k)
+
+
+def _mirror_rows(cfg: TrainConfig, batch, step: int, rank: int):
+    """``batch`` (images (b, 1, S, S), poses, labels) with a ``cfg.mirror`` share of its rows
+    replaced by their left-right mirror images (``vgq.pose.mirror_poses``), the rows drawn from a
+    stream of (seed, step, rank) alone, so a resumed run mirrors the same rows."""
+    img, pose, lab = batch
+    pick = np.random.default_rng((cfg.seed, 0x6D6972, step, rank)).random(len(lab)) < cfg.mirror
+    if not pick.any():
+        return batch
+    idx = torch.from_numpy(np.flatnonzero(pick))
+    img, pose = img.clone(), pose.clone()
+    img[idx] = torch.flip(img[idx], dims=(-1,))
+    pose[idx] = torch.from_numpy(mirror_poses(pose[idx].numpy(), POSE_COLUMNS[cfg.arch]).astype(np.float32))
+    return img, pose, lab
 
 
 def _selection_score(cfg: TrainConfig, val: dict, val_mix: dict | None) -> float:
@@ -546,7 +562,7 @@ def train(
         if local_mix:
             extra = mix_train.batch(_mix_index(cfg, step, d.rank, len(mix_train), local_mix), cfg.arch, cfg.target)
             batch = tuple(torch.cat(pair) for pair in zip(batch, extra))
-        return batch
+        return _mirror_rows(cfg, batch, step, d.rank) if cfg.mirror else batch
 
     # the next batch is read from the memory map in a thread while this one's step runs (numpy and
     # torch release the GIL), so a cold page cache's random reads overlap the arithmetic

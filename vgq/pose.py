@@ -126,6 +126,26 @@ def roll_quaternions(q: np.ndarray, roll: float) -> np.ndarray:
     return np.stack([w1 * w - z1 * z, w1 * x - z1 * y, w1 * y + z1 * x, w1 * z + z1 * w], -1)
 
 
+def mirror_poses(poses: np.ndarray, pose_columns) -> np.ndarray:
+    """Pose rows (k, len(pose_columns)) of the same grasps in the camera-frame mirror image
+    x -> -x (the depth image and its crops flipped left to right: ``crop[..., ::-1]``): u -> -u,
+    v and z unchanged, rotation R -> M R M with M = diag(-1, 1, 1) on both sides (the camera's x
+    and the jaw axis reversed: the parallel-jaw gripper is symmetric under swapping its jaws), i.e.
+    q = (w, x, y, z) -> (w, x, -y, -z), made canonical. A mirrored scene is as physical as the
+    original (friction and gravity, up = -v, are mirror-symmetric), so its grasps keep their labels."""
+    cols = tuple(pose_columns)
+    out = np.array(poses, dtype=np.float64, copy=True)
+    if out.ndim != 2 or out.shape[1] != len(cols):
+        raise ValueError(f"pose rows must be (k, {len(cols)}) for columns {cols}, got {out.shape}")
+    if "u" in cols:
+        out[:, cols.index("u")] *= -1.0
+    if QUATERNION_COLUMNS <= set(cols):
+        qi = [cols.index(c) for c in ("qw", "qx", "qy", "qz")]
+        q = out[:, qi] * np.array([1.0, 1.0, -1.0, -1.0])
+        out[:, qi] = canonical_quaternion(q)
+    return out
+
+
 def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
     """Quaternions (..., 4) in (w, x, y, z) to rotation matrices (..., 3, 3)."""
     q = canonical_quaternion(q)
