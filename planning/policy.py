@@ -154,18 +154,28 @@ def cover_windows(uv: np.ndarray, geom) -> np.ndarray:
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     k = geom.kappa_px
     shifts = np.array([[0, 0], [1, 1], [1, -1], [-1, 1], [-1, -1]]) * (k / 2)
-    cand = window_center(window_origin((uv[None] + shifts[:, None]).reshape(-1, 2), geom), geom)
-    cand = np.unique(cand, axis=0)
-    covers = np.all(np.abs(cand[:, None, :] - uv[None]) <= k + 1e-9, axis=2)  # (c, n)
+    org = window_origin((uv[None] + shifts[:, None]).reshape(-1, 2), geom)  # integer top-left pixels
+    # distinct windows in (u, v) lexicographic order, through one integer key per window
+    lo_o = org.min(axis=0)
+    span = org.max(axis=0) - lo_o + 1
+    keys = np.unique((org[:, 0] - lo_o[0]) * span[1] + (org[:, 1] - lo_o[1]))
+    org = np.stack([keys // span[1] + lo_o[0], keys % span[1] + lo_o[1]], axis=1)
+    # window o holds grasp uv when |centre(o) - uv| <= kappa per axis: o within [lo, hi]
+    c0 = geom.window / 2 - 0.5  # centre = origin + c0
+    lo = np.ceil(uv - k - c0 - 1e-9).astype(np.int64)
+    hi = np.floor(uv + k - c0 + 1e-9).astype(np.int64)
+    covers = (org[:, :1] >= lo[:, 0]) & (org[:, :1] <= hi[:, 0]) & (org[:, 1:] >= lo[:, 1]) & (org[:, 1:] <= hi[:, 1])
+    counts_of = covers.astype(np.float32)  # (c, n); counts_of @ left: grasps left in each window (exact)
+    cand = window_center(org, geom)
     out = np.empty_like(uv)
-    left = np.ones(len(uv), bool)
+    left = np.ones(len(uv), np.float32)
     while left.any():
-        best = int(np.argmax((covers & left).sum(axis=1)))
-        take = covers[best] & left
+        best = int(np.argmax(counts_of @ left))
+        take = covers[best] & (left > 0)
         if not take.any():  # cannot happen: every grasp's own window covers it
             raise RuntimeError("window cover failed")
         out[take] = cand[best]
-        left &= ~take
+        left[take] = 0.0
     return out
 
 

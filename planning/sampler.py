@@ -104,8 +104,13 @@ class TopView:
     def _cells(self, x: np.ndarray):
         """Grid indices (i, j) of points x (..., 3), clipped, and whether they fall on the grid."""
         d = np.asarray(x, dtype=np.float64) - self.origin
-        i = np.floor(d @ self.e1 / self.cell).astype(np.int64)
-        j = np.floor(d @ self.e2 / self.cell).astype(np.int64)
+        return self._index(d @ self.e1, d @ self.e2)
+
+    def _index(self, a: np.ndarray, b: np.ndarray):
+        """Grid indices (i, j), clipped, and whether they fall on the grid, of points at
+        ``a``, ``b`` (...,) metres along ``e1``, ``e2`` from ``origin``."""
+        i = np.floor(a / self.cell).astype(np.int64)
+        j = np.floor(b / self.cell).astype(np.int64)
         n1, n2 = self.heights.shape
         on = (i >= 0) & (i < n1) & (j >= 0) & (j < n2)
         return np.clip(i, 0, n1 - 1), np.clip(j, 0, n2 - 1), on
@@ -113,6 +118,15 @@ class TopView:
     def top(self, x: np.ndarray) -> np.ndarray:
         """Heights (...,) of the top view over points x (..., 3); -inf off the grid."""
         i, j, on = self._cells(x)
+        return np.where(on, self.heights[i, j], -np.inf)
+
+    def top_along(self, p: np.ndarray, axes: np.ndarray, ts: np.ndarray) -> np.ndarray:
+        """Heights (n, T) of the top view over the points p + t * axis of lines from ``p``
+        (n, 3) along ``axes`` (n, 3) at the steps ``ts`` (T,) metres; -inf off the grid."""
+        d = np.asarray(p, dtype=np.float64) - self.origin
+        a = (d @ self.e1)[:, None] + ts * (axes @ self.e1)[:, None]
+        b = (d @ self.e2)[:, None] + ts * (axes @ self.e2)[:, None]
+        i, j, on = self._index(a, b)
         return np.where(on, self.heights[i, j], -np.inf)
 
     def outline_normal(self, x: np.ndarray) -> np.ndarray:
@@ -220,10 +234,14 @@ def object_centres(points: np.ndarray, objects: np.ndarray, table: TablePlane | 
 
 def lookup_pixels(scene: Scene, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Nearest pixel of points x (..., 3): (rows, cols, inside the image and in front)."""
-    z = x[..., 2]
+    return _pixels(scene, x[..., 0], x[..., 1], x[..., 2])
+
+
+def _pixels(scene: Scene, x: np.ndarray, y: np.ndarray, z: np.ndarray):
+    """:func:`lookup_pixels` of points given by their coordinates x, y, z (...,) each."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = scene.intr.fx * x[..., 0] / z + scene.intr.cx
-        v = scene.intr.fy * x[..., 1] / z + scene.intr.cy
+        u = scene.intr.fx * x / z + scene.intr.cx
+        v = scene.intr.fy * y / z + scene.intr.cy
     h, w = scene.valid.shape
     inside = (z > 1e-6) & (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
     cols = np.clip(np.floor(np.where(inside, u, 0) + 0.5).astype(np.int64), 0, w - 1)
@@ -263,15 +281,19 @@ def sample_contact_pairs(scene: Scene, n_seeds: int, params: PlanParams, rng: np
 
     step = params.march_step
     ts = step * np.arange(1, int(np.ceil(params.max_opening / step)) + 2)
-    x = p1[:, None, :] + ts[None, :, None] * axes[:, None, :]  # (S, T, 3)
-    rows, cols, inside = lookup_pixels(scene, x)
-    d = scene.depth[rows, cols]
+    # the points p1 + t * axis of every line, one (S, T) array per coordinate
+    x, y, z = (p1[:, i : i + 1] + ts * axes[:, i : i + 1] for i in range(3))
+    rows, cols, inside = _pixels(scene, x, y, z)
+    d = scene.depth.ravel()[rows * scene.depth.shape[1] + cols]
     tol = params.surface_tolerance
-    occupied = inside & (d > 0) & (x[..., 2] >= d - tol)
-    hx = scene.table.height(x) if scene.table is not None else None
+    occupied = inside & (d > 0) & (z >= d - tol)
+    hx = None
+    if scene.table is not None:  # heights above the table, linear along each line
+        n, off = scene.table.normal, scene.table.offset
+        hx = (p1 @ n + off)[:, None] + ts * (axes @ n)[:, None]
     under_top = None
     if scene.top is not None:  # and under the top seen from above (scene.table is set)
-        under_top = hx <= scene.top.top(x) + tol
+        under_top = hx <= scene.top.top_along(p1, axes, ts) + tol
         occupied &= under_top
     below = (hx < -params.table_inlier_distance) if hx is not None else np.zeros_like(occupied)
     free = ~occupied

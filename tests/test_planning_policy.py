@@ -220,3 +220,36 @@ def test_the_collision_reason_names_what_was_hit(table, points, says):
     from planning.policy import collision_reason
 
     assert says in collision_reason({"table_collisions": table, "point_collisions": points}, PlanParams())
+
+
+def _greedy_cover(uv, geom):
+    """The cover as specified, written plainly: of the windows centred on each grasp or on it
+    shifted by kappa / 2 diagonally (snapped to the pixel grid), take the one holding the most
+    grasps not yet covered (ties: the lowest (u, v)), until every grasp is covered."""
+    from vgq.crop import window_center, window_origin
+
+    k = geom.kappa_px
+    shifts = np.array([[0, 0], [1, 1], [1, -1], [-1, 1], [-1, -1]]) * (k / 2)
+    cand = sorted(
+        {tuple(window_center(window_origin(np.asarray(g + s)[None], geom), geom)[0]) for g in uv for s in shifts}
+    )
+    out, left = np.zeros_like(uv), set(range(len(uv)))
+    while left:
+        holds = [[i for i in left if max(abs(c[0] - uv[i, 0]), abs(c[1] - uv[i, 1])) <= k + 1e-9] for c in cand]
+        best = max(range(len(cand)), key=lambda j: (len(holds[j]), -j))
+        for i in holds[best]:
+            out[i] = cand[best]
+        left -= set(holds[best])
+    return out
+
+
+@pytest.mark.parametrize("n", [1, 7, 60])
+def test_the_window_cover_is_the_greedy_cover_and_holds_every_grasp(model, n):
+    from planning.policy import cover_windows
+
+    rng = np.random.default_rng(n)
+    uv = rng.uniform(-20, 320, (n, 2))
+    uv[::2] = np.round(uv[::2] * 2) / 2  # pixel and half-pixel positions: the window edges
+    got = cover_windows(uv, model.geometry)
+    assert np.all(np.abs(got - uv) <= model.geometry.kappa_px + 1e-9)
+    assert np.array_equal(got, _greedy_cover(uv, model.geometry))

@@ -91,3 +91,17 @@ def test_the_top_view_puts_a_hidden_contact_at_the_far_face_not_the_shadows_end(
     c1 = _world(T_wc, contacts[:, 1])
     beyond = np.maximum(np.abs(c1[:, 0]) - 0.015, np.abs(c1[:, 1]) - 0.02)  # outside the 3 x 4 cm footprint
     assert len(c1) >= 100 and np.median(beyond) <= 0.0015 and np.all(beyond <= 0.004)
+
+
+def test_the_top_view_along_lines_reads_the_heights_it_reads_point_by_point(box):
+    depth, _, _ = box
+    scene = analyse_scene(depth, DEFAULT_INTRINSICS, PlanParams(), np.random.default_rng(0))
+    rng = np.random.default_rng(1)
+    p = scene.points[scene.objects][rng.integers(0, scene.objects.sum(), 200)].astype(np.float64)
+    axes = rng.normal(size=(200, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    ts = 0.0015 * np.arange(1, 40)
+    along = scene.top.top_along(p, axes, ts)
+    pointwise = scene.top.top(p[:, None, :] + ts[None, :, None] * axes[:, None, :])
+    assert np.isfinite(along).mean() > 0.3  # the lines cross the box's footprint and leave it
+    assert np.array_equal(along, pointwise)
