@@ -129,7 +129,8 @@ class GripperCollision:
         (grown by the clearance).
 
         Uses the gripper's symmetry (two fingers mirrored in x, palm centred) and float32
-        grasp-frame coordinates: the test costs ~10 array operations per point and frame."""
+        grasp-frame coordinates: one (m, 3) x (3, 3 f) product gives every point's coordinates
+        in f frames, then ~10 array operations per point and frame test the boxes."""
         pts = (self.points if points is None else np.asarray(points, dtype=np.float64)).astype(np.float32)
         n = len(frames)
         out = np.zeros(n, dtype=bool)
@@ -140,16 +141,13 @@ class GripperCollision:
         pz, (px, py, phz) = self._centres[2][2], self._half_grown[2]
         for s in range(0, n, chunk):
             T = frames[s : s + chunk]
-            # grasp-frame coordinates (m, c) of every point in every frame, p . r_fi - t_f . r_fi,
-            # written out: a BLAS call with a 3-long inner dimension only adds thread overhead
-            R = T[:, :3, :3].astype(np.float32)
-            off = np.einsum("fji,fj->fi", T[:, :3, :3], T[:, :3, 3]).astype(np.float32)
-            px_, py_, pz_ = pts[:, 0:1], pts[:, 1:2], pts[:, 2:3]
-
-            def coord(i: int) -> np.ndarray:
-                return px_ * R[:, 0, i] + py_ * R[:, 1, i] + pz_ * R[:, 2, i] - off[:, i]
-
-            ax, ay, z = np.abs(coord(0)), np.abs(coord(1)), coord(2)
+            f = len(T)
+            # grasp-frame coordinate i of point p in frame k: p . r_ki - t_k . r_ki, at column i f + k
+            R = np.ascontiguousarray(T[:, :3, :3].transpose(1, 2, 0).reshape(3, 3 * f), dtype=np.float32)
+            off = np.einsum("kji,kj->ik", T[:, :3, :3], T[:, :3, 3]).reshape(3 * f).astype(np.float32)
+            c = pts @ R
+            c -= off
+            ax, ay, z = np.abs(c[:, :f]), np.abs(c[:, f : 2 * f]), c[:, 2 * f :]
             finger = (np.abs(ax - fx) < hx) & (ay < hy) & (np.abs(z - fz) < hz)
             palm = (ax < px) & (ay < py) & (np.abs(z - pz) < phz)
             out[s : s + chunk] = (finger | palm).any(axis=0)
