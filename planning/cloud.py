@@ -6,8 +6,8 @@ depth 0 or non-finite has no reading (``valid`` False, point and normal zero).
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
-from scipy.ndimage import uniform_filter
 
 from vgq.camera import Intrinsics, valid_depth
 
@@ -57,18 +57,19 @@ def estimate_normals(points: np.ndarray, valid: np.ndarray, window: int = 5) -> 
     n[..., 1] = dx[..., 0] * dy[..., 2] - dx[..., 2] * dy[..., 0]
     n[..., 2] = dx[..., 1] * dy[..., 0] - dx[..., 0] * dy[..., 1]
     del dx, dy
-    n /= np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-12)
+    n /= np.maximum(_norm(n), 1e-12)[..., None]
     n[~ok] = 0.0
-    if window > 1:
-        box = np.empty_like(n)
-        for i in range(3):
-            uniform_filter(n[..., i], size=window, mode="nearest", output=box[..., i])
-        n = box
-    norm = np.linalg.norm(n, axis=2)
+    if window > 1:  # the box mean of each component, edges replicated
+        n = cv2.boxFilter(n, -1, (window, window), normalize=True, borderType=cv2.BORDER_REPLICATE)
+    norm = _norm(n)
     ok &= norm > 1e-6
     n /= np.maximum(norm, 1e-12)[..., None]
     # towards the camera: n . p < 0
-    flip = np.einsum("ijk,ijk->ij", n, p) > 0
-    n[flip] *= -1.0
+    np.negative(n, out=n, where=(np.einsum("ijk,ijk->ij", n, p) > 0)[..., None])
     n[~ok] = 0.0
     return n, ok
+
+
+def _norm(v: np.ndarray) -> np.ndarray:
+    """Euclidean norms (H, W) of an image of 3-vectors (H, W, 3)."""
+    return np.sqrt(np.einsum("ijk,ijk->ij", v, v))

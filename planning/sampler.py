@@ -93,8 +93,10 @@ class TopView:
         a0, b0 = a.min() - 2 * cell, b.min() - 2 * cell
         i = ((a - a0) / cell).astype(np.int64)
         j = ((b - b0) / cell).astype(np.int64)
-        heights = np.full((i.max() + 3, j.max() + 3), -np.inf)
-        np.maximum.at(heights, (i, j), h)
+        shape = (int(i.max()) + 3, int(j.max()) + 3)
+        heights = np.full(shape[0] * shape[1], -np.inf)
+        np.maximum.at(heights, i * shape[1] + j, h)  # by flat index: numpy's fast path for ufunc.at
+        heights = heights.reshape(shape)
         heights = ndimage.grey_closing(heights, size=3, mode="constant", cval=-np.inf)
         smooth = ndimage.gaussian_filter(np.isfinite(heights).astype(np.float64), 1.0, mode="constant")
         g = -np.stack(np.gradient(smooth), axis=-1)
