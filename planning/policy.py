@@ -296,15 +296,19 @@ def nms(frames: np.ndarray, scores: np.ndarray, k: int, distance: float, angle: 
     c, a = frames[:, :3, 3], frames[:, :3, 0]
     cos_lim = np.cos(angle)
     kept: list[int] = []
-    for i in order:
-        if kept:
-            kk = np.asarray(kept)
-            same = (np.linalg.norm(c[kk] - c[i], axis=1) < distance) & (np.abs(a[kk] @ a[i]) > cos_lim)
-            if same.any():
-                continue
-        kept.append(int(i))
-        if len(kept) >= k:
-            break
+    block = max(4 * k, 32)  # candidates judged against each other at once, best first
+    for s in range(0, len(order), block):
+        idx = order[s : s + block]
+        cand = np.concatenate([np.asarray(kept, dtype=np.int64), idx])  # kept ones first
+        close = np.linalg.norm(c[cand][:, None] - c[idx][None], axis=2) < distance
+        same = close & (np.abs(a[cand] @ a[idx].T) > cos_lim)  # (len(kept) + len(idx), len(idx))
+        rows = list(range(len(kept)))  # rows of the kept candidates in `same`
+        for j in range(len(idx)):
+            if not same[rows, j].any():
+                kept.append(int(idx[j]))
+                rows.append(len(cand) - len(idx) + j)
+                if len(kept) >= k:
+                    return np.asarray(kept, dtype=np.int64)
     return np.asarray(kept, dtype=np.int64)
 
 

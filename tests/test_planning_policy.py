@@ -75,6 +75,32 @@ def test_nms_keeps_only_distinct_grasps():
     assert nms(frames, scores, 2, 0.01, np.radians(30)).tolist() == [1, 2]
 
 
+@pytest.mark.parametrize("k", [2, 5, 20])
+def test_nms_is_the_greedy_suppression_over_many_near_duplicates(k):
+    # the 100 best grasps are one grasp (within 2 mm, one axis): the rest are spread over a
+    # 10 cm cube with axes near x or y, many of them duplicates of a better one
+    rng = np.random.default_rng(k)
+    frames = np.tile(np.eye(4), (600, 1, 1))
+    frames[:, :3, 3] = rng.uniform(0, 0.1, (600, 3))
+    frames[:100, :3, 3] = rng.uniform(0, 0.002, (100, 3))
+    axes = np.where(rng.random((600, 1)) < 0.5, [1.0, 0, 0], [0, 1.0, 0]) + rng.normal(0, 0.1, (600, 3))
+    axes[:100] = [1.0, 0, 0]
+    frames[:, :3, 0] = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    scores = rng.random(600) + (np.arange(600) < 100)
+    kept = []
+    for i in np.argsort(-scores, kind="stable"):  # the rule, one candidate at a time
+        c, a = frames[i, :3, 3], frames[i, :3, 0]
+        if not any(
+            np.linalg.norm(frames[j, :3, 3] - c) < 0.01 and abs(frames[j, :3, 0] @ a) > np.cos(np.radians(30))
+            for j in kept
+        ):
+            kept.append(int(i))
+        if len(kept) == k:
+            break
+    assert len(kept) == k and kept[0] < 100 and all(i >= 100 for i in kept[1:])
+    assert nms(frames, scores, k, 0.01, np.radians(30)).tolist() == kept
+
+
 def test_roi_restricts_the_grasps_to_the_boxed_object(model, two_boxes):
     depth, T_wc, meshes = two_boxes
     # the image box around the second object's projection
