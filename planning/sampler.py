@@ -373,16 +373,15 @@ def approach_frames(centers: np.ndarray, axes: np.ndarray, scene: Scene, params:
     # R = [x, y0, z0] Rx(omega): y = c y0 + s z0, z = -s y0 + c z0
     y = c[None, :, None] * y0[:, None] + s[None, :, None] * z0[:, None]
     z = -s[None, :, None] * y0[:, None] + c[None, :, None] * z0[:, None]
-    n, a = len(axes), len(om)
-    frames = np.zeros((n, a, 4, 4))
-    frames[:, :, :3, 0] = axes[:, None]
-    frames[:, :, :3, 1] = y
-    frames[:, :, :3, 2] = z
-    frames[:, :, :3, 3] = centers[:, None]
-    frames[:, :, 3, 3] = 1.0
     ok = (z @ up < -1e-6) & (np.einsum("naj,nj->na", z, ray) > np.cos(params.max_psi))
-    pair = np.broadcast_to(np.arange(n)[:, None], (n, a))
-    return frames[ok], pair[ok]
+    pair, which = np.nonzero(ok)  # (pair, approach) of the feasible ones, pair-major as before
+    frames = np.zeros((len(pair), 4, 4))
+    frames[:, :3, 0] = axes[pair]
+    frames[:, :3, 1] = y[pair, which]
+    frames[:, :3, 2] = z[pair, which]
+    frames[:, :3, 3] = centers[pair]
+    frames[:, 3, 3] = 1.0
+    return frames, pair
 
 
 def frames_about_axis(frames: np.ndarray, omega: np.ndarray) -> np.ndarray:
