@@ -129,8 +129,9 @@ class GripperCollision:
         (grown by the clearance).
 
         Uses the gripper's symmetry (two fingers mirrored in x, palm centred) and float32
-        grasp-frame coordinates: one (m, 3) x (3, 3 f) product gives every point's coordinates
-        in f frames, then ~10 array operations per point and frame test the boxes."""
+        grasp-frame coordinates: one (m, 3) x (3, 3 f) product (einsum's own loop: OpenBLAS would
+        spin a second thread, doubling the CPU time for a third off the wall time) gives every
+        point's coordinates in f frames, then ~10 array operations per point and frame test the boxes."""
         pts = (self.points if points is None else np.asarray(points, dtype=np.float64)).astype(np.float32)
         n = len(frames)
         out = np.zeros(n, dtype=bool)
@@ -145,7 +146,7 @@ class GripperCollision:
             # grasp-frame coordinate i of point p in frame k: p . r_ki - t_k . r_ki, at column i f + k
             R = np.ascontiguousarray(T[:, :3, :3].transpose(1, 2, 0).reshape(3, 3 * f), dtype=np.float32)
             off = np.einsum("kji,kj->ik", T[:, :3, :3], T[:, :3, 3]).reshape(3 * f).astype(np.float32)
-            c = pts @ R
+            c = np.einsum("mj,jc->mc", pts, R)  # not pts @ R: a BLAS call this size wakes OpenBLAS's threads
             c -= off
             ax, ay, z = np.abs(c[:, :f]), np.abs(c[:, f : 2 * f]), c[:, 2 * f :]
             finger = (np.abs(ax - fx) < hx) & (ay < hy) & (np.abs(z - fz) < hz)

@@ -165,12 +165,12 @@ def cover_windows(uv: np.ndarray, geom) -> np.ndarray:
     lo = np.ceil(uv - k - c0 - 1e-9).astype(np.int64)
     hi = np.floor(uv + k - c0 + 1e-9).astype(np.int64)
     covers = (org[:, :1] >= lo[:, 0]) & (org[:, :1] <= hi[:, 0]) & (org[:, 1:] >= lo[:, 1]) & (org[:, 1:] <= hi[:, 1])
-    counts_of = covers.astype(np.float32)  # (c, n); counts_of @ left: grasps left in each window (exact)
+    counts_of = covers.astype(np.float32)  # (c, n); counts_of . left: grasps left in each window (exact)
     cand = window_center(org, geom)
     out = np.empty_like(uv)
     left = np.ones(len(uv), np.float32)
     while left.any():
-        best = int(np.argmax(counts_of @ left))
+        best = int(np.argmax(np.einsum("cn,n->c", counts_of, left)))  # not a BLAS gemv: no thread wake-ups
         take = covers[best] & (left > 0)
         if not take.any():  # cannot happen: every grasp's own window covers it
             raise RuntimeError("window cover failed")
