@@ -828,6 +828,7 @@ def other_planner(checkout: str):
     """``(plan, PlanParams)`` of the ``planning`` package of another checkout (a folder holding
     planning/, e.g. a ``git worktree`` of an earlier commit), imported beside this one under
     another name (its modules import each other relatively; vgq and service are this checkout's)."""
+    import atexit
     import importlib
     import shutil
     import tempfile
@@ -836,6 +837,7 @@ def other_planner(checkout: str):
     if not (src / "policy.py").is_file():
         raise ValueError(f"--against {checkout}: no planning/policy.py there")
     root = Path(tempfile.mkdtemp(prefix="planning-against-"))
+    atexit.register(shutil.rmtree, root, True)
     shutil.copytree(src, root / "planning_against", ignore=shutil.ignore_patterns("__pycache__"))
     sys.path.insert(0, str(root))
     policy = importlib.import_module("planning_against.policy")
@@ -938,6 +940,11 @@ def main(argv=None) -> int:
     }[args.what]
     from service.runtime import ModelError
 
+    if args.against and not (Path(args.against) / "planning" / "policy.py").is_file():
+        print(
+            f"python -m planning.bench: error: --against {args.against}: no planning/policy.py there", file=sys.stderr
+        )
+        return 2
     try:
         out = run(args)
     except (ModelError, OSError) as e:  # a model folder or held-out file it cannot read

@@ -243,3 +243,16 @@ def test_a_model_or_heldout_file_it_cannot_read_exits_2_naming_it(capsys, flag, 
     assert main(["timing", flag, value, "--scenes", "1", "--repeats", "2"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "/nonexistent" in err[0]
+
+
+def test_timing_against_another_checkout_interleaves_the_two_planners(capsys, tmp_path):
+    from pathlib import Path
+
+    from planning.bench import main
+
+    here = Path(__file__).resolve().parents[1]  # this checkout's own planner stands in for another's
+    assert main(["timing", "--scenes", "1", "--repeats", "2", "--against", str(here)]) == 0
+    out = capsys.readouterr().out
+    assert f"against {here} (interleaved" in out and "this / that: p50" in out
+    assert main(["timing", "--scenes", "1", "--repeats", "2", "--against", str(tmp_path)]) == 2
+    assert "no planning/policy.py" in capsys.readouterr().err
