@@ -8,6 +8,10 @@ the bundled model on a new dataset or v1 against v2 on v2's test split.
 Metrics: balanced accuracy, TPR, TNR at raw score 0.5 (the training threshold) and ROC AUC, on
 ``--max-n`` rows drawn at random (seed 0) from the split, the same rows for every model; fp32
 head and encoder (exact scores). Fast-VGQ-CNN folders only (crops are its 32 x 32 windows).
+
+``--mirror``: also each crop's left-right mirror image (crop flipped, pose by
+``vgq.pose.mirror_poses``), scored alone and as the mean of the two scores (test-time mirroring),
+with the correlation of the two scores.
 """
 
 from __future__ import annotations
@@ -58,6 +62,15 @@ def raw_scores(model_dir: str | Path, images: np.ndarray, poses: np.ndarray, bat
     return out
 
 
+def mirrored(images: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Crops (n, [1,] S, S) flipped left to right and their Fast-VGQ-CNN pose rows (n, 7) mirrored
+    to match (``vgq.pose.mirror_poses``: the same grasps in the mirrored scene)."""
+    from vgq.pose import POSE_COLUMNS, mirror_poses
+
+    flipped = np.ascontiguousarray(images[..., ::-1])
+    return flipped, mirror_poses(poses, POSE_COLUMNS["fast_vgqcnn"]).astype(np.float32)
+
+
 def evaluate(
     labels: np.ndarray,
     scores: np.ndarray,
@@ -100,6 +113,11 @@ def main(argv=None) -> dict:
     p.add_argument("--max-n", type=int, default=20_000, help="rows drawn at random from the split (default 20000)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", help="also write the results here")
+    p.add_argument(
+        "--mirror",
+        action="store_true",
+        help="also score each crop's left-right mirror image, alone and averaged with the original (test-time mirroring)",
+    )
     a = p.parse_args(argv)
     if a.max_n < 1:
         p.error("--max-n must be >= 1")
@@ -114,30 +132,45 @@ def main(argv=None) -> dict:
     results = {}
     for d in a.model_dir:
         scores = raw_scores(d, rows["images"], rows["poses"])
-        r = evaluate(rows["labels"], scores, rows["family"], rows["object_id"], rows["beta"])
-        results[d] = r
-        print(f"\n{d} on {a.data} {a.split} ({len(rows['labels'])} crops):")
-        print(
-            "| family | n | balanced accuracy | 95% interval (objects resampled) | TPR | TNR | AUC |\n"
-            "|---|---:|---:|---:|---:|---:|---:|"
-        )
-        for name, m in [("all", r["all"]), *r["by_family"].items()]:
-            auc = "n/a" if m["auc"] is None else f"{m['auc']:.3f}"
-            print(
-                f"| {name} | {m['n']} | {M.pct(m['balanced_accuracy'])} | {_ci(m)} | {M.pct(m['tpr'])} | "
-                f"{M.pct(m['tnr'])} | {auc} |"
-            )
-        if "by_approach_beta_deg" in r:
-            bins = r["by_approach_beta_deg"]
-            print("\n| approach to straight down, beta (deg) | " + " | ".join(bins) + " |")
-            print("|---|" + "---:|" * len(bins))
-            print("| balanced accuracy | " + " | ".join(M.pct(m["balanced_accuracy"]) for m in bins.values()) + " |")
-            print("| grasps | " + " | ".join(f"{m['n']:,}" for m in bins.values()) + " |")
+        variants = {d: scores}
+        if a.mirror:
+            m_scores = raw_scores(d, *mirrored(rows["images"], rows["poses"]))
+            variants[f"{d} (mirrored)"] = m_scores
+            variants[f"{d} (mean of it and its mirror)"] = 0.5 * (scores + m_scores)
+        for name, sc in variants.items():
+            results[name] = _report(name, sc, rows, a)
+        if a.mirror:
+            corr = float(np.corrcoef(scores, m_scores)[0, 1])
+            results[f"{d} (mirrored)"]["score_correlation_with_original"] = corr
+            print(f"\ncorrelation of the scores of the crops and of their mirror images: {corr:.3f}")
     if a.json:
         from vgq import atomic
 
         atomic.write_json(a.json, {"data": str(a.data), "split": a.split, "max_n": a.max_n, "results": results})
     return results
+
+
+def _report(d: str, scores: np.ndarray, rows: dict, a: argparse.Namespace) -> dict:
+    """:func:`evaluate` of ``scores`` (n,) on ``rows`` (:func:`crop_rows`), printed as tables under ``d``."""
+    r = evaluate(rows["labels"], scores, rows["family"], rows["object_id"], rows["beta"])
+    print(f"\n{d} on {a.data} {a.split} ({len(rows['labels'])} crops):")
+    print(
+        "| family | n | balanced accuracy | 95% interval (objects resampled) | TPR | TNR | AUC |\n"
+        "|---|---:|---:|---:|---:|---:|---:|"
+    )
+    for name, m in [("all", r["all"]), *r["by_family"].items()]:
+        auc = "n/a" if m["auc"] is None else f"{m['auc']:.3f}"
+        print(
+            f"| {name} | {m['n']} | {M.pct(m['balanced_accuracy'])} | {_ci(m)} | {M.pct(m['tpr'])} | "
+            f"{M.pct(m['tnr'])} | {auc} |"
+        )
+    if "by_approach_beta_deg" in r:
+        bins = r["by_approach_beta_deg"]
+        print("\n| approach to straight down, beta (deg) | " + " | ".join(bins) + " |")
+        print("|---|" + "---:|" * len(bins))
+        print("| balanced accuracy | " + " | ".join(M.pct(m["balanced_accuracy"]) for m in bins.values()) + " |")
+        print("| grasps | " + " | ".join(f"{m['n']:,}" for m in bins.values()) + " |")
+    return r
 
 
 if __name__ == "__main__":

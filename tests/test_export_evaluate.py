@@ -58,3 +58,23 @@ def test_cli_prints_a_row_per_family_and_refuses_a_folder_without_a_card(model_d
     with pytest.raises(SystemExit) as e:
         main(["--model-dir", str(tmp_path), "--data", str(crops)])
     assert e.value.code == 2
+
+
+def test_mirror_scores_each_crop_flipped_with_its_pose_mirrored_alone_and_averaged(model_dir, crops, capsys):
+    from export.evaluate import mirrored
+
+    d = str(model_dir)
+    res = main(["--model-dir", d, "--data", str(crops), "--split", "train", "--max-n", "40", "--mirror"])
+    out = capsys.readouterr().out
+    assert set(res) == {d, f"{d} (mirrored)", f"{d} (mean of it and its mirror)"} and "correlation" in out
+    rows = crop_rows(crops, "train", 40)
+    images, poses = mirrored(rows["images"], rows["poses"])
+    assert np.array_equal(images[..., ::-1], rows["images"]) and not np.array_equal(images, rows["images"])
+    np.testing.assert_allclose(mirrored(images, poses)[1], rows["poses"], atol=1e-6)  # an involution
+    both = 0.5 * (raw_scores(d, rows["images"], rows["poses"]) + raw_scores(d, images, poses))
+    mean = res[f"{d} (mean of it and its mirror)"]["all"]
+    direct = evaluate(rows["labels"], both, rows["family"])["all"]
+    assert {k: mean[k] for k in ("auc", "tp", "tn", "fp", "fn")} == pytest.approx(
+        {k: direct[k] for k in ("auc", "tp", "tn", "fp", "fn")}
+    )
+    assert -1.0 <= res[f"{d} (mirrored)"]["score_correlation_with_original"] <= 1.0
