@@ -152,6 +152,8 @@ def cover_windows(uv: np.ndarray, geom) -> np.ndarray:
     covered, until all are. Usually one or two windows per object, against up to four of the
     fixed grid."""
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if len(uv) == 0:
+        return uv.copy()
     k = geom.kappa_px
     shifts = np.array([[0, 0], [1, 1], [1, -1], [-1, 1], [-1, -1]]) * (k / 2)
     org = window_origin((uv[None] + shifts[:, None]).reshape(-1, 2), geom)  # integer top-left pixels

@@ -269,7 +269,7 @@ def _greedy_cover(uv, geom):
     return out
 
 
-@pytest.mark.parametrize("n", [1, 7, 60])
+@pytest.mark.parametrize("n", [0, 1, 7, 60])
 def test_the_window_cover_is_the_greedy_cover_and_holds_every_grasp(model, n):
     from planning.policy import cover_windows
 
