@@ -214,6 +214,7 @@ def cmd_crops(args) -> int:
         splits=tuple(args.splits),
         workers=args.workers or default_workers(),
         window=args.window,
+        align_jaw=args.align_jaw,
     )
     return 0
 
@@ -560,6 +561,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=_positive_int("--window"),
         default=96,
         help="crop window side, source px, a multiple of 32 (each window is resized to 32 x 32; default 96)",
+    )
+    c.add_argument(
+        "--align-jaw",
+        action="store_true",
+        help="vgqcnn probe: each crop turned about its grasp so the jaw axis is horizontal (GQ-CNN's input), "
+        "the pose's orientation with it; the service does not serve such a model",
     )
     c.add_argument(
         "--seed", type=_count("--seed"), default=0, help="window offsets and the sensor model's noise (default 0)"

@@ -18,7 +18,6 @@ service does not serve).
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import os
@@ -31,6 +30,7 @@ import numpy as np
 from vgq import atomic, inpaint
 from vgq import crop as vcrop
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
+from vgq.pose import canonical_quaternion, roll_quaternions
 from vgq.schema import CROP_FIELDS, SPLITS, crop_counts, write_crop_manifest
 
 from . import sensor as sensor_model
@@ -41,12 +41,17 @@ ARCHS = ("fast_vgqcnn", "vgqcnn", "gqcnn")
 DEFAULT_KAPPA_PX = 36.0  # the authors' default for the 96 px window (12 px at 32 x 32)
 
 
-def geometry_for(arch: str, kappa_px: float | None = None, window: int = 96, out: int = 32) -> vcrop.CropGeometry:
+def geometry_for(
+    arch: str, kappa_px: float | None = None, window: int = 96, out: int = 32, align_jaw: bool = False
+) -> vcrop.CropGeometry:
     """Crop geometry of ``arch``: a ``window`` x ``window`` source px window resized to ``out``;
     Fast-VGQ-CNN uses ``kappa_px`` (default 36 px for the 96 px window, in proportion for
-    another), the centred architectures kappa 0 (a non-zero kappa for them is an error)."""
+    another), the centred architectures kappa 0 (a non-zero kappa for them is an error).
+    ``align_jaw`` (VGQ-CNN only): crops turned so the jaw axis is horizontal, the pose with them."""
     if arch not in ARCHS:
         raise ValueError(f"unknown architecture {arch!r}; expected one of {', '.join(ARCHS)}")
+    if align_jaw and arch != "vgqcnn":
+        raise ValueError(f"align_jaw applies to vgqcnn crops only, not {arch}")
     if arch == "fast_vgqcnn":
         k = DEFAULT_KAPPA_PX * window / 96 if kappa_px is None else float(kappa_px)
     else:
@@ -55,7 +60,7 @@ def geometry_for(arch: str, kappa_px: float | None = None, window: int = 96, out
         k = 0.0
     if not np.isfinite(k):
         raise ValueError(f"kappa must be finite, got {k}")
-    return vcrop.CropGeometry(window=window, out=out, kappa_px=k)
+    return vcrop.CropGeometry(window=window, out=out, kappa_px=k, align_jaw=bool(align_jaw))
 
 
 def fast_window_origins(grasp_uv: np.ndarray, geom: vcrop.CropGeometry, rng: np.random.Generator) -> np.ndarray:
@@ -95,11 +100,11 @@ def crop_grasps(
         for i in range(k):
             images[i], c, missing[i] = inpaint.crop_filled(depth, origins[i], geom)
             pose_uv[i] = vcrop.pose_uv(uv[i], c, geom)
-    elif arch == "vgqcnn":
+    elif arch == "vgqcnn" and not geom.align_jaw:
         origins = vcrop.window_origin(uv, geom)
         for i in range(k):
             images[i], _, missing[i] = inpaint.crop_filled(depth, origins[i], geom)
-    elif arch == "gqcnn":
+    elif arch in ("gqcnn", "vgqcnn"):  # turned about the grasp: the jaw axis horizontal
         miss = inpaint.missing_mask(depth)
         filled = inpaint.fill_nearest(depth, miss) if miss.any() else depth
         for i in range(k):
@@ -141,7 +146,10 @@ def crop_object(
         missing += float(miss.sum())
         dst = slice(fill, fill + len(rows))
         out["images"][dst] = crops
-        out["poses"][dst] = np.concatenate([puv, g["z"][rows, None], g["q"][rows]], axis=1)
+        q = g["q"][rows]
+        if geom.align_jaw:  # the orientation seen by the camera turned with the crop
+            q = canonical_quaternion(roll_quaternions(q, g["jaw_angle"][rows]))
+        out["poses"][dst] = np.concatenate([puv, g["z"][rows, None], q], axis=1)
         out["labels"][dst] = g["quality"][rows] > thr
         out["quality"][dst] = g["quality"][rows]
         out["object_id"][dst] = sh.object_id
@@ -166,6 +174,7 @@ def make_crops(
     splits: tuple[str, ...] = SPLITS,
     workers: int = 1,
     window: int = 96,
+    align_jaw: bool = False,
 ) -> dict:
     """Crop every grasp of the grasp dataset ``src`` into the ``vgq-crops`` dataset ``out``.
 
@@ -175,9 +184,10 @@ def make_crops(
     ``sensor_overrides`` (field -> value). ``splits``: the splits to crop (the others are
     written empty), e.g. ``("test",)`` for a second, differently corrupted copy of the test
     split. ``workers``: processes cropping objects in parallel (the result does not depend on
-    it). ``window``: source px a side of each crop window (resized to 32 x 32). Returns the
-    written manifest."""
-    geom = geometry_for(arch, kappa_px, window=window)
+    it). ``window``: source px a side of each crop window (resized to 32 x 32). ``align_jaw``
+    (vgqcnn): crops turned so each grasp's jaw axis is horizontal, poses with them
+    (``vgq.crop.CropGeometry.align_jaw``). Returns the written manifest."""
+    geom = geometry_for(arch, kappa_px, window=window, align_jaw=align_jaw)
     bad = sorted(set(splits) - set(SPLITS))
     if bad or not splits:
         raise ValueError(f"splits must be a non-empty subset of {SPLITS}, got {tuple(splits)}")
@@ -209,7 +219,7 @@ def make_crops(
     job = {  # what the rows depend on: a stopped run resumes only into the same job
         "source_manifest_sha256": hashlib.sha256((ds.root / storage.MANIFEST).read_bytes()).hexdigest(),
         "arch": arch,
-        "geometry": dataclasses.asdict(geom),
+        "geometry": geom.to_dict(),
         "seed": int(seed),
         "sensor": sensor.to_dict(),
         "splits": list(splits),

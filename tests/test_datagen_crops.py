@@ -189,3 +189,47 @@ def test_a_stopped_crop_run_does_not_resume_into_other_inputs(tmp_path, monkeypa
         make_crops(tmp_path / "g", tmp_path / "c", "fast_vgqcnn", log=lambda s: None, sensor="clean")
     with pytest.raises(storage.DatasetError, match="unfinished crop run with other inputs"):
         make_crops(tmp_path / "g", tmp_path / "c", "fast_vgqcnn", seed=1, log=lambda s: None, sensor="clean")
+
+
+def test_crops_aligned_to_the_jaw_are_turned_with_their_pose_turned_alike(one_image_dataset, tmp_path):
+    from vgq.pose import canonical_quaternion, roll_quaternions
+
+    m = make_crops(one_image_dataset, tmp_path, "vgqcnn", log=lambda s: None, sensor="clean", align_jaw=True)
+    depth, g = _first(one_image_dataset)
+    a = storage.open_crops(tmp_path, "train")
+    geom = vcrop.CropGeometry.from_dict(m["geometry"])
+    assert geom.align_jaw and m["geometry"]["align_jaw"] is True and geom.kappa_px == 0
+    for i in range(0, len(g["u"]), 7):
+        expected = vcrop.rotated_crop(depth, (g["u"][i], g["v"][i]), float(g["jaw_angle"][i]), geom)
+        np.testing.assert_array_equal(a["images"][i], expected)
+    np.testing.assert_array_equal(a["poses"][:, :2], 0)
+    np.testing.assert_allclose(a["poses"][:, 2], g["z"])
+    turned = canonical_quaternion(roll_quaternions(g["q"], g["jaw_angle"]))
+    np.testing.assert_allclose(a["poses"][:, 3:], turned, atol=1e-6)
+    assert np.abs(a["poses"][:, 3:] - g["q"]).max() > 0.1  # the orientations did turn
+
+
+def test_a_jaw_axis_in_the_image_plane_turns_horizontal_with_its_crop():
+    # rotated_crop turns an in-image axis at angle a (from +u towards +v) horizontal; the pose's
+    # orientation turned by the same a (vgq.pose.roll_quaternions) has its jaw axis along x
+    from vgq.pose import matrix_from_quaternion, quaternion_from_matrix, roll_quaternions
+
+    for a in np.radians([-170.0, -60.0, 0.0, 25.0, 90.0, 135.0]):
+        x = np.array([np.cos(a), np.sin(a), 0.0])
+        z = np.array([0.0, 0.0, 1.0])
+        R = np.stack([x, np.cross(z, x), z], axis=1)
+        rolled = roll_quaternions(quaternion_from_matrix(R[None])[0], a)
+        np.testing.assert_allclose(matrix_from_quaternion(rolled)[:, 0], [1.0, 0.0, 0.0], atol=1e-9)
+
+
+def test_align_jaw_is_for_vgqcnn_crops_and_reads_back_only_when_set():
+    assert geometry_for("vgqcnn", align_jaw=True).align_jaw
+    for arch in ("fast_vgqcnn", "gqcnn"):
+        with pytest.raises(ValueError, match="vgqcnn crops only"):
+            geometry_for(arch, align_jaw=True)
+    with pytest.raises(ValueError, match="centred"):
+        vcrop.CropGeometry(96, 32, 12.0, align_jaw=True)
+    assert "align_jaw" not in vcrop.CropGeometry(96, 32, 0.0).to_dict()  # older datasets and cards read alike
+    g = vcrop.CropGeometry(96, 32, 0.0, align_jaw=True)
+    assert vcrop.CropGeometry.from_dict(g.to_dict()) == g
+    assert vcrop.CropGeometry.from_dict({"window": 96, "out": 32, "kappa_px": 0}).align_jaw is False

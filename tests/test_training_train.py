@@ -363,3 +363,31 @@ def test_mirror_augmentation_flips_the_drawn_rows_the_same_way_on_resume(data):
     torch.testing.assert_close(img0, batch[0])
     with pytest.raises(ValueError, match="mirror"):
         TrainConfig(mirror=1.5)
+
+
+def _turned_copy(src: Path, dst: Path) -> Path:
+    """A copy of a centred crop dataset whose manifest says its crops are turned to the jaw axis."""
+    import shutil
+
+    shutil.copytree(src, dst)
+    m = json.loads((dst / "manifest.json").read_text())
+    m["geometry"]["align_jaw"] = True
+    (dst / "manifest.json").write_text(json.dumps(m))
+    return dst
+
+
+def test_crops_turned_to_the_jaw_train_vgqcnn_only_and_evaluate_only_a_net_trained_on_them(tmp_path):
+    centred = tmp_path / "centred"
+    make_synthetic_crop_dataset(centred, 16, 16, 32, arch="vgqcnn", kappa_px=0.0, seed=1)
+    turned = _turned_copy(centred, tmp_path / "turned")
+    ds = open_crop_dataset(turned)
+    assert ds.geometry.align_jaw
+    ds.check_arch("vgqcnn")
+    with pytest.raises(DatasetError, match="align_jaw.*cannot train 'fast_vgqcnn'"):
+        ds.check_arch("fast_vgqcnn")  # a Fast model on turned windows could never be served
+    run = tmp_path / "run"
+    train(TrainConfig(arch="vgqcnn", samples=32, val_every_samples=32, **FAST), turned, run, progress=False)
+    assert load_trained(run / "checkpoints" / "last.pt")[1]["geometry"]["align_jaw"] is True
+    evaluate(run, turned, "test", progress=False, out_dir=tmp_path / "ok")
+    with pytest.raises(DatasetError, match="not turned"):
+        evaluate(run, centred, "test", progress=False, out_dir=tmp_path / "bad")

@@ -58,6 +58,9 @@ def evaluate(
             f"crop dataset {data.path} has window/out {data.geometry.window}/{data.geometry.out}, "
             f"the net was trained on {g['window']}/{g['out']}"
         )
+    if data.geometry.align_jaw != bool(g.get("align_jaw", False)):
+        turned = "turned to the jaw axis" if data.geometry.align_jaw else "not turned"
+        raise DatasetError(f"crop dataset {data.path} has crops {turned} (align_jaw); the net was trained otherwise")
     sp = data.split(split)
     if max_n < 0:
         raise ValueError(f"max_n must be >= 0, got {max_n}")

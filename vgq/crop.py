@@ -29,11 +29,16 @@ class CropGeometry:
 
     ``kappa_px`` is the largest |offset| of a grasp from the window centre, in *source*
     pixels, that the network was trained on (Fast-VGQ-CNN); 0 means centred crops.
+    ``align_jaw``: centred crops turned about the grasp so its in-image jaw axis is horizontal
+    (:func:`rotated_crop`, GQ-CNN's input), the pose's orientation expressed in the turned
+    camera's frame (:func:`vgq.pose.roll_quaternions` by the jaw angle); a VGQ-CNN probe (the
+    paper's VGQ-CNN is centred, not turned), not something the service serves.
     """
 
     window: int = 96
     out: int = 32
     kappa_px: float = 36.0
+    align_jaw: bool = False
 
     def __post_init__(self) -> None:
         if self.window <= 0 or self.out <= 0:
@@ -42,17 +47,29 @@ class CropGeometry:
             raise ValueError(f"window ({self.window}) must be a multiple of out ({self.out})")
         if not (0 <= self.kappa_px <= self.window / 2):
             raise ValueError(f"kappa_px must be in [0, window/2], got {self.kappa_px}")
+        if self.align_jaw and self.kappa_px != 0:
+            raise ValueError(f"align_jaw crops are centred on their grasp (kappa_px 0), got kappa_px {self.kappa_px}")
 
     @property
     def scale(self) -> int:
         return self.window // self.out
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """``window``, ``out``, ``kappa_px`` and, only when set, ``align_jaw`` (so the geometry of
+        every unturned dataset, checkpoint and card reads as it always has)."""
+        d = asdict(self)
+        if not self.align_jaw:
+            del d["align_jaw"]
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> CropGeometry:
-        return cls(window=int(d["window"]), out=int(d["out"]), kappa_px=float(d["kappa_px"]))
+        return cls(
+            window=int(d["window"]),
+            out=int(d["out"]),
+            kappa_px=float(d["kappa_px"]),
+            align_jaw=bool(d.get("align_jaw", False)),
+        )
 
 
 def window_origin(center_uv, geom: CropGeometry) -> np.ndarray:
