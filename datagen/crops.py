@@ -68,9 +68,7 @@ def fast_window_origins(grasp_uv: np.ndarray, geom: vcrop.CropGeometry, rng: np.
     of ``grasp_uv`` (n, 2), drawn uniformly among the valid positions. Where none is valid
     (kappa < 0.5 px and a fractional grasp pixel) the nearest window is used."""
     g = np.asarray(grasp_uv, dtype=np.float64).reshape(-1, 2)
-    half = geom.window / 2 - 0.5  # centre = origin + half
-    lo = np.ceil(g - half - geom.kappa_px - 1e-9)
-    hi = np.floor(g - half + geom.kappa_px + 1e-9)
+    lo, hi = vcrop.origin_range(g, geom)
     span = hi - lo + 1
     draw = lo + np.floor(rng.random(g.shape) * np.maximum(span, 1))
     nearest = vcrop.window_origin(g, geom).astype(np.float64)

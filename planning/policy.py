@@ -28,7 +28,7 @@ from vgq.camera import (
     source_pixels,
     tilt_outside_training,
 )
-from vgq.crop import grid_window_centers, pose_uv, window_center, window_origin
+from vgq.crop import grid_window_centers, origin_range, pose_uv, window_center, window_origin
 from vgq.inpaint import crop_filled
 from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT
 from vgq.ood import flag_names, ood_flags
@@ -163,9 +163,7 @@ def cover_windows(uv: np.ndarray, geom) -> np.ndarray:
     keys = np.unique((org[:, 0] - lo_o[0]) * span[1] + (org[:, 1] - lo_o[1]))
     org = np.stack([keys // span[1] + lo_o[0], keys % span[1] + lo_o[1]], axis=1)
     # window o holds grasp uv when |centre(o) - uv| <= kappa per axis: o within [lo, hi]
-    c0 = geom.window / 2 - 0.5  # centre = origin + c0
-    lo = np.ceil(uv - k - c0 - 1e-9).astype(np.int64)
-    hi = np.floor(uv + k - c0 + 1e-9).astype(np.int64)
+    lo, hi = (b.astype(np.int64) for b in origin_range(uv, geom))
     covers = (org[:, :1] >= lo[:, 0]) & (org[:, :1] <= hi[:, 0]) & (org[:, 1:] >= lo[:, 1]) & (org[:, 1:] <= hi[:, 1])
     counts_of = covers.astype(np.float32)  # (c, n); counts_of . left: grasps left in each window (exact)
     cand = window_center(org, geom)

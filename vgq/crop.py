@@ -78,6 +78,15 @@ def window_origin(center_uv, geom: CropGeometry) -> np.ndarray:
     return np.floor(c - geom.window / 2 + 0.5 + 0.5).astype(np.int64)
 
 
+def origin_range(grasp_uv, geom: CropGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """Lowest and highest integer window origins (n, 2) (float arrays) whose windows' centres lie
+    within +/- ``geom.kappa_px`` (per axis) of grasps at ``grasp_uv`` (n, 2): the windows that
+    hold each grasp as training placed it (empty where lo > hi)."""
+    g = np.asarray(grasp_uv, dtype=np.float64).reshape(-1, 2)
+    half = geom.window / 2 - 0.5  # centre = origin + half
+    return np.ceil(g - half - geom.kappa_px - 1e-9), np.floor(g - half + geom.kappa_px + 1e-9)
+
+
 def window_center(origin_uv, geom: CropGeometry) -> np.ndarray:
     """Centre (image px) of windows with top-left pixel ``origin_uv``."""
     return np.asarray(origin_uv, dtype=np.float64) + geom.window / 2 - 0.5
