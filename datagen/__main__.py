@@ -215,6 +215,7 @@ def cmd_crops(args) -> int:
         workers=args.workers or default_workers(),
         window=args.window,
         align_jaw=args.align_jaw,
+        jaw_turns=args.jaw_turns,
     )
     return 0
 
@@ -567,6 +568,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="vgqcnn probe: each crop turned about its grasp so the jaw axis is horizontal (GQ-CNN's input), "
         "the pose's orientation with it; the service does not serve such a model",
+    )
+    c.add_argument(
+        "--jaw-turns",
+        type=_count("--jaw-turns"),
+        default=0,
+        metavar="K",
+        help="fast_vgqcnn: cut each grasp's window from the image turned by the multiple of 180/K deg nearest "
+        "its jaw axis (the axis within 90/K deg of horizontal; vgq.turns); 0 (default) windows not turned",
     )
     c.add_argument(
         "--seed", type=_count("--seed"), default=0, help="window offsets and the sensor model's noise (default 0)"

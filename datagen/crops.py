@@ -29,7 +29,8 @@ import numpy as np
 
 from vgq import atomic, inpaint
 from vgq import crop as vcrop
-from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
+from vgq import turns as vturns
+from vgq.camera import DEFAULT_INTRINSICS, Intrinsics, level_depth, map_pixels
 from vgq.pose import canonical_quaternion, roll_quaternions
 from vgq.schema import CROP_FIELDS, SPLITS, crop_counts, write_crop_manifest
 
@@ -42,16 +43,25 @@ DEFAULT_KAPPA_PX = 36.0  # the authors' default for the 96 px window (12 px at 3
 
 
 def geometry_for(
-    arch: str, kappa_px: float | None = None, window: int = 96, out: int = 32, align_jaw: bool = False
+    arch: str,
+    kappa_px: float | None = None,
+    window: int = 96,
+    out: int = 32,
+    align_jaw: bool = False,
+    jaw_turns: int = 0,
 ) -> vcrop.CropGeometry:
     """Crop geometry of ``arch``: a ``window`` x ``window`` source px window resized to ``out``;
     Fast-VGQ-CNN uses ``kappa_px`` (default 36 px for the 96 px window, in proportion for
     another), the centred architectures kappa 0 (a non-zero kappa for them is an error).
-    ``align_jaw`` (VGQ-CNN only): crops turned so the jaw axis is horizontal, the pose with them."""
+    ``align_jaw`` (VGQ-CNN only): crops turned so the jaw axis is horizontal, the pose with them.
+    ``jaw_turns`` (Fast-VGQ-CNN only): windows cut from the image turned in K steps of pi / K
+    (:mod:`vgq.turns`)."""
     if arch not in ARCHS:
         raise ValueError(f"unknown architecture {arch!r}; expected one of {', '.join(ARCHS)}")
     if align_jaw and arch != "vgqcnn":
         raise ValueError(f"align_jaw applies to vgqcnn crops only, not {arch}")
+    if jaw_turns and arch != "fast_vgqcnn":
+        raise ValueError(f"jaw_turns applies to fast_vgqcnn crops only, not {arch}")
     if arch == "fast_vgqcnn":
         k = DEFAULT_KAPPA_PX * window / 96 if kappa_px is None else float(kappa_px)
     else:
@@ -60,7 +70,7 @@ def geometry_for(
         k = 0.0
     if not np.isfinite(k):
         raise ValueError(f"kappa must be finite, got {k}")
-    return vcrop.CropGeometry(window=window, out=out, kappa_px=k, align_jaw=bool(align_jaw))
+    return vcrop.CropGeometry(window=window, out=out, kappa_px=k, align_jaw=bool(align_jaw), jaw_turns=jaw_turns)
 
 
 def fast_window_origins(grasp_uv: np.ndarray, geom: vcrop.CropGeometry, rng: np.random.Generator) -> np.ndarray:
@@ -113,6 +123,39 @@ def crop_grasps(
     return images, pose_uv, missing
 
 
+def turned_crops(
+    depth: np.ndarray,
+    uv: np.ndarray,
+    z: np.ndarray,
+    q: np.ndarray,
+    geom: vcrop.CropGeometry,
+    intr: Intrinsics,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Fast-VGQ-CNN crops of k grasps (TCP pixel ``uv`` (k, 2), depth ``z`` (k,) metres, unit
+    quaternions ``q`` (k, 4) (w, x, y, z), camera ``intr``) from the depth image (H, W) turned,
+    per grasp, by its turn of ``geom.jaw_turns`` (:mod:`vgq.turns`; the camera rolled, the image
+    on a canvas that holds it whole, as the service turns an upload).
+
+    Returns (images (k, out, out), pose (u, v) (k, 2) crop px in the turned image, missing
+    fraction (k,), quaternions (k, 4) in the turned camera's frame, canonical)."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    k, turns = len(uv), geom.jaw_turns
+    images = np.empty((k, geom.out, geom.out), dtype=np.float32)
+    pose_uv = np.zeros((k, 2), dtype=np.float64)
+    missing = np.zeros(k, dtype=np.float64)
+    q_out = np.empty((k, 4), dtype=np.float64)
+    index = vturns.turn_index(vturns.pose_jaw_angles(uv, z, q, intr), turns)
+    for t in np.unique(index):
+        sel = index == t
+        roll = vturns.turn_roll(int(t), turns)
+        d_t, intr_t = level_depth(depth, intr, roll)
+        uv_t = map_pixels(uv[sel], intr, intr_t, roll)
+        images[sel], pose_uv[sel], missing[sel] = crop_grasps(d_t, uv_t, None, "fast_vgqcnn", geom, rng)
+        q_out[sel] = roll_quaternions(np.asarray(q, dtype=np.float64)[sel], roll)
+    return images, pose_uv, missing, canonical_quaternion(q_out)
+
+
 JOB_FILE = ".crops-job.json"  # an unfinished run's inputs (deleted when the manifest is written)
 DONE_FILE = ".crops-done.jsonl"  # its finished objects, one JSON line each, written after their rows
 SAVE_EVERY_S = 30.0  # how often an unfinished run records its progress (what a stop can lose)
@@ -140,13 +183,16 @@ def crop_object(
         img_i = int(g["image_index"][rows[0]])
         uv = np.stack([g["u"][rows], g["v"][rows]], axis=1)
         depth = sensor.apply(im["depth"][img_i], sensor_model.image_rng(seed, sh.object_id, img_i), intr)
-        crops, puv, miss = crop_grasps(depth, uv, g["jaw_angle"][rows], arch, geom, rng)
+        q = g["q"][rows]
+        if geom.jaw_turns:  # windows of the image turned in steps towards each jaw axis
+            crops, puv, miss, q = turned_crops(depth, uv, g["z"][rows], q, geom, intr, rng)
+        else:
+            crops, puv, miss = crop_grasps(depth, uv, g["jaw_angle"][rows], arch, geom, rng)
+        if geom.align_jaw:  # the orientation seen by the camera turned with the crop
+            q = canonical_quaternion(roll_quaternions(q, g["jaw_angle"][rows]))
         missing += float(miss.sum())
         dst = slice(fill, fill + len(rows))
         out["images"][dst] = crops
-        q = g["q"][rows]
-        if geom.align_jaw:  # the orientation seen by the camera turned with the crop
-            q = canonical_quaternion(roll_quaternions(q, g["jaw_angle"][rows]))
         out["poses"][dst] = np.concatenate([puv, g["z"][rows, None], q], axis=1)
         out["labels"][dst] = g["quality"][rows] > thr
         out["quality"][dst] = g["quality"][rows]
@@ -173,6 +219,7 @@ def make_crops(
     workers: int = 1,
     window: int = 96,
     align_jaw: bool = False,
+    jaw_turns: int = 0,
 ) -> dict:
     """Crop every grasp of the grasp dataset ``src`` into the ``vgq-crops`` dataset ``out``.
 
@@ -184,8 +231,9 @@ def make_crops(
     split. ``workers``: processes cropping objects in parallel (the result does not depend on
     it). ``window``: source px a side of each crop window (resized to 32 x 32). ``align_jaw``
     (vgqcnn): crops turned so each grasp's jaw axis is horizontal, poses with them
-    (``vgq.crop.CropGeometry.align_jaw``). Returns the written manifest."""
-    geom = geometry_for(arch, kappa_px, window=window, align_jaw=align_jaw)
+    (``vgq.crop.CropGeometry.align_jaw``). ``jaw_turns`` (fast_vgqcnn): windows cut from the image
+    turned in that many steps towards each jaw axis (``vgq.turns``). Returns the written manifest."""
+    geom = geometry_for(arch, kappa_px, window=window, align_jaw=align_jaw, jaw_turns=jaw_turns)
     bad = sorted(set(splits) - set(SPLITS))
     if bad or not splits:
         raise ValueError(f"splits must be a non-empty subset of {SPLITS}, got {tuple(splits)}")

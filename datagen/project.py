@@ -13,6 +13,7 @@ import numpy as np
 
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics, project
 from vgq.pose import quaternion_from_matrix
+from vgq.turns import jaw_angles  # noqa: F401  (the one definition; datagen's name for it)
 
 from .gripper import as_frames, beta_angles
 
@@ -22,17 +23,6 @@ def psi_angles(R_camera_grasp: np.ndarray) -> np.ndarray:
     rotation (n, 3, 3)) and the camera principal ray (0, 0, 1): >= pi/2 approaches from
     behind the object as the camera sees it."""
     return np.arccos(np.clip(np.asarray(R_camera_grasp)[:, 2, 2], -1.0, 1.0))
-
-
-def jaw_angles(p_cam: np.ndarray, x_cam: np.ndarray, intr: Intrinsics = DEFAULT_INTRINSICS) -> np.ndarray:
-    """In-image angles (n,) radians, in (-pi, pi], of the jaw axis ``x_cam`` (n, 3) at the
-    TCP ``p_cam`` (n, 3) (camera frame): the direction in which the projection of
-    p + s * x moves for small s > 0, measured from +u towards +v."""
-    p, x = np.asarray(p_cam, dtype=np.float64), np.asarray(x_cam, dtype=np.float64)
-    z = p[:, 2]
-    du = intr.fx * (x[:, 0] * z - p[:, 0] * x[:, 2])
-    dv = intr.fy * (x[:, 1] * z - p[:, 1] * x[:, 2])
-    return np.arctan2(dv, du)
 
 
 def project_grasps(

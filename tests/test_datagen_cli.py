@@ -101,6 +101,20 @@ def test_a_window_not_a_multiple_of_the_crop_is_refused(tmp_path, capsys):
     assert not (tmp_path / "c" / "manifest.json").exists()
 
 
+@pytest.mark.parametrize(
+    ("arch", "turns", "message"), [("fast_vgqcnn", 1, "jaw_turns must be 0"), ("gqcnn", 4, "fast_vgqcnn crops only")]
+)
+def test_jaw_turns_out_of_range_or_for_another_arch_is_refused(tmp_path, capsys, arch, turns, message):
+    from datagen_fakes import fake_dataset
+
+    fake_dataset(tmp_path / "g", n_objects=1, n_images=1, n_grasps=3)
+    rc, _, err = run_main(
+        capsys, "crops", "--in", tmp_path / "g", "--out", tmp_path / "c", "--arch", arch, "--jaw-turns", turns
+    )
+    assert rc == 2 and message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "c" / "manifest.json").exists()
+
+
 def test_ray_missing_names_the_extra(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # as if Ray were not installed
     src = tmp_path / "meshes"

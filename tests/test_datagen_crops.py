@@ -222,6 +222,36 @@ def test_a_jaw_axis_in_the_image_plane_turns_horizontal_with_its_crop():
         np.testing.assert_allclose(matrix_from_quaternion(rolled)[:, 0], [1.0, 0.0, 0.0], atol=1e-9)
 
 
+def test_fast_crops_with_jaw_turns_are_windows_of_the_image_turned_towards_each_jaw(one_image_dataset, tmp_path):
+    from vgq import inpaint
+    from vgq.camera import DEFAULT_INTRINSICS, level_depth, map_pixels
+    from vgq.pose import canonical_quaternion, roll_quaternions
+    from vgq.turns import pose_jaw_angles, turn_index, turn_roll
+
+    m = make_crops(one_image_dataset, tmp_path, "fast_vgqcnn", log=lambda s: None, sensor="clean", jaw_turns=4)
+    depth, g = _first(one_image_dataset)
+    a = storage.open_crops(tmp_path, "train")
+    geom = vcrop.CropGeometry.from_dict(m["geometry"])
+    assert geom.jaw_turns == 4 and geom.kappa_px == 36
+    uv = np.stack([g["u"], g["v"]], 1).astype(np.float64)
+    index = turn_index(pose_jaw_angles(uv, g["z"], g["q"], DEFAULT_INTRINSICS), 4)
+    assert len(set(index.tolist())) == 4  # every turn used
+    for t in range(4):
+        roll = turn_roll(t, 4)
+        turned, intr = level_depth(depth, DEFAULT_INTRINSICS, roll)
+        for i in np.flatnonzero(index == t)[:4]:
+            uv_t = map_pixels(uv[i : i + 1], DEFAULT_INTRINSICS, intr, roll)[0]
+            centre = uv_t - a["poses"][i, :2].astype(np.float64) * geom.scale
+            assert vcrop.in_training_range(uv_t, centre, geom)
+            expected, c, _ = inpaint.crop_filled(turned, vcrop.window_origin(centre, geom), geom)
+            np.testing.assert_allclose(c, centre, atol=1e-3)  # an exact integer window of the turned image
+            np.testing.assert_array_equal(a["images"][i], expected)
+        rolled = canonical_quaternion(roll_quaternions(g["q"][index == t], roll))
+        np.testing.assert_allclose(a["poses"][index == t, 3:], rolled, atol=1e-6)
+    with pytest.raises(ValueError, match="fast_vgqcnn crops only"):
+        geometry_for("vgqcnn", jaw_turns=4)
+
+
 def test_align_jaw_is_for_vgqcnn_crops_and_reads_back_only_when_set():
     assert geometry_for("vgqcnn", align_jaw=True).align_jaw
     for arch in ("fast_vgqcnn", "gqcnn"):

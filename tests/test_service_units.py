@@ -299,6 +299,21 @@ def test_int8_head_asked_of_a_model_without_one_is_a_clear_error(model_dir):
         FastModel(model_dir, head_precision="int8")
 
 
+def test_a_model_trained_on_turned_windows_is_refused_not_served_unturned(model_dir, tmp_path):
+    import json
+    import shutil
+
+    from service.runtime import FastModel, ModelError
+
+    turned = tmp_path / "turned"
+    shutil.copytree(model_dir, turned)
+    card = json.loads((turned / "model_card.json").read_text())
+    card["geometry"]["jaw_turns"] = 4
+    (turned / "model_card.json").write_text(json.dumps(card))
+    with pytest.raises(ModelError, match="crops turned in 4 steps.*cannot serve it"):
+        FastModel(turned)
+
+
 # ---- the one number path, paths in answers, multipart without copies ------------------------------------------------
 @pytest.mark.parametrize("raw", ["inf", "-inf", "nan", "1e400", "9" * 400, "2.5", "abc", True, "-1", "0", "3e9"])
 def test_integer_fields_refuse_what_is_not_a_usable_integer(raw):

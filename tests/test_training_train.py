@@ -365,13 +365,13 @@ def test_mirror_augmentation_flips_the_drawn_rows_the_same_way_on_resume(data):
         TrainConfig(mirror=1.5)
 
 
-def _turned_copy(src: Path, dst: Path) -> Path:
-    """A copy of a centred crop dataset whose manifest says its crops are turned to the jaw axis."""
+def _turned_copy(src: Path, dst: Path, **turning) -> Path:
+    """A copy of a crop dataset whose manifest says its crops are turned (default: to the jaw axis)."""
     import shutil
 
     shutil.copytree(src, dst)
     m = json.loads((dst / "manifest.json").read_text())
-    m["geometry"]["align_jaw"] = True
+    m["geometry"].update(turning or {"align_jaw": True})
     (dst / "manifest.json").write_text(json.dumps(m))
     return dst
 
@@ -383,7 +383,7 @@ def test_crops_turned_to_the_jaw_train_vgqcnn_only_and_evaluate_only_a_net_train
     ds = open_crop_dataset(turned)
     assert ds.geometry.align_jaw
     ds.check_arch("vgqcnn")
-    with pytest.raises(DatasetError, match="align_jaw.*cannot train 'fast_vgqcnn'"):
+    with pytest.raises(DatasetError, match="turned to the jaw axis.*cannot train 'fast_vgqcnn'"):
         ds.check_arch("fast_vgqcnn")  # a Fast model on turned windows could never be served
     run = tmp_path / "run"
     train(TrainConfig(arch="vgqcnn", samples=32, val_every_samples=32, **FAST), turned, run, progress=False)
@@ -391,3 +391,21 @@ def test_crops_turned_to_the_jaw_train_vgqcnn_only_and_evaluate_only_a_net_train
     evaluate(run, turned, "test", progress=False, out_dir=tmp_path / "ok")
     with pytest.raises(DatasetError, match="not turned"):
         evaluate(run, centred, "test", progress=False, out_dir=tmp_path / "bad")
+
+
+def test_windows_turned_in_steps_train_fast_vgqcnn_only_and_evaluate_only_a_net_trained_on_them(tmp_path):
+    plain = tmp_path / "plain"
+    make_synthetic_crop_dataset(plain, 16, 16, 32, seed=1)
+    turned = _turned_copy(plain, tmp_path / "turned", jaw_turns=4)
+    ds = open_crop_dataset(turned)
+    assert ds.geometry.jaw_turns == 4
+    ds.check_arch("fast_vgqcnn")
+    run = tmp_path / "run"
+    train(TrainConfig(samples=32, val_every_samples=32, **FAST), turned, run, progress=False)
+    assert load_trained(run / "checkpoints" / "last.pt")[1]["geometry"]["jaw_turns"] == 4
+    evaluate(run, turned, "test", progress=False, out_dir=tmp_path / "ok")
+    with pytest.raises(DatasetError, match="not turned; the net was trained on crops turned in 4 steps"):
+        evaluate(run, plain, "test", progress=False, out_dir=tmp_path / "bad")
+    centred = _turned_copy(plain, tmp_path / "centred", jaw_turns=4, kappa_px=0.0)
+    with pytest.raises(DatasetError, match="turned in 4 steps.*cannot train 'vgqcnn'"):
+        open_crop_dataset(centred).check_arch("vgqcnn")

@@ -149,18 +149,20 @@ class CropDataset:
 
         Same architecture always fits. Centred crops (kappa 0) serve both VGQ-CNN and
         Fast-VGQ-CNN (the paper's kappa = 0 ablation); off-centre crops only Fast-VGQ-CNN;
-        GQ-CNN's rotated crops only GQ-CNN, VGQ-CNN's turned ones (``align_jaw``) only VGQ-CNN.
+        GQ-CNN's rotated crops only GQ-CNN, VGQ-CNN's turned ones (``align_jaw``) only VGQ-CNN,
+        Fast-VGQ-CNN's windows turned in steps (``jaw_turns``) only Fast-VGQ-CNN.
         """
         if arch not in POSE_COLUMNS:
             raise DatasetError(f"unknown architecture {arch!r}; expected one of {sorted(POSE_COLUMNS)}")
         if arch == self.arch:
             return
-        centred = self.geometry.kappa_px == 0 and not self.geometry.align_jaw  # turned crops: VGQ-CNN only
+        g = self.geometry
+        centred = g.kappa_px == 0 and not g.align_jaw and not g.jaw_turns  # turned crops: their own arch only
         if {arch, self.arch} == {"vgqcnn", "fast_vgqcnn"} and centred:
             return
         raise DatasetError(
             f"crop dataset {self.path} was cut for architecture {self.arch!r} "
-            f"(kappa_px={self.geometry.kappa_px}{', align_jaw' if self.geometry.align_jaw else ''}); "
+            f"(kappa_px={g.kappa_px}, {g.turning()}); "
             f"it cannot train {arch!r}"
         )
 

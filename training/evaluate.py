@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from vgq import atomic
+from vgq.crop import CropGeometry
 from vgq.pose import FULL_POSE_COLUMNS, approach_angle
 
 from . import metrics as M
@@ -58,9 +59,11 @@ def evaluate(
             f"crop dataset {data.path} has window/out {data.geometry.window}/{data.geometry.out}, "
             f"the net was trained on {g['window']}/{g['out']}"
         )
-    if data.geometry.align_jaw != bool(g.get("align_jaw", False)):
-        turned = "turned to the jaw axis" if data.geometry.align_jaw else "not turned"
-        raise DatasetError(f"crop dataset {data.path} has crops {turned} (align_jaw); the net was trained otherwise")
+    trained = CropGeometry.from_dict(g)
+    if (data.geometry.align_jaw, data.geometry.jaw_turns) != (trained.align_jaw, trained.jaw_turns):
+        raise DatasetError(
+            f"crop dataset {data.path} has crops {data.geometry.turning()}; the net was trained on crops {trained.turning()}"
+        )
     sp = data.split(split)
     if max_n < 0:
         raise ValueError(f"max_n must be >= 0, got {max_n}")

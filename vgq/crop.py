@@ -22,6 +22,8 @@ from functools import lru_cache
 import numpy as np
 from PIL import Image
 
+from .turns import check_turns
+
 
 @dataclass(frozen=True)
 class CropGeometry:
@@ -33,12 +35,16 @@ class CropGeometry:
     (:func:`rotated_crop`, GQ-CNN's input), the pose's orientation expressed in the turned
     camera's frame (:func:`vgq.pose.roll_quaternions` by the jaw angle); a VGQ-CNN probe (the
     paper's VGQ-CNN is centred, not turned), not something the service serves.
+    ``jaw_turns`` (Fast-VGQ-CNN): 0, windows of the image as it is; K >= 2, each grasp's window
+    is cut from the image turned by the multiple of pi / K nearest its jaw angle
+    (:mod:`vgq.turns`), so windows stay shared by the grasps of one turn.
     """
 
     window: int = 96
     out: int = 32
     kappa_px: float = 36.0
     align_jaw: bool = False
+    jaw_turns: int = 0
 
     def __post_init__(self) -> None:
         if self.window <= 0 or self.out <= 0:
@@ -49,18 +55,31 @@ class CropGeometry:
             raise ValueError(f"kappa_px must be in [0, window/2], got {self.kappa_px}")
         if self.align_jaw and self.kappa_px != 0:
             raise ValueError(f"align_jaw crops are centred on their grasp (kappa_px 0), got kappa_px {self.kappa_px}")
+        check_turns(self.jaw_turns)
+        if self.jaw_turns and self.align_jaw:
+            raise ValueError(
+                "jaw_turns and align_jaw exclude each other (windows turned by steps, or crops turned exactly)"
+            )
 
     @property
     def scale(self) -> int:
         return self.window // self.out
 
     def to_dict(self) -> dict:
-        """``window``, ``out``, ``kappa_px`` and, only when set, ``align_jaw`` (so the geometry of
-        every unturned dataset, checkpoint and card reads as it always has)."""
+        """``window``, ``out``, ``kappa_px`` and, only when set, ``align_jaw`` and ``jaw_turns``
+        (so the geometry of every unturned dataset, checkpoint and card reads as it always has)."""
         d = asdict(self)
-        if not self.align_jaw:
-            del d["align_jaw"]
+        for k in ("align_jaw", "jaw_turns"):
+            if not d[k]:
+                del d[k]
         return d
+
+    def turning(self) -> str:
+        """How crops are turned, in words (for messages): "not turned", "turned to the jaw axis"
+        or "turned in K steps"."""
+        if self.align_jaw:
+            return "turned to the jaw axis"
+        return f"turned in {self.jaw_turns} steps" if self.jaw_turns else "not turned"
 
     @classmethod
     def from_dict(cls, d: dict) -> CropGeometry:
@@ -69,6 +88,7 @@ class CropGeometry:
             out=int(d["out"]),
             kappa_px=float(d["kappa_px"]),
             align_jaw=bool(d.get("align_jaw", False)),
+            jaw_turns=int(d.get("jaw_turns", 0)),
         )
 
 
