@@ -474,11 +474,11 @@ def noisy_scores(model, depth, intr, frames: np.ndarray, copies: int, params, se
     camera frame), scored on the image's windows as the planner scores."""
     from datagen.physics import PhysicsParams, execution_noise, perturbed_frames
 
-    from .policy import WindowScorer, grasp_rows
+    from .policy import grasp_rows, window_scorer
 
     dt, R, _ = execution_noise(len(frames), copies, PhysicsParams(), np.random.default_rng(7000 + seed))
     noisy = perturbed_frames(frames, dt, R).reshape(-1, 4, 4)
-    p, _ = WindowScorer(model, np.asarray(depth, np.float32), params.windows).score(grasp_rows(noisy, intr))
+    p, _ = window_scorer(model, np.asarray(depth, np.float32), intr, params.windows).score(grasp_rows(noisy, intr))
     return p.reshape(len(frames), copies).mean(axis=1)
 
 
@@ -760,7 +760,7 @@ def run_ranker(args) -> dict:
     from datagen.grasps import sample_antipodal_grasps
     from datagen.gripper import align_to_table, grasp_frames
 
-    from .policy import WindowScorer, grasp_rows, nms
+    from .policy import grasp_rows, nms, window_scorer
 
     model = _model(args.model, args.threads)
     params = PlanParams()
@@ -793,7 +793,7 @@ def run_ranker(args) -> dict:
         if len(F) == 0:
             rows.append({"object_id": int(oid), "grasps": 0, "top1": False, "top5": 0.0, "random": 0.0})
             continue
-        s, _ = WindowScorer(model, scene.depth.astype(np.float32)).score(r)
+        s, _ = window_scorer(model, scene.depth.astype(np.float32), config.intrinsics).score(r)
         top = nms(F, s, 5, params.nms_distance, params.nms_angle)
         rows.append(
             {

@@ -33,6 +33,7 @@ from vgq.inpaint import crop_filled
 from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT
 from vgq.ood import flag_names, ood_flags
 from vgq.pose import canonical_quaternion, quaternion_from_matrix, roll_quaternions
+from vgq.turns import pose_jaw_angles, turn_index, turn_roll
 
 from .calibration import p_hold as hold_probability
 from .cloud import valid_mask
@@ -285,6 +286,78 @@ class WindowScorer:
         return np.asarray(p, np.float64).reshape(-1), np.array([self.missing[k] for k in keys])
 
 
+class TurnedScorer:
+    """:class:`WindowScorer`'s job for a model trained on windows turned towards the jaw
+    (``CropGeometry.jaw_turns``, :mod:`vgq.turns`): each grasp is scored by a WindowScorer of the
+    image turned by its turn (the camera rolled, :func:`vgq.camera.level_depth`), its (u, v) and
+    orientation expressed in that turned camera, as datagen's crops were cut. ``intr``: the
+    image's intrinsics; ``store`` serves the unturned windows (turn 0) only."""
+
+    def __init__(
+        self, model, depth: np.ndarray, intr: Intrinsics, windows: str = "cover", store: WindowStore | None = None
+    ):
+        self.model, self.depth, self.intr, self.windows, self.store = model, depth, intr, windows, store
+        self.turns = model.geometry.jaw_turns
+        self.scorers: dict[int, tuple[WindowScorer, Intrinsics, float]] = {}
+        self.scored_poses: list[np.ndarray] = []  # the head's pose rows of every score() call, in order
+        WindowScorer(model, depth, windows)  # the same check of ``windows``
+
+    def _scorer(self, turn: int) -> tuple[WindowScorer, Intrinsics, float]:
+        if turn not in self.scorers:
+            roll = turn_roll(turn, self.turns)
+            depth, canvas = level_depth(self.depth, self.intr, roll)
+            store = self.store if turn == 0 else None
+            self.scorers[turn] = (WindowScorer(self.model, depth, self.windows, store), canvas, roll)
+        return self.scorers[turn]
+
+    def score(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(P(success) (n,), fraction of missing depth in each grasp's window (n,)) of grasp rows
+        (n, 7) (u, v, z, qw, qx, qy, qz) in the image's camera."""
+        if len(rows) == 0:
+            return np.zeros(0), np.zeros(0)
+        index = turn_index(pose_jaw_angles(rows[:, :2], rows[:, 2], rows[:, 3:7], self.intr), self.turns)
+        p, missing = np.empty(len(rows)), np.empty(len(rows))
+        poses = np.empty((len(rows), 7), np.float32)
+        for t in np.unique(index).tolist():
+            ix = np.flatnonzero(index == t)
+            scorer, canvas, roll = self._scorer(t)
+            turned = np.array(rows[ix], dtype=np.float64)
+            if roll != 0.0:
+                turned[:, :2] = map_pixels(turned[:, :2], self.intr, canvas, roll)
+                turned[:, 3:7] = canonical_quaternion(roll_quaternions(turned[:, 3:7], roll))
+            p[ix], missing[ix] = scorer.score(turned)
+            poses[ix] = scorer.scored_poses[-1]
+        self.scored_poses.append(poses)
+        return p, missing
+
+    @property
+    def terms(self) -> list:
+        """Every window encoded or reused, over all turns (``len`` counts them)."""
+        return [k for s, _, _ in self.scorers.values() for k in s.terms]
+
+    @property
+    def reused(self) -> int:
+        return sum(s.reused for s, _, _ in self.scorers.values())
+
+    @property
+    def encode_seconds(self) -> float:
+        return sum(s.encode_seconds for s, _, _ in self.scorers.values())
+
+    @property
+    def score_seconds(self) -> float:
+        return sum(s.score_seconds for s, _, _ in self.scorers.values())
+
+
+def window_scorer(
+    model, depth: np.ndarray, intr: Intrinsics, windows: str = "cover", store: WindowStore | None = None
+) -> WindowScorer | TurnedScorer:
+    """The scorer of grasp rows on one image (``intr``: its intrinsics) that suits ``model``'s
+    crop geometry: windows of the image as it is, or turned towards each grasp's jaw."""
+    if model.geometry.jaw_turns:
+        return TurnedScorer(model, depth, intr, windows, store)
+    return WindowScorer(model, depth, windows, store)
+
+
 # ----------------------------------------------------------------------------- selection
 
 
@@ -488,7 +561,7 @@ def plan_resampled(
         )
         return PlanResult((), reason, counts, seconds, version, ranked_by=ranked_by)
 
-    scorer = WindowScorer(model, d_model, params.windows, windows)
+    scorer = window_scorer(model, d_model, intr, params.windows, windows)
     scores, missing = scorer.score(grasp_rows(cands.frames, intr))
     if params.cem_iterations:
         t = time.perf_counter()

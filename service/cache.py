@@ -59,6 +59,16 @@ class CachedImage:
     roll: float = 0.0
     up_from: str | None = None
     windows: dict[Origin, EncodedWindow] = field(default_factory=dict)
+    _outside: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+
+    def outside(self) -> np.ndarray | None:
+        """(H', W') bool: the pixels of a turned canvas (``roll`` != 0) outside the client's image,
+        where no reading could be (None for an image not turned). Computed once per entry."""
+        if self.roll == 0.0:
+            return None
+        if self._outside is None:
+            self._outside = ~footprint(self.resampled, self.camera, self.roll)
+        return self._outside
 
     @property
     def image_shape(self) -> tuple[int, int]:

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vgq.crop import CropGeometry
-from vgq.inpaint import MARGIN_PX, NoValidDepth, crop_filled
+from vgq.crop import CropGeometry, crop_window
+from vgq.inpaint import MARGIN_PX, NoValidDepth, crop_filled, missing_mask
 
 from .errors import ApiError
 
@@ -22,14 +22,30 @@ class WindowInput:
     missing_fraction: float  # fraction of the window's pixels that had no reading
 
 
-def window_input(depth: np.ndarray, origin_uv, geom: CropGeometry, max_missing_fraction: float) -> WindowInput:
+def window_missing(depth: np.ndarray, origin_uv, geom: CropGeometry, outside: np.ndarray | None = None) -> float:
+    """Share of the pixels of the window at ``origin_uv`` (u, v) of ``depth`` (H, W) metres without
+    a reading (0 or non-finite), not counting those ``outside`` (H, W) bool marks as outside the
+    camera's image (the corners of a turned canvas: beyond the image, as the edge-replicated
+    pixels of a window that leaves an unturned image are)."""
+    miss = missing_mask(crop_window(depth, origin_uv, geom))
+    if outside is not None:
+        miss &= ~crop_window(outside.view(np.uint8), origin_uv, geom).astype(bool)
+    return float(miss.mean())
+
+
+def window_input(
+    depth: np.ndarray, origin_uv, geom: CropGeometry, max_missing_fraction: float, outside: np.ndarray | None = None
+) -> WindowInput:
     """The encoder input of the window with integer top-left pixel ``origin_uv`` (u, v) of
     ``depth`` (H, W) metres (0 = missing). Raises ApiError 422 when more than
-    ``max_missing_fraction`` of the window is missing or no valid pixel is near it."""
+    ``max_missing_fraction`` of the window is missing (:func:`window_missing`; ``outside``: the
+    pixels beyond the camera's image, not counted) or no valid pixel is near it."""
     ou, ov = int(origin_uv[0]), int(origin_uv[1])
     where = f"the {geom.window}x{geom.window} px crop window at u {ou}..{ou + geom.window - 1}, v {ov}..{ov + geom.window - 1}"
     try:
         image, center, frac = crop_filled(depth, (ou, ov), geom)
+        if outside is not None and frac > 0.0:
+            frac = window_missing(depth, (ou, ov), geom, outside)
     except NoValidDepth:
         raise ApiError(
             422,

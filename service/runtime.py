@@ -58,10 +58,10 @@ class FastModel:
             raise ModelError(f"cannot load model from {model_dir}: {e}") from e
         if self.card.architecture != "fast_vgqcnn":
             raise ModelError(f"{model_dir}: architecture {self.card.architecture!r}; the service serves fast_vgqcnn")
-        if self.card.geometry.jaw_turns or self.card.geometry.align_jaw:  # its windows would be cut unturned
+        if self.card.geometry.align_jaw:  # a crop per grasp, turned exactly: not a shared window
             raise ModelError(
-                f"{model_dir}: the model was trained on crops {self.card.geometry.turning()}; "
-                "this service cuts windows of the image as it is and cannot serve it"
+                f"{model_dir}: the model was trained on crops {self.card.geometry.turning()} (one per grasp); "
+                "the service scores grasps on shared windows and cannot serve it"
             )
         try:  # planned grasps' p_hold (planning.calibration) and order (planning.ranker); None: none there
             self.planner_calibration = planner_calibration.load(model_dir)

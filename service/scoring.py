@@ -12,18 +12,17 @@ from dataclasses import dataclass
 import anyio
 import numpy as np
 
-from vgq.camera import DEFAULT_TILT_RANGE, describe_level, map_pixels, tilt_outside_training
+from vgq.camera import DEFAULT_TILT_RANGE, describe_level, level_depth, map_pixels, tilt_outside_training
 from vgq.crop import (
-    crop_window,
     grid_window_centers,
     in_training_range,
     window_center,
     window_origin,
 )
 from vgq.grasps import GraspError, pose_rows
-from vgq.inpaint import missing_mask
 from vgq.ood import flag_names, ood_flags
 from vgq.pose import roll_quaternions
+from vgq.turns import pose_jaw_angles, turn_index, turn_roll
 
 from . import logs
 from .cache import CachedImage, EncodedWindow, MemoryCache
@@ -31,7 +30,7 @@ from .camera import client_camera, client_level, to_model_camera
 from .config import Settings
 from .errors import ApiError
 from .metrics import Metrics
-from .preprocess import window_input
+from .preprocess import window_input, window_missing
 from .runtime import FastModel
 
 
@@ -225,7 +224,7 @@ class Service:
         origins, crops, missing = list(wanted), [], []
         for o in origins:
             try:
-                win = window_input(entry.depth, o, geom, cap)
+                win = window_input(entry.depth, o, geom, cap, entry.outside())
             except ApiError as e:
                 if o in where:
                     e.details = {**e.details, "grasps": where[o][:20].tolist()}
@@ -243,19 +242,69 @@ class Service:
         self, key: str, entry: CachedImage, grasps: np.ndarray, strict: bool = False, placed: tuple | None = None
     ) -> Scores:
         """Score (k, 7) client grasps against ``entry`` (cached as ``key``). ``placed``: what
-        ``place(entry, grasps)`` returned, when the caller placed them already."""
-        rows, origins, mapped = placed if placed is not None else self.place(entry, grasps)
+        ``place(entry, grasps)`` returned, when the caller placed them already. A model trained
+        on windows turned towards the jaw (``CropGeometry.jaw_turns``) scores each grasp in the
+        image turned by its turn (:meth:`turned_entry`)."""
+        placed = placed if placed is not None else self.place(entry, grasps)
+        if self.model.geometry.jaw_turns:
+            return self._score_turned(key, entry, grasps, strict, placed)
+        # windows and flags before any encoding: a strict request that fails costs no inference
+        looked = self._windows_and_flags(key, entry, placed)
+        if strict:
+            self._refuse_ood(looked[3])
+        raw, encoded = self._infer(key, entry, placed[0], looked)
+        return self._scores(raw, looked[3], len(looked[0]), encoded, max(looked[2].values()))
+
+    def _score_turned(self, key: str, entry: CachedImage, grasps: np.ndarray, strict: bool, placed: tuple) -> Scores:
+        """:meth:`score` for a model of windows turned towards the jaw: each turn's grasps on its
+        turned image (:meth:`turned_entry`)."""
+        jobs = self._turned_jobs(key, entry, grasps, placed)
+        looked = [self._windows_and_flags(k, e, p) for k, e, _, p in jobs]
+        mask = np.empty(len(placed[0]), np.uint8)
+        for (_, _, ix, _), w in zip(jobs, looked):
+            mask[ix] = w[3]
+        if strict:
+            self._refuse_ood(mask)
+        raw, encoded = np.empty(len(mask), np.float32), 0
+        for (k, e, ix, p), w in zip(jobs, looked):
+            raw[ix], n = self._infer(k, e, p[0], w)
+            encoded += n
+        windows = sum(len(w[0]) for w in looked)
+        return self._scores(raw, mask, windows, encoded, max(max(w[2].values()) for w in looked))
+
+    def _scores(self, raw: np.ndarray, mask: np.ndarray, windows: int, encoded: int, missing: float) -> Scores:
+        self.metrics.grasps.observe(len(raw))
+        p = self.calibration.apply(raw) if self.calibration is not None else raw.astype(np.float64)
+        return Scores(p, raw, mask, windows, encoded, float(missing))
+
+    @staticmethod
+    def _refuse_ood(mask: np.ndarray) -> None:
+        """422 naming the grasps whose OOD ``mask`` (k,) is set (a strict request)."""
+        if mask.any():
+            bad = np.flatnonzero(mask)
+            raise ApiError(
+                422,
+                f"{len(bad)} grasps are outside what the model was trained on (strict=true): "
+                + "; ".join(f"{i}: {', '.join(flag_names(mask[i]))}" for i in bad[:5]),
+                {"grasps": bad[:20].tolist(), "ood": {str(i): flag_names(mask[i]) for i in bad[:20]}},
+            )
+
+    def _windows_and_flags(self, key: str, entry: CachedImage, placed: tuple) -> tuple:
+        """For grasps ``placed`` in ``entry``: (windows {origin: grasp indices}, the windows not yet
+        encoded, the missing fraction of each window, OOD masks (k,) uint8). Fetches windows held
+        by another replica."""
+        rows, origins, mapped = placed
         where, inverse = window_groups(origins)
         new = [o for o in where if o not in entry.windows]
         if new:
             self.cache.fetch_windows(key, entry, new)
             new = [o for o in new if o not in entry.windows]
-        # flags before any encoding: a strict request that fails costs no inference
         geom, cap = self.model.geometry, self.settings.ood_window_missing
+        outside = entry.outside()
         frac = {
             o: entry.windows[o].missing_fraction
             if o in entry.windows
-            else float(missing_mask(crop_window(entry.depth, o, geom)).mean())
+            else window_missing(entry.depth, o, geom, outside)
             for o in where
         }
         if len(where) == 1:
@@ -265,14 +314,12 @@ class Service:
         mask = ood_flags(
             mapped, entry.depth, self.z_range, win_missing, tilt_outside_training(entry.up, self.tilt_range)
         )
-        if strict and mask.any():
-            bad = np.flatnonzero(mask)
-            raise ApiError(
-                422,
-                f"{len(bad)} grasps are outside what the model was trained on (strict=true): "
-                + "; ".join(f"{i}: {', '.join(flag_names(mask[i]))}" for i in bad[:5]),
-                {"grasps": bad[:20].tolist(), "ood": {str(i): flag_names(mask[i]) for i in bad[:20]}},
-            )
+        return where, new, frac, mask
+
+    def _infer(self, key: str, entry: CachedImage, rows: np.ndarray, looked: tuple) -> tuple[np.ndarray, int]:
+        """Encode the new windows of ``looked`` (:meth:`_windows_and_flags`), then run the head on
+        the pose ``rows`` (k, 7): (raw scores (k,) float32, windows encoded)."""
+        where, new = looked[0], looked[1]
         encoded = self._encode(dict.fromkeys(new), entry, where) if new else {}
         if encoded:
             self.cache.add_windows(key, entry, encoded)
@@ -284,9 +331,42 @@ class Service:
             for o, ix in where.items():
                 raw[ix] = self.model.score(entry.windows[o].term, rows[ix])
                 self.metrics.head.observe(self.model.score_seconds)
-        self.metrics.grasps.observe(len(raw))
-        p = self.calibration.apply(raw) if self.calibration is not None else raw.astype(np.float64)
-        return Scores(p, raw, mask, len(where), len(encoded), float(max(frac.values())))
+        return raw, len(encoded)
+
+    # ---- windows turned towards the jaw ----------------------------------------------------------
+    def turned_entry(self, key: str, entry: CachedImage, turn: int) -> tuple[str, CachedImage]:
+        """The image of ``entry`` turned by turn ``turn`` of the model's ``jaw_turns``
+        (``vgq.turns``; the camera rolled further by its angle, on a canvas that holds the whole
+        image), cached beside it as ``key`` + ``.t<turn>`` with windows on the training grid;
+        turn 0 is ``entry`` itself."""
+        if turn == 0:
+            return key, entry
+        key_t = f"{key}.t{turn}"
+        turned = self.cache.get(key_t)
+        if turned is None:
+            roll = turn_roll(turn, self.model.geometry.jaw_turns)
+            depth, canvas = level_depth(entry.depth, entry.resampled, roll)
+            turned = CachedImage(
+                depth, entry.camera, canvas, entry.assumed, None, entry.up, entry.roll + roll, entry.up_from
+            )
+            self.cache.put(key_t, turned)
+        return key_t, turned
+
+    def _turned_jobs(self, key: str, entry: CachedImage, grasps: np.ndarray, placed: tuple) -> list[tuple]:
+        """(key, entry, grasp indices, placement) per turn the grasps ``placed`` in ``entry`` (its
+        level frame) fall in, by their in-image jaw angles there (``vgq.turns``)."""
+        mapped = placed[2]
+        angle = pose_jaw_angles(mapped[:, :2], mapped[:, 2], mapped[:, 3:7], entry.resampled)
+        index = turn_index(angle, self.model.geometry.jaw_turns)
+        jobs = []
+        for t in np.unique(index).tolist():
+            ix = np.flatnonzero(index == t)
+            if t == 0:
+                jobs.append((key, entry, ix, tuple(a[ix] for a in placed)))
+                continue
+            key_t, turned = self.turned_entry(key, entry, t)
+            jobs.append((key_t, turned, ix, self.place(turned, np.asarray(grasps, np.float64)[ix])))
+        return jobs
 
     # ---- answers -------------------------------------------------------------------------------
     def camera_info(self, entry: CachedImage) -> dict:

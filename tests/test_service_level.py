@@ -63,6 +63,24 @@ def test_a_rolled_camera_with_its_up_scores_as_the_level_camera(client, heldout)
     assert np.concatenate(moved).mean() > 0.05  # not given, the roll changes what the model sees
 
 
+def test_a_window_reaching_past_a_turned_image_is_not_refused_for_the_canvas_corner(client, heldout):
+    # turned level by 45 deg, the image sits diamond-wise on a larger canvas whose corners no camera
+    # saw: those pixels lie beyond the image, as the edge of an unturned image does, not missing
+    depth, grasps = heldout[0]
+    beta = np.pi / 4
+    up = roll_matrix(beta).T @ LEVEL_UP
+    intr = leveled_intrinsics(DEFAULT_INTRINSICS, beta)
+    d = level_depth(depth, DEFAULT_INTRINSICS, beta)[0]
+    g = np.tile(grasps[:1], (2, 1))
+    g[:, :2] = [[intr.cx, 12.0], [intr.cx, intr.cy]]  # near the top corner of the turned image; its centre
+    s = client.score_details(client.upload(d, intrinsics=(intr.fx, intr.fy, intr.cx, intr.cy), up=up), g)
+    assert s["windows"] == 2 and s["missing_fraction"] < 0.5
+    holed = d.copy()
+    holed[: int(intr.cy), :] = 0.0  # the top half of the image reads nothing: still a 422
+    with pytest.raises(ServiceError, match="no depth reading|no valid depth pixel"):
+        client.score(client.upload(holed, intrinsics=(intr.fx, intr.fy, intr.cx, intr.cy), up=up), g[:1])
+
+
 def test_the_upload_reports_the_roll_and_tilt(client, heldout):
     d, _, intr = rolled(*heldout[0])
     client.upload(d, intrinsics=intr, up=5 * UP)

@@ -308,9 +308,9 @@ def test_a_model_trained_on_turned_windows_is_refused_not_served_unturned(model_
     turned = tmp_path / "turned"
     shutil.copytree(model_dir, turned)
     card = json.loads((turned / "model_card.json").read_text())
-    card["geometry"]["jaw_turns"] = 4
+    card["geometry"].update(align_jaw=True, kappa_px=0.0)
     (turned / "model_card.json").write_text(json.dumps(card))
-    with pytest.raises(ModelError, match="crops turned in 4 steps.*cannot serve it"):
+    with pytest.raises(ModelError, match="crops turned to the jaw axis.*cannot serve it"):
         FastModel(turned)
 
 
