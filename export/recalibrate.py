@@ -8,8 +8,8 @@ service runs (no torch checkpoint needed):
 never saw, with the label the model learned. Its objects are split in two halves (object-wise,
 seeded): Platt scaling is fitted on one and its expected calibration error measured on the
 other. Rows are the grasps the service would score (psi < 90 deg), each in a window drawn as
-the crop stage draws Fast-VGQ-CNN training windows, cropped with the service's own
-preprocessing; so the calibrated ``p_success`` means the success rate of such grasps. The
+the crop stage draws Fast-VGQ-CNN training windows (of the image turned towards the jaw for
+a model of turned windows), cropped with the service's own preprocessing; so the calibrated ``p_success`` means the success rate of such grasps. The
 card's ``calibration`` (the format of ``python -m export``'s) and the reliability diagram are
 rewritten atomically; nothing else in the model folder changes.
 """
@@ -54,21 +54,26 @@ def native_rows(grasps_dir: str | Path, max_psi: float = np.pi / 2):
 
 def score_native(model, data: dict, object_ids, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Raw probabilities and labels of up to ``n`` random rows of ``object_ids``."""
-    from datagen.crops import fast_window_origins
+    from datagen.crops import fast_window_origins, turned_crops
     from service.preprocess import window_input
 
     index = [(o, i) for o in object_ids for i in range(len(data[o][1]))]
     pick = rng.choice(len(index), min(n, len(index)), replace=False)
     p, y = np.empty(len(pick)), np.empty(len(pick), np.int64)
-    geom = model.geometry
+    geom, intr = model.geometry, model.card.intrinsics
     for j, k in enumerate(pick):
         o, i = index[k]
         depth, rows, labels, image_index = data[o]
         row = rows[i : i + 1]
-        origin = fast_window_origins(row[:, :2], geom, rng)[0]
-        win = window_input(depth[image_index[i]], origin, geom, 1.0)
-        poses = pose_rows(row, window_center(origin, geom), geom, 1)
-        p[j] = float(model.score(model.encode(win.image), poses)[0])
+        if geom.jaw_turns:  # the window of the image turned towards the jaw, as the crop stage cuts it
+            img, puv, _, q = turned_crops(depth[image_index[i]], row[:, :2], row[:, 2], row[:, 3:7], geom, intr, rng)
+            poses = np.concatenate([puv, row[:, 2:3], q], axis=1).astype(np.float32)
+            p[j] = float(model.score(model.encode(img), poses)[0])
+        else:
+            origin = fast_window_origins(row[:, :2], geom, rng)[0]
+            win = window_input(depth[image_index[i]], origin, geom, 1.0)
+            poses = pose_rows(row, window_center(origin, geom), geom, 1)
+            p[j] = float(model.score(model.encode(win.image), poses)[0])
         y[j] = labels[i]
     return p, y
 

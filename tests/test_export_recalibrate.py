@@ -36,3 +36,28 @@ def test_one_object_is_a_clear_error(tmp_path, capsys):
     shutil.copytree(DEFAULT, model)
     assert main(["--model-dir", str(model), "--grasps", str(tmp_path / "g")]) == 2
     assert "at least 2 objects" in capsys.readouterr().err
+
+
+def test_a_model_of_turned_windows_is_calibrated_on_turned_windows(tmp_path):
+    from datagen.crops import turned_crops
+    from export.recalibrate import native_rows, score_native
+    from service.runtime import FastModel
+
+    fake_dataset(tmp_path / "g", n_objects=2, n_images=1, n_grasps=40, seed=5)
+    turned = tmp_path / "m"
+    shutil.copytree(DEFAULT, turned)
+    card = json.loads((turned / "model_card.json").read_text())
+    card["geometry"]["jaw_turns"] = 4
+    (turned / "model_card.json").write_text(json.dumps(card))
+    model, data = FastModel(turned, head_precision="fp32"), native_rows(tmp_path / "g")
+    p, _ = score_native(model, data, [0], 5, np.random.default_rng(1))
+    rng = np.random.default_rng(1)
+    pick = rng.choice(len(data[0][1]), 5, replace=False)
+    depth, rows, _, image_index = data[0]
+    for j, i in enumerate(pick):
+        r = rows[i : i + 1]
+        img, puv, _, q = turned_crops(
+            depth[image_index[i]], r[:, :2], r[:, 2], r[:, 3:7], model.geometry, model.card.intrinsics, rng
+        )
+        pose = np.concatenate([puv, r[:, 2:3], q], axis=1).astype(np.float32)
+        assert p[j] == float(model.score(model.encode(img), pose)[0])
