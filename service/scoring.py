@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import gc
 import logging
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import anyio
@@ -56,6 +57,17 @@ class Scores:
 
 #: flag names of every uint8 mask (one look-up per grasp in a JSON answer)
 FLAG_NAMES = tuple(tuple(flag_names(m)) for m in range(256))
+
+
+@contextmanager
+def _client_rows(ix: np.ndarray):
+    """A 422 raised for a subset of the grasps (rows ``ix`` of the request) names the request's rows."""
+    try:
+        yield
+    except ApiError as e:
+        if e.details and "grasps" in e.details:
+            e.details = {**e.details, "grasps": ix[np.asarray(e.details["grasps"], dtype=np.intp)].tolist()}
+        raise
 
 
 def window_groups(origins: np.ndarray) -> tuple[dict, np.ndarray]:
@@ -267,7 +279,8 @@ class Service:
             self._refuse_ood(mask)
         raw, encoded = np.empty(len(mask), np.float32), 0
         for (k, e, ix, p), w in zip(jobs, looked):
-            raw[ix], n = self._infer(k, e, p[0], w)
+            with _client_rows(ix):
+                raw[ix], n = self._infer(k, e, p[0], w)
             encoded += n
         windows = sum(len(w[0]) for w in looked)
         return self._scores(raw, mask, windows, encoded, max(max(w[2].values()) for w in looked))
@@ -365,7 +378,8 @@ class Service:
                 jobs.append((key, entry, ix, tuple(a[ix] for a in placed)))
                 continue
             key_t, turned = self.turned_entry(key, entry, t)
-            jobs.append((key_t, turned, ix, self.place(turned, np.asarray(grasps, np.float64)[ix])))
+            with _client_rows(ix):
+                jobs.append((key_t, turned, ix, self.place(turned, np.asarray(grasps, np.float64)[ix])))
         return jobs
 
     # ---- answers -------------------------------------------------------------------------------

@@ -118,3 +118,18 @@ def test_a_scene_turned_a_quarter_scores_the_same_where_the_turned_windows_coinc
     assert 10 < same.sum() < len(g) - 10
     np.testing.assert_allclose(b[same], a[same], atol=1e-5)
     assert np.abs(b[~same] - a[~same]).max() > 1e-3  # the half-turned windows are another input
+
+
+def test_a_mostly_missing_turned_window_is_a_422_naming_the_requests_rows(client):
+    from service.client import ServiceError
+
+    depth = table_scene()
+    depth[170:300, 170:300] = 0.0  # no reading in the lower right
+    g = np.zeros((4, 7))
+    g[:, 2] = 0.66
+    g[:3, :2], g[:3, 3] = [[100, 100], [110, 100], [100, 110]], 1.0  # jaw along u: turn 0, well-read windows
+    g[3, :2], g[3, 3:] = [240, 240], [np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)]  # jaw along v: turn 2, in the hole
+    assert turn_index(pose_jaw_angles(g[:, :2], g[:, 2], g[:, 3:], DEFAULT_INTRINSICS), 4).tolist() == [0, 0, 0, 2]
+    with pytest.raises(ServiceError, match="has no depth reading") as e:
+        client.score(client.upload(depth), g)
+    assert e.value.status == 422 and e.value.details["grasps"] == [3]
