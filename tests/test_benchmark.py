@@ -65,6 +65,30 @@ def test_benchmark_table_has_a_column_per_k_and_every_row(model_dir):
     assert r["fast_mflop"] == (2 * ENCODER_MACS + 2 * 16 * HEAD_MACS_PER_GRASP) / 1e6
 
 
+def test_a_model_of_turned_windows_is_timed_encoding_a_window_per_turn_its_grasps_need(model_dir, tmp_path):
+    import json
+    import shutil
+
+    from export.benchmark import turns_needed
+    from tools.loadtest.workload import load_workload
+    from vgq.camera import DEFAULT_INTRINSICS
+    from vgq.crop import CropGeometry
+
+    turned = tmp_path / "turned"
+    shutil.copytree(model_dir, turned)
+    card = json.loads((turned / "model_card.json").read_text())
+    card["geometry"]["jaw_turns"] = 4
+    (turned / "model_card.json").write_text(json.dumps(card))
+    grasps = load_workload(16).grasps.astype(np.float64)
+    windows = turns_needed(grasps, CropGeometry(jaw_turns=4), DEFAULT_INTRINSICS)
+    assert turns_needed(grasps, CropGeometry(), DEFAULT_INTRINSICS) == 1 and windows > 1
+    report = run_benchmark(turned, ks=(16,), runs=5, threads=1, vgq_budget_s=0.01, log=lambda s: None)
+    r = report["rows"]["16"]
+    assert r["windows"] == windows
+    assert r["fast_mflop"] == (windows * 2 * ENCODER_MACS + 2 * 16 * HEAD_MACS_PER_GRASP) / 1e6
+    assert "windows encoded per call" in markdown(report)
+
+
 def test_benchmark_compares_every_encoder_precision_in_one_run(model_dir, tmp_path):
     import shutil
 
