@@ -51,6 +51,19 @@ def test_init_of_other_crop_geometry_is_refused(datasets, base_run, tmp_path):
         train(TrainConfig(samples=16, **FAST, init=str(base_run)), datasets / "kappa0", tmp_path / "x", progress=False)
 
 
+def test_init_may_fine_tune_into_windows_turned_towards_the_jaw(datasets, base_run, tmp_path):
+    import shutil
+
+    turned = tmp_path / "turned"
+    shutil.copytree(datasets / "main", turned)
+    m = json.loads((turned / "manifest.json").read_text())
+    m["geometry"]["jaw_turns"] = 4
+    (turned / "manifest.json").write_text(json.dumps(m))
+    train(TrainConfig(samples=16, **FAST, init=str(base_run)), turned, tmp_path / "ft", progress=False)
+    ft = load_checkpoint(tmp_path / "ft" / "checkpoints" / "last.pt")
+    assert ft["geometry"]["jaw_turns"] == 4  # the run's crops, not the init's
+
+
 def test_mixed_batches_hold_rows_of_both_datasets(datasets, tmp_path, monkeypatch):
     from training import train as train_mod
 

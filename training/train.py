@@ -34,6 +34,7 @@ from torch.utils.data import DistributedSampler
 from tqdm import tqdm
 
 from vgq import atomic
+from vgq.crop import CropGeometry
 from vgq.normalization import Normalization
 from vgq.pose import POSE_COLUMNS, mirror_poses
 
@@ -356,11 +357,20 @@ def _init_checkpoint(cfg: TrainConfig, data: CropDataset) -> dict:
     for k, v in net_options(ckpt).items():
         if v != getattr(cfg, k) and k not in POSE_STREAM_OPTIONS:  # a new pose stream starts fresh
             raise CheckpointError(f"init checkpoint {path} has {k} {v!r}; this run trains {getattr(cfg, k)!r}")
-    if ckpt["geometry"] != data.geometry.to_dict():
+    if not _same_input(ckpt["geometry"], data.geometry):
         raise CheckpointError(
             f"init checkpoint {path} was trained on crops {ckpt['geometry']}; {data.path} has {data.geometry.to_dict()}"
         )
     return ckpt
+
+
+def _same_input(init_geometry: dict, geom: CropGeometry) -> bool:
+    """Whether a net trained on crops of ``init_geometry`` can start a run on crops of ``geom``: the
+    same windows, perhaps turned towards the jaw in other steps (a fine-tune into turned windows)."""
+    try:
+        return CropGeometry.from_dict({**init_geometry, "jaw_turns": geom.jaw_turns}) == geom
+    except ValueError:  # e.g. crops turned to the jaw axis cannot also be turned in steps
+        return False
 
 
 def _checkpoint_to_resume(
