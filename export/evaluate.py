@@ -50,6 +50,23 @@ def crop_rows(data: str | Path, split: str, max_n: int, seed: int = 0) -> dict[s
     }
 
 
+def check_geometry(model_dirs, data: str | Path) -> None:
+    """ValueError naming the first model whose card's crop geometry is not the dataset's (its windows,
+    kappa and turning): such a model would be scored on inputs it was never trained for."""
+    from vgq.crop import CropGeometry
+    from vgq.model_card import ModelCard
+
+    m = json.loads((Path(data) / storage.MANIFEST).read_text())
+    geom = CropGeometry.from_dict(m["geometry"])
+    for d in model_dirs:
+        card = ModelCard.load(d)
+        if card.geometry != geom:
+            raise ValueError(
+                f"{d} was trained on crops {card.geometry.to_dict()} ({card.geometry.turning()}); {data} has "
+                f"{geom.to_dict()} ({geom.turning()}); pass --other-crops to score it there all the same"
+            )
+
+
 def raw_scores(model_dir: str | Path, images: np.ndarray, poses: np.ndarray, batch: int = 256) -> np.ndarray:
     """(n,) raw scores of the folder's fp32 graphs for crops (n, 32, 32) and pose rows (n, 7)."""
     from service.runtime import FastModel
@@ -118,6 +135,12 @@ def main(argv=None) -> dict:
         action="store_true",
         help="also score each crop's left-right mirror image, alone and averaged with the original (test-time mirroring)",
     )
+    p.add_argument(
+        "--other-crops",
+        action="store_true",
+        help="score a model on crops cut for another geometry (e.g. an unturned model on windows turned "
+        "towards the jaw: the start of a fine-tune into them); refused otherwise",
+    )
     a = p.parse_args(argv)
     if a.max_n < 1:
         p.error("--max-n must be >= 1")
@@ -125,6 +148,8 @@ def main(argv=None) -> dict:
         if not (Path(d) / "model_card.json").is_file():
             p.error(f"--model-dir {d}: no model_card.json there")
     try:
+        if not a.other_crops:
+            check_geometry(a.model_dir, a.data)
         rows = crop_rows(a.data, a.split, a.max_n, a.seed)
     except (OSError, ValueError) as e:
         print(f"export.evaluate: {e}", file=sys.stderr)

@@ -78,3 +78,21 @@ def test_mirror_scores_each_crop_flipped_with_its_pose_mirrored_alone_and_averag
         {k: direct[k] for k in ("auc", "tp", "tn", "fp", "fn")}
     )
     assert -1.0 <= res[f"{d} (mirrored)"]["score_correlation_with_original"] <= 1.0
+
+
+def test_a_model_is_not_scored_on_crops_cut_for_another_geometry_unless_asked(model_dir, crops, tmp_path, capsys):
+    import json
+    import shutil
+
+    turned = tmp_path / "turned"
+    shutil.copytree(crops, turned)
+    m = json.loads((turned / "manifest.json").read_text())
+    m["geometry"]["jaw_turns"] = 4
+    (turned / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(SystemExit) as e:
+        main(["--model-dir", str(model_dir), "--data", str(turned), "--split", "train", "--max-n", "20"])
+    assert e.value.code == 2 and "(not turned)" in capsys.readouterr().err
+    res = main(
+        ["--model-dir", str(model_dir), "--data", str(turned), "--split", "train", "--max-n", "20", "--other-crops"]
+    )
+    assert res[str(model_dir)]["all"]["n"] == 20
