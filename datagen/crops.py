@@ -30,7 +30,7 @@ import numpy as np
 from vgq import atomic, inpaint
 from vgq import crop as vcrop
 from vgq import turns as vturns
-from vgq.camera import DEFAULT_INTRINSICS, Intrinsics, level_depth, map_pixels
+from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
 from vgq.pose import canonical_quaternion, roll_quaternions
 from vgq.schema import CROP_FIELDS, SPLITS, crop_counts, write_crop_manifest
 
@@ -148,12 +148,10 @@ def turned_crops(
     index = vturns.turn_index(vturns.pose_jaw_angles(uv, z, q, intr), turns)
     for t in np.unique(index):
         sel = index == t
-        roll = vturns.turn_roll(int(t), turns)
-        d_t, intr_t = level_depth(depth, intr, roll)
-        uv_t = map_pixels(uv[sel], intr, intr_t, roll)
+        d_t, intr_t, roll = vturns.turned_view(depth, intr, int(t), turns)
+        uv_t, q_out[sel] = vturns.turned_poses(uv[sel], np.asarray(q, dtype=np.float64)[sel], intr, intr_t, roll)
         images[sel], pose_uv[sel], missing[sel] = crop_grasps(d_t, uv_t, None, "fast_vgqcnn", geom, rng)
-        q_out[sel] = roll_quaternions(np.asarray(q, dtype=np.float64)[sel], roll)
-    return images, pose_uv, missing, canonical_quaternion(q_out)
+    return images, pose_uv, missing, q_out
 
 
 JOB_FILE = ".crops-job.json"  # an unfinished run's inputs (deleted when the manifest is written)

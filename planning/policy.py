@@ -33,7 +33,7 @@ from vgq.inpaint import crop_filled
 from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT
 from vgq.ood import flag_names, ood_flags
 from vgq.pose import canonical_quaternion, quaternion_from_matrix, roll_quaternions
-from vgq.turns import pose_jaw_angles, turn_index, turn_roll
+from vgq.turns import pose_jaw_angles, turn_index, turned_poses, turned_view
 
 from .calibration import p_hold as hold_probability
 from .cloud import valid_mask
@@ -304,8 +304,7 @@ class TurnedScorer:
 
     def _scorer(self, turn: int) -> tuple[WindowScorer, Intrinsics, float]:
         if turn not in self.scorers:
-            roll = turn_roll(turn, self.turns)
-            depth, canvas = level_depth(self.depth, self.intr, roll)
+            depth, canvas, roll = turned_view(self.depth, self.intr, turn, self.turns)
             store = self.store if turn == 0 else None
             self.scorers[turn] = (WindowScorer(self.model, depth, self.windows, store), canvas, roll)
         return self.scorers[turn]
@@ -322,9 +321,7 @@ class TurnedScorer:
             ix = np.flatnonzero(index == t)
             scorer, canvas, roll = self._scorer(t)
             turned = np.array(rows[ix], dtype=np.float64)
-            if roll != 0.0:
-                turned[:, :2] = map_pixels(turned[:, :2], self.intr, canvas, roll)
-                turned[:, 3:7] = canonical_quaternion(roll_quaternions(turned[:, 3:7], roll))
+            turned[:, :2], turned[:, 3:7] = turned_poses(turned[:, :2], turned[:, 3:7], self.intr, canvas, roll)
             p[ix], missing[ix] = scorer.score(turned)
             poses[ix] = scorer.scored_poses[-1]
         self.scored_poses.append(poses)

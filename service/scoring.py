@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import anyio
 import numpy as np
 
-from vgq.camera import DEFAULT_TILT_RANGE, describe_level, level_depth, map_pixels, tilt_outside_training
+from vgq.camera import DEFAULT_TILT_RANGE, describe_level, map_pixels, tilt_outside_training
 from vgq.crop import (
     grid_window_centers,
     in_training_range,
@@ -23,7 +23,7 @@ from vgq.crop import (
 from vgq.grasps import GraspError, pose_rows
 from vgq.ood import flag_names, ood_flags
 from vgq.pose import roll_quaternions
-from vgq.turns import pose_jaw_angles, turn_index, turn_roll
+from vgq.turns import pose_jaw_angles, turn_index, turned_view
 
 from . import logs
 from .cache import CachedImage, EncodedWindow, MemoryCache
@@ -357,8 +357,7 @@ class Service:
         key_t = f"{key}.t{turn}"
         turned = self.cache.get(key_t)
         if turned is None:
-            roll = turn_roll(turn, self.model.geometry.jaw_turns)
-            depth, canvas = level_depth(entry.depth, entry.resampled, roll)
+            depth, canvas, roll = turned_view(entry.depth, entry.resampled, turn, self.model.geometry.jaw_turns)
             turned = CachedImage(
                 depth, entry.camera, canvas, entry.assumed, None, entry.up, entry.roll + roll, entry.up_from
             )

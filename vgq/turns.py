@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .camera import DEFAULT_INTRINSICS, Intrinsics
-from .pose import matrix_from_quaternion
+from .camera import DEFAULT_INTRINSICS, Intrinsics, level_depth, map_pixels
+from .pose import canonical_quaternion, matrix_from_quaternion, roll_quaternions
 
 
 def jaw_angles(p_cam: np.ndarray, x_cam: np.ndarray, intr: Intrinsics = DEFAULT_INTRINSICS) -> np.ndarray:
@@ -60,3 +60,20 @@ def turn_roll(index: int, turns: int) -> float:
     """The roll (radians, [0, pi)) of turn ``index`` of ``turns``: the camera turned by it sees a
     jaw axis at that in-image angle horizontal."""
     return float(index) * np.pi / turns
+
+
+def turned_view(depth: np.ndarray, intr: Intrinsics, turn: int, turns: int) -> tuple[np.ndarray, Intrinsics, float]:
+    """The depth image (H, W) metres of camera ``intr`` turned by turn ``turn`` of ``turns``: (depth',
+    the turned canvas's intrinsics, the roll in radians) (:func:`vgq.camera.level_depth`)."""
+    roll = turn_roll(turn, turns)
+    d, canvas = level_depth(depth, intr, roll)
+    return d, canvas, roll
+
+
+def turned_poses(uv: np.ndarray, q: np.ndarray, intr: Intrinsics, canvas: Intrinsics, roll: float):
+    """Grasp pixels ``uv`` (n, 2) and orientations ``q`` (n, 4) (w, x, y, z) of camera ``intr`` as the
+    camera turned by ``roll`` radians sees them on ``canvas``: ((n, 2), canonical (n, 4))."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if roll == 0.0:
+        return uv, canonical_quaternion(q)
+    return map_pixels(uv, intr, canvas, roll), canonical_quaternion(roll_quaternions(q, roll))
