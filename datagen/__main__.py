@@ -34,6 +34,9 @@ RECIPES = {
         "seed": 0,
         "arch": "fast_vgqcnn",
         "kappa": 36.0,
+        # windows turned towards each grasp's jaw axis in K steps (`datagen crops --jaw-turns K`; 0: centred
+        # windows, the bundled model's)
+        "jaw_turns": 0,
         # cap (phi, beta) bins at their median count: at the 10% quantile the ~28 M native grasps would
         # leave ~1.5 M for training, below the paper's 2 M (measured on the first 245 objects: the
         # uniform step keeps 56% at 0.1, 75% at 0.3, 90% at 0.5)
@@ -339,6 +342,8 @@ def cmd_recipe(args) -> int:
     if cache is not None and cache.is_file() and not args.no_physics_cache:
         sets += f" --physics-cache {shlex.quote(str(cache))}"
     crops = f"--arch {recipe['arch']} --kappa {recipe['kappa']:g} --seed {recipe['seed']}"
+    if recipe.get("jaw_turns"):  # every crop step of the recipe: the model's input is one geometry
+        crops += f" --jaw-turns {recipe['jaw_turns']}"
     steps = [  # (command, output folder; None: always runs, it resumes)
         (
             f"python -m datagen generate --out {out / 'grasps'} --objects {objects}{fams} "

@@ -152,6 +152,21 @@ def test_v2_recipe_adds_a_clean_test_copy_and_the_leave_family_out_split(tmp_pat
     ]
 
 
+def test_a_recipe_with_jaw_turns_cuts_every_crop_copy_turned(tmp_path, capsys, monkeypatch):
+    import shlex
+
+    import datagen.__main__ as cli
+
+    monkeypatch.setitem(cli.RECIPES, "v2", {**cli.RECIPES["v2"], "jaw_turns": 4})
+    rc, out, _ = run_main(capsys, "recipe", "--version", "v2", "--out", tmp_path, "--dry-run")
+    crops = [a for a in map(shlex.split, out.strip().splitlines()) if a[3] == "crops"]
+    assert rc == 0 and len(crops) == 3  # training copy, clean test copy, leave-family-out copy
+    assert all(a[a.index("--jaw-turns") + 1] == "4" for a in crops)
+    monkeypatch.setitem(cli.RECIPES, "v2", {**cli.RECIPES["v2"], "jaw_turns": 0})
+    rc, out, _ = run_main(capsys, "recipe", "--version", "v2", "--out", tmp_path, "--dry-run")
+    assert "--jaw-turns" not in out
+
+
 def test_stats_counts_each_family_and_its_objects_without_a_positive(tmp_path, capsys):
     from datagen_fakes import fake_dataset
 
