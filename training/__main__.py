@@ -63,6 +63,21 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--no-progress", action="store_true")
 
+    k = sub.add_parser(
+        "teacher-scores", help="a trained run's scores of a crop split's rows, for a student (--target teacher)"
+    )
+    k.add_argument("--run", required=True, help="the teacher: run folder (its best.pt) or a checkpoint file")
+    k.add_argument("--data", required=True, help="crop dataset the teacher was trained on (its crops of the rows)")
+    k.add_argument("--out", required=True, help="scores folder (resumes a part-scored one)")
+    k.add_argument("--split", default="train", choices=("train", "val", "test"))
+    k.add_argument("--max-rows", type=int, default=0, help="stop after this many rows of the seeded order (0: all)")
+    k.add_argument("--batch-size", type=int, default=256)
+    k.add_argument(
+        "--precision", default="auto", choices=("fp32", "bf16", "auto"), help="'auto': bf16 on a CPU with native bf16"
+    )
+    k.add_argument("--seed", type=int, default=0)
+    k.add_argument("--no-progress", action="store_true")
+
     b = sub.add_parser("baseline", help="pose-only baseline (no image)")
     b.add_argument("--data", required=True, help="crop dataset folder")
     b.add_argument("--out", default=None, help="folder for baseline_<model>.json and its heat map")
@@ -152,6 +167,22 @@ def main(argv: list[str] | None = None) -> int:
             ):
                 for b, m in rec[key].items():
                     print(json.dumps({what: b, **m}))
+        elif args.command == "teacher-scores":
+            from .teacher import score_teacher
+            from .train import resolve_precision
+
+            m = score_teacher(
+                args.run,
+                args.data,
+                args.out,
+                args.split,
+                max_rows=args.max_rows,
+                batch_size=args.batch_size,
+                bf16=resolve_precision(args.precision) == "bf16",
+                seed=args.seed,
+                progress=progress,
+            )
+            print(json.dumps({"out": args.out, **m["splits"][args.split]}))
         elif args.command == "baseline":
             from .baseline import run_baseline
 

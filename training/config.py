@@ -17,7 +17,7 @@ CLASS_BALANCE = ("none", "loss_weights")
 OPTIMIZERS = ("sgd", "adamw")
 PRECISIONS = ("fp32", "bf16", "auto")
 SELECT_ON = ("data", "mix", "mean")
-TARGETS = ("label", "success_rate")
+TARGETS = ("label", "success_rate", "teacher")
 
 
 @dataclass
@@ -72,7 +72,23 @@ class TrainConfig:
         metadata={
             "choices": TARGETS,
             "help": "what the loss fits: 'label' (the binary label) | 'success_rate' (the fraction of the "
-            "physics label's trials that held, as a soft two-class target; physics-label crops only)",
+            "physics label's trials that held, as a soft two-class target; physics-label crops only) | "
+            "'teacher' (distillation: --teacher-weight of the loss fits a trained teacher's scores of the same "
+            "rows, --teacher; the rest the label)",
+        },
+    )
+    teacher: str = field(
+        default="",
+        metadata={
+            "help": "target 'teacher': a folder of teacher scores of the training rows (`python -m training "
+            "teacher-scores`); rows it has not scored fit the label alone"
+        },
+    )
+    teacher_weight: float = field(
+        default=0.5,
+        metadata={
+            "help": "target 'teacher': the share of the loss that fits the teacher's scores (unweighted cross-"
+            "entropy to its soft two-class target); the rest fits the label (with --class-balance)"
         },
     )
     mirror: float = field(
@@ -150,6 +166,12 @@ class TrainConfig:
             raise ValueError(f"depth_reference must be one of {IMAGE_REFERENCES}, got {self.depth_reference!r}")
         if self.target not in TARGETS:
             raise ValueError(f"target must be one of {TARGETS}, got {self.target!r}")
+        if (self.target == "teacher") != bool(self.teacher):
+            raise ValueError("target 'teacher' and teacher (a folder of teacher scores) go together")
+        if not 0.0 < self.teacher_weight <= 1.0:
+            raise ValueError(f"teacher_weight must be in (0, 1], got {self.teacher_weight}")
+        if self.teacher and self.mix_data:
+            raise ValueError("target 'teacher' cannot mix a second dataset (mix_data): its rows have no teacher scores")
         if self.select_on not in SELECT_ON:
             raise ValueError(f"select_on must be one of {SELECT_ON}, got {self.select_on!r}")
         if self.mix_data and not 0.0 < self.mix_share < 1.0:

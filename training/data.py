@@ -58,8 +58,9 @@ class CropSplit:
         self, index: np.ndarray, arch: str, target: str = "label"
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Rows ``index`` as tensors: images (b, 1, S, S) metres, poses (b, n_pose), and labels (b,)
-        int64 (``target`` "label") or the physics label's success rates (b,) float32 in [0, 1]
-        (``target`` "success_rate": the crops' ``quality``)."""
+        int64 (``target`` "label"), the physics label's success rates (b,) float32 in [0, 1]
+        (``target`` "success_rate": the crops' ``quality``) or (b, 2) float32 of the label and the
+        teacher's score, NaN where it has none (``target`` "teacher": ``arrays["teacher"]``)."""
         if target not in TARGETS:
             raise ValueError(f"target must be one of {TARGETS}, got {target!r}")
         index = np.asarray(index, dtype=np.int64)
@@ -71,6 +72,12 @@ class CropSplit:
         pose = np.asarray(self.arrays["poses"][srt], dtype=np.float32)[inv][:, pose_column_indices(arch)]
         if target == "success_rate":
             lab = np.clip(np.asarray(self.arrays["quality"][srt], dtype=np.float32)[inv], 0.0, 1.0)
+        elif target == "teacher":
+            if "teacher" not in self.arrays:
+                raise DatasetError(f"split {self.name!r} has no teacher scores attached (training.teacher)")
+            lab = np.stack(
+                [np.asarray(self.arrays["labels"][srt], dtype=np.float32), np.asarray(self.arrays["teacher"][srt])], 1
+            )[inv]
         else:
             lab = np.asarray(self.arrays["labels"][srt], dtype=np.int64)[inv]
         return torch.from_numpy(img[:, None]), torch.from_numpy(np.ascontiguousarray(pose)), torch.from_numpy(lab)

@@ -16,9 +16,25 @@ from vgq.pose import FULL_POSE_COLUMNS, approach_angle
 
 from . import metrics as M
 from .checkpoint import RunPaths, load_trained, resolve_run
-from .data import DatasetError, open_crop_dataset
+from .data import CropDataset, DatasetError, open_crop_dataset
 from .plots import plot_grid_heatmaps, plot_training_curves
 from .predict import predict_split
+
+
+def check_trained_geometry(data: CropDataset, meta: dict) -> None:
+    """Raise DatasetError unless ``data``'s crops have the window, size and turning of the crops the
+    net of ``meta`` (``load_trained``) was trained on."""
+    g = meta["geometry"]
+    if (data.geometry.window, data.geometry.out) != (int(g["window"]), int(g["out"])):
+        raise DatasetError(
+            f"crop dataset {data.path} has window/out {data.geometry.window}/{data.geometry.out}, "
+            f"the net was trained on {g['window']}/{g['out']}"
+        )
+    trained = CropGeometry.from_dict(g)
+    if (data.geometry.align_jaw, data.geometry.jaw_turns) != (trained.align_jaw, trained.jaw_turns):
+        raise DatasetError(
+            f"crop dataset {data.path} has crops {data.geometry.turning()}; the net was trained on crops {trained.turning()}"
+        )
 
 
 def evaluate(
@@ -53,17 +69,7 @@ def evaluate(
     net, meta = load_trained(ckpt_path)
     data = open_crop_dataset(data_dir)
     data.check_arch(meta["arch"])
-    g = meta["geometry"]
-    if (data.geometry.window, data.geometry.out) != (int(g["window"]), int(g["out"])):
-        raise DatasetError(
-            f"crop dataset {data.path} has window/out {data.geometry.window}/{data.geometry.out}, "
-            f"the net was trained on {g['window']}/{g['out']}"
-        )
-    trained = CropGeometry.from_dict(g)
-    if (data.geometry.align_jaw, data.geometry.jaw_turns) != (trained.align_jaw, trained.jaw_turns):
-        raise DatasetError(
-            f"crop dataset {data.path} has crops {data.geometry.turning()}; the net was trained on crops {trained.turning()}"
-        )
+    check_trained_geometry(data, meta)
     sp = data.split(split)
     if max_n < 0:
         raise ValueError(f"max_n must be >= 0, got {max_n}")
@@ -124,7 +130,7 @@ def evaluate(
         "arch": meta["arch"],
         "data": str(data.path.resolve()),
         "data_geometry": data.geometry.to_dict(),
-        "trained_geometry": g,
+        "trained_geometry": meta["geometry"],
         "samples_seen": meta["training"]["samples_seen"],
         "overall": overall,
         "by_family": by_family,

@@ -56,6 +56,7 @@ from .config import TrainConfig
 from .data import CropDataset, CropSplit, DatasetError, open_crop_dataset
 from .networks import GraspQualityNet
 from .predict import predict_split
+from .teacher import load_teacher_scores
 
 #: config keys that may change on --resume (they do not change what is learned)
 RESUMABLE_CHANGES = {
@@ -303,6 +304,8 @@ def _open_data(cfg: TrainConfig, data_dir, d: _Dist) -> tuple[CropDataset, CropS
     data.check_arch(cfg.arch)
     _check_target(cfg, data)
     train_split, val_split = data.split("train"), data.split("val")
+    if cfg.target == "teacher":
+        train_split.arrays["teacher"] = load_teacher_scores(cfg.teacher, train_split)
     if cfg.batch_size % d.world:
         raise ValueError(f"batch_size {cfg.batch_size} is not divisible by the {d.world} processes")
     if len(train_split) < cfg.batch_size:
@@ -466,19 +469,43 @@ def checkpoint_dict(
     }
 
 
+def distillation_loss(logits: torch.Tensor, target: torch.Tensor, weights, teacher_weight: float) -> torch.Tensor:
+    """``(1 - teacher_weight)`` x the label's cross-entropy (class ``weights``) + ``teacher_weight`` x
+    the cross-entropy to the teacher's soft two-class target (1 - p, p), unweighted (a teacher trained
+    with the same class weights already leans as they do), over the rows it scored (NaN: none).
+    ``target`` (b, 2): the label and the teacher's score."""
+    label, p = target[:, 0].long(), target[:, 1]
+    hard = F.cross_entropy(logits, label, weight=weights)
+    scored = torch.isfinite(p)
+    p = torch.where(scored, p, torch.zeros_like(p))
+    logp = F.log_softmax(logits, dim=1)
+    soft = -(p * logp[:, 1] + (1.0 - p) * logp[:, 0]) * scored
+    return (1.0 - teacher_weight) * hard + teacher_weight * soft.sum() / len(label)
+
+
 def _sgd_step(
-    model: torch.nn.Module, opt: torch.optim.Optimizer, batch, lr: float, weights, bf16: bool = False
+    model: torch.nn.Module,
+    opt: torch.optim.Optimizer,
+    batch,
+    lr: float,
+    weights,
+    bf16: bool = False,
+    teacher_weight: float = 0.0,
 ) -> float:
     """One optimizer step at learning rate ``lr`` on ``(images, poses, labels)``; the loss.
-    ``bf16``: forward and backward under CPU bf16 autocast (parameters and optimizer stay fp32)."""
+    ``bf16``: forward and backward under CPU bf16 autocast (parameters and optimizer stay fp32).
+    Labels (b, 2) (target "teacher"): :func:`distillation_loss` with ``teacher_weight``."""
     for g in opt.param_groups:
         g["lr"] = lr
     img, pose, lab = batch
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
         logits = model(img, pose)
-    if lab.is_floating_point():  # success rates: a soft two-class target (1 - r, r)
-        lab = torch.stack([1.0 - lab, lab], dim=1)
-    loss = F.cross_entropy(logits.float(), lab, weight=weights)
+    if lab.dim() == 2:
+        loss = distillation_loss(logits.float(), lab, weights, teacher_weight)
+    else:
+        if lab.is_floating_point():  # success rates: a soft two-class target (1 - r, r)
+            lab = torch.stack([1.0 - lab, lab], dim=1)
+        loss = F.cross_entropy(logits.float(), lab, weight=weights)
     opt.zero_grad(set_to_none=True)
     loss.backward()
     opt.step()
@@ -590,7 +617,7 @@ def train(
                 lr = cfg.lr_at(state.samples_seen)
                 batch = ahead.result()
                 ahead = pool.submit(load, order, bi + 1, state.step + 1) if bi + 1 < n_batches else None
-                loss = _sgd_step(model, opt, batch, lr, weights, bf16)
+                loss = _sgd_step(model, opt, batch, lr, weights, bf16, cfg.teacher_weight)
                 state.advance(cfg.batch_size)
                 loss_acc, loss_n = loss_acc + loss, loss_n + 1
                 ema = loss if ema is None else 0.95 * ema + 0.05 * loss
