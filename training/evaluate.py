@@ -37,6 +37,18 @@ def check_trained_geometry(data: CropDataset, meta: dict) -> None:
         )
 
 
+def open_trained_on(run: str | Path, data_dir: str | Path, split: str):
+    """``(net, meta, data, split rows, run folder or None)``: the trained net of ``run`` (a run folder's
+    best checkpoint, or a checkpoint file) and ``split`` of the crop dataset ``data_dir``, checked to be
+    crops of the kind it was trained on."""
+    ckpt_path, run_dir = resolve_run(Path(run))
+    net, meta = load_trained(ckpt_path)
+    data = open_crop_dataset(data_dir)
+    data.check_arch(meta["arch"])
+    check_trained_geometry(data, meta)
+    return net, meta, data, data.split(split), run_dir
+
+
 def evaluate(
     run: str | Path,
     data_dir: str | Path,
@@ -65,12 +77,8 @@ def evaluate(
     name = name or split
     if not name.replace("_", "").replace("-", "").isalnum():
         raise ValueError(f"evaluation name must be letters, digits, '_' or '-', got {name!r}")
-    ckpt_path, run_dir = resolve_run(Path(run))
-    net, meta = load_trained(ckpt_path)
-    data = open_crop_dataset(data_dir)
-    data.check_arch(meta["arch"])
-    check_trained_geometry(data, meta)
-    sp = data.split(split)
+    net, meta, data, sp, run_dir = open_trained_on(run, data_dir, split)
+    ckpt_path = Path(meta["checkpoint"])
     if max_n < 0:
         raise ValueError(f"max_n must be >= 0, got {max_n}")
     rows = M.sample_rows(len(sp), max_n, seed)

@@ -24,9 +24,8 @@ from tqdm import tqdm
 
 from vgq import atomic
 
-from .checkpoint import load_trained, resolve_run
-from .data import CropSplit, DatasetError, open_crop_dataset
-from .evaluate import check_trained_geometry
+from .data import CropSplit, DatasetError
+from .evaluate import open_trained_on
 from .predict import predict_split
 
 FORMAT = "vgq-teacher-scores"
@@ -74,16 +73,11 @@ def score_teacher(
         raise ValueError(
             f"need chunk_rows, batch_size >= 1 and max_rows >= 0, got {chunk_rows}, {batch_size}, {max_rows}"
         )
-    ckpt_path, _ = resolve_run(Path(run))
-    net, meta = load_trained(ckpt_path)
-    data = open_crop_dataset(data_dir)
-    data.check_arch(meta["arch"])
-    check_trained_geometry(data, meta)
-    sp = data.split(split)
+    net, meta, data, sp, _ = open_trained_on(run, data_dir, split)
     n, digest = len(sp), rows_digest(sp)
     out = Path(out_dir)
     teacher = {
-        "checkpoint": str(ckpt_path.resolve()),
+        "checkpoint": meta["checkpoint"],
         "arch": meta["arch"],
         "samples_seen": meta["training"]["samples_seen"],
         "val_balanced_accuracy": meta["training"]["validation"].get("balanced_accuracy"),
