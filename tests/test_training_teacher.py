@@ -27,7 +27,8 @@ def data(tmp_path_factory):
 @pytest.fixture(scope="module")
 def teacher(data, tmp_path_factory):
     run = tmp_path_factory.mktemp("teacher") / "run"
-    train(TrainConfig(arch="vgqcnn", samples=64, val_every_samples=64, **FAST), data, run, progress=False)
+    cfg = TrainConfig(arch="vgqcnn", samples=64, val_every_samples=64, class_balance="loss_weights", **FAST)
+    train(cfg, data, run, progress=False)
     return run
 
 
@@ -58,6 +59,17 @@ def test_student_trains_on_the_teachers_scores(data, teacher, tmp_path):
     assert net.arch == "fast_vgqcnn" and meta["training"]["config"]["target"] == "teacher"
 
 
+def test_a_balanced_teachers_scores_become_posteriors(data, teacher, tmp_path):
+    score_teacher(teacher, data, tmp_path / "scores", progress=False)  # the teacher trained with loss weights
+    split = open_crop_dataset(data).split("train")
+    raw = np.load(tmp_path / "scores" / "train.npy")
+    with pytest.raises(ValueError, match="class weights"):
+        load_teacher_scores(tmp_path / "scores", split)
+    assert np.allclose(load_teacher_scores(tmp_path / "scores", split, [1.0, 1.0]), raw)
+    post = load_teacher_scores(tmp_path / "scores", split, [0.6, 3.0])  # positives rare: P below the score
+    assert np.allclose(3.0 * post / (3.0 * post + 0.6 * (1 - post)), raw, atol=1e-6) and (post <= raw + 1e-7).all()
+
+
 def test_distillation_loss_mixes_label_and_teacher():
     logits = torch.tensor([[0.3, -0.2], [1.0, 2.0], [-0.5, 0.5]], requires_grad=True)
     w = torch.tensor([0.6, 3.0])
@@ -65,9 +77,10 @@ def test_distillation_loss_mixes_label_and_teacher():
     none = torch.stack([label, torch.full((3,), math.nan)], 1)
     hard = torch.nn.functional.cross_entropy(logits, label.long(), weight=w)
     assert torch.allclose(distillation_loss(logits, none, w, 0.25), 0.75 * hard)  # unscored rows: the label
-    p = torch.softmax(logits, 1)[:, 1].detach()
-    (g,) = torch.autograd.grad(distillation_loss(logits, torch.stack([label, p], 1), w, 1.0), logits)
-    assert torch.allclose(g, torch.zeros_like(g), atol=1e-6)  # the teacher's own scores are its minimum
+    q = torch.softmax(logits, 1)[:, 1].detach()
+    for weights, post in ((None, q), (w, 0.6 * q / (0.6 * q + 3.0 * (1 - q)))):
+        (g,) = torch.autograd.grad(distillation_loss(logits, torch.stack([label, post], 1), weights, 1.0), logits)
+        assert torch.allclose(g, torch.zeros_like(g), atol=1e-6)  # minimum: the posterior's balanced score
 
 
 def test_teacher_target_needs_its_folder():

@@ -81,6 +81,7 @@ def score_teacher(
         "arch": meta["arch"],
         "samples_seen": meta["training"]["samples_seen"],
         "val_balanced_accuracy": meta["training"]["validation"].get("balanced_accuracy"),
+        "class_balance": meta["training"]["config"].get("class_balance", "none"),
     }
     m = _read_manifest(out) or {
         "format": FORMAT,
@@ -125,9 +126,13 @@ def score_teacher(
     return m
 
 
-def load_teacher_scores(teacher_dir: str | Path, split: CropSplit) -> np.ndarray:
-    """The teacher's scores (n,) float32 (NaN: not scored) for the rows of ``split``, checked to be
-    the same rows (count and digest); raises DatasetError naming the mismatch."""
+def load_teacher_scores(teacher_dir: str | Path, split: CropSplit, weights=None) -> np.ndarray:
+    """The teacher's posterior P(success) (n,) float32 (NaN: not scored) for the rows of ``split``,
+    checked to be the same rows (count and digest); raises DatasetError naming the mismatch.
+
+    A teacher trained with class-balanced loss weights scores p = w1 P / (w1 P + w0 (1 - P)), not P;
+    its scores are turned back into P with ``weights`` (w0, w1), the class weights of these very rows
+    (:func:`training.train._class_weights`), needed then."""
     d = Path(teacher_dir)
     m = _read_manifest(d)
     if m is None:
@@ -143,4 +148,10 @@ def load_teacher_scores(teacher_dir: str | Path, split: CropSplit) -> np.ndarray
     scores = np.load(d / f"{split.name}.npy", mmap_mode="r")
     if scores.shape != (len(split),) or scores.dtype != np.float32:
         raise DatasetError(f"{d}/{split.name}.npy: {scores.shape} {scores.dtype}, expected ({len(split)},) float32")
-    return scores
+    if m["teacher"].get("class_balance", "none") == "none":
+        return scores
+    if weights is None:
+        raise ValueError("a class-balanced teacher's scores need the class weights to become posteriors")
+    w0, w1 = float(weights[0]), float(weights[1])
+    p = np.asarray(scores, dtype=np.float64)
+    return (w0 * p / (w0 * p + w1 * (1.0 - p))).astype(np.float32)

@@ -305,7 +305,7 @@ def _open_data(cfg: TrainConfig, data_dir, d: _Dist) -> tuple[CropDataset, CropS
     _check_target(cfg, data)
     train_split, val_split = data.split("train"), data.split("val")
     if cfg.target == "teacher":
-        train_split.arrays["teacher"] = load_teacher_scores(cfg.teacher, train_split)
+        train_split.arrays["teacher"] = load_teacher_scores(cfg.teacher, train_split, _class_weights(train_split))
     if cfg.batch_size % d.world:
         raise ValueError(f"batch_size {cfg.batch_size} is not divisible by the {d.world} processes")
     if len(train_split) < cfg.batch_size:
@@ -470,16 +470,20 @@ def checkpoint_dict(
 
 
 def distillation_loss(logits: torch.Tensor, target: torch.Tensor, weights, teacher_weight: float) -> torch.Tensor:
-    """``(1 - teacher_weight)`` x the label's cross-entropy (class ``weights``) + ``teacher_weight`` x
-    the cross-entropy to the teacher's soft two-class target (1 - p, p), unweighted (a teacher trained
-    with the same class weights already leans as they do), over the rows it scored (NaN: none).
-    ``target`` (b, 2): the label and the teacher's score."""
+    """``(1 - teacher_weight)`` x the label's cross-entropy + ``teacher_weight`` x the cross-entropy to
+    the teacher's soft two-class target (1 - P, P), over the rows it scored (P NaN: none); both terms
+    with the class ``weights`` (None: unweighted). ``target`` (b, 2): the label and the teacher's
+    posterior P (:func:`training.teacher.load_teacher_scores`). With weights, the soft term's minimum
+    is the class-balanced score of the posterior the student can tell, as the label term's is: a
+    student fitting balanced scores directly would under-score where it cannot tell what the teacher
+    can (the balanced score is concave in the posterior)."""
     label, p = target[:, 0].long(), target[:, 1]
     hard = F.cross_entropy(logits, label, weight=weights)
     scored = torch.isfinite(p)
     p = torch.where(scored, p, torch.zeros_like(p))
-    logp = F.log_softmax(logits, dim=1)
-    soft = -(p * logp[:, 1] + (1.0 - p) * logp[:, 0]) * scored
+    logq = F.log_softmax(logits, dim=1)
+    w0, w1 = (1.0, 1.0) if weights is None else (weights[0], weights[1])
+    soft = -(w1 * p * logq[:, 1] + w0 * (1.0 - p) * logq[:, 0]) * scored
     return (1.0 - teacher_weight) * hard + teacher_weight * soft.sum() / len(label)
 
 
