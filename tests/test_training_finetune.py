@@ -70,9 +70,9 @@ def test_mixed_batches_hold_rows_of_both_datasets(datasets, tmp_path, monkeypatc
     seen = []
     real = train_mod._sgd_step
 
-    def spy(model, opt, batch, lr, weights, bf16=False):
+    def spy(model, opt, batch, lr, weights, bf16=False, teacher_weight=0.0):
         seen.append(batch[1][:, 2].clone())  # pose column z: the two synthetic datasets differ in it
-        return real(model, opt, batch, lr, weights, bf16)
+        return real(model, opt, batch, lr, weights, bf16, teacher_weight)
 
     monkeypatch.setattr(train_mod, "_sgd_step", spy)
     cfg = TrainConfig(samples=16 * 3, **FAST, mix_data=str(datasets / "mix"), mix_share=0.25)

@@ -85,10 +85,10 @@ class TrainConfig:
         },
     )
     teacher_weight: float = field(
-        default=0.5,
+        default=0.7,
         metadata={
-            "help": "target 'teacher': the share of the loss that fits the teacher's scores (unweighted cross-"
-            "entropy to its soft two-class target); the rest fits the label (with --class-balance)"
+            "help": "target 'teacher': the share of the loss that fits the teacher's posterior as a soft "
+            "two-class target; the rest fits the label (both with --class-balance's weights)"
         },
     )
     mirror: float = field(
