@@ -112,17 +112,13 @@ def score_teacher(
     bar = tqdm(total=len(order), unit="row", unit_scale=True, desc=f"teacher {split}", disable=not progress)
     for c in range(0, len(order), chunk_rows):
         rows = np.sort(order[c : c + chunk_rows])
-        if not np.isnan(scores[rows]).any():
-            bar.update(len(rows))
-            continue
-        scores[rows], _ = predict_split(net, sp, rows, batch_size=batch_size, bf16=bf16)
-        atomic.save_npy(path, scores)
-        m["splits"][split] = {"n": n, "digest": digest, "seed": seed, "scored": int(np.isfinite(scores).sum())}
-        atomic.write_json(out / "manifest.json", m)
+        if np.isnan(scores[rows]).any():
+            scores[rows], _ = predict_split(net, sp, rows, batch_size=batch_size, bf16=bf16)
+            atomic.save_npy(path, scores)  # the scores first: the manifest never counts rows not on disk
+            m["splits"][split] = {"n": n, "digest": digest, "seed": seed, "scored": int(np.isfinite(scores).sum())}
+            atomic.write_json(out / "manifest.json", m)
         bar.update(len(rows))
     bar.close()
-    m["splits"][split] = {"n": n, "digest": digest, "seed": seed, "scored": int(np.isfinite(scores).sum())}
-    atomic.write_json(out / "manifest.json", m)
     return m
 
 

@@ -481,9 +481,7 @@ def distillation_loss(logits: torch.Tensor, target: torch.Tensor, weights, teach
     hard = F.cross_entropy(logits, label, weight=weights)
     scored = torch.isfinite(p)
     p = torch.where(scored, p, torch.zeros_like(p))
-    logq = F.log_softmax(logits, dim=1)
-    w0, w1 = (1.0, 1.0) if weights is None else (weights[0], weights[1])
-    soft = -(w1 * p * logq[:, 1] + w0 * (1.0 - p) * logq[:, 0]) * scored
+    soft = F.cross_entropy(logits, torch.stack([1.0 - p, p], dim=1), weight=weights, reduction="none") * scored
     return (1.0 - teacher_weight) * hard + teacher_weight * soft.sum() / len(label)
 
 
