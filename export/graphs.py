@@ -73,15 +73,22 @@ class _FoldedHead(nn.Module):
             self.pc1.bias.copy_(b)
             self.fc4_pose = net.fc4_pose
             self.fc5 = net.fc5
+            self.roi = net if net.roi_head != "none" else None  # its jaw-grid layers (roi_term)
             self.out = nn.Linear(1024, 1)
             self.out.weight.copy_((net.fc6.weight[1] - net.fc6.weight[0])[None, :])
             self.out.bias.copy_((net.fc6.bias[1] - net.fc6.bias[0]).reshape(1))
 
     def forward(self, image_term: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        if self.roi is None:
+            c = image_term + self.fc4_pose.bias
+        else:  # the encoding carries, after the image term, the feature map the jaw grid reads
+            side = self.roi.image_size // 2
+            fmap = image_term[:, 1024:].reshape(-1, self.roi.conv2_channels, side, side)
+            c = image_term[:, :1024] + self.fc4_pose.bias + self.roi.roi_term(fmap, poses)
         if self.rotation:
             poses = torch.cat([poses[:, : self.n_other], rotation_entries(poses[:, self.n_other :])], dim=1)
         # Gemm(p, W, C = image term + bias): the merge Add and Relu fuse into the Gemm
-        x = F.relu(torch.addmm(image_term + self.fc4_pose.bias, F.relu(self.pc1(poses)), self.fc4_pose.weight.t()))
+        x = F.relu(torch.addmm(c, F.relu(self.pc1(poses)), self.fc4_pose.weight.t()))
         if self.fc5 is not None:
             x = F.relu(self.fc5(x))
         return torch.sigmoid(self.out(x)).reshape(-1)

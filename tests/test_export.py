@@ -447,3 +447,31 @@ def test_relative_depth_and_rotation_features_export_and_read_back(tmp_path):
     prune_encoder_graph(q8, pruned, dead_channels(q8, imgs[:200]))
     t32, t8, tp = (image_terms(g, imgs[200:264]) for g in (enc, q8, pruned))
     assert np.abs(t8 - t32).max() < 0.05 * np.abs(t32).max() and np.abs(tp - t8).max() < 1e-3 * np.abs(t8).max()
+
+
+def test_jaw_grid_head_exports_and_serves(tmp_path):
+    """A net whose head reads the encoder's feature map on a grid turned to the jaw: the encoder
+    graph's output carries the map, the head graph (GridSample) reproduces torch against one
+    shared window, and the service's runtime scores with it."""
+    from service.runtime import FastModel
+    from vgq.normalization import Normalization
+
+    torch.manual_seed(0)
+    net = GraspQualityNet("fast_vgqcnn", roi_head="jaw").eval()
+    torch.nn.init.normal_(net.roi_fc2.weight, std=0.05)  # a head that uses the grid
+    imgs, poses, _ = synthetic_crops(16, np.random.default_rng(7))
+    net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns))
+    card = export_model(
+        net, tmp_path / "m", imgs, poses, GEOM, DEFAULT_INTRINSICS, training={"config": {"roi_head": "jaw"}}
+    )
+    assert card.export["verification"]["max_abs_diff_probability"] < 1e-5
+    served = FastModel(tmp_path / "m", head_precision="fp32")
+    term = served.encode(imgs[:1])
+    assert term.shape == (1, net.encoding_width)
+    with torch.no_grad():
+        ref = net.head(net.encode(torch.from_numpy(imgs[:1, None])), torch.from_numpy(poses)).numpy()
+    np.testing.assert_allclose(served.score(term, poses), ref, atol=1e-5)
+    with torch.no_grad():  # the grid matters: without its layer the scores move
+        net.roi_fc2.weight.zero_()
+        flat = net.head(net.encode(torch.from_numpy(imgs[:1, None])), torch.from_numpy(poses)).numpy()
+    assert np.abs(flat - ref).max() > 1e-3

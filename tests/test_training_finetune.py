@@ -46,6 +46,17 @@ def test_init_starts_from_the_checkpoints_weights_and_normalisation(datasets, ba
     assert ft["state"]["samples_seen"] == 16 and ft["config"]["init"] == str(base_run)
 
 
+def test_init_may_add_a_jaw_grid_head_that_starts_at_zero(datasets, base_run, tmp_path):
+    init = load_checkpoint(base_run / "checkpoints" / "best.pt")
+    cfg = TrainConfig(samples=16, **{**FAST, "base_lr": 1e-12}, init=str(base_run), roi_head="jaw")
+    train(cfg, datasets / "main", tmp_path / "ft", progress=False)
+    ft = load_checkpoint(tmp_path / "ft" / "checkpoints" / "last.pt")
+    for k, v in init["model"].items():  # the init's weights, the new head silent: the same network
+        assert torch.allclose(ft["model"][k].float(), v.float(), atol=1e-6), k
+    assert ft["model"]["roi_fc2.weight"].abs().max() < 1e-9 and ft["config"]["roi_head"] == "jaw"
+    assert float(ft["model"]["roi_focal_px"]) > 0
+
+
 def test_init_of_other_crop_geometry_is_refused(datasets, base_run, tmp_path):
     with pytest.raises(CheckpointError, match="crops"):
         train(TrainConfig(samples=16, **FAST, init=str(base_run)), datasets / "kappa0", tmp_path / "x", progress=False)

@@ -113,3 +113,58 @@ def test_rotation_pose_features_are_the_quaternions_matrix():
     assert net.pc1.in_features == 3 + 9 and net.fc4_pose.in_features == 64
     with pytest.raises(ValueError, match="quaternion"):
         GraspQualityNet("gqcnn", pose_features="rotation")
+
+
+def _jaw_net():
+    torch.manual_seed(0)
+    net = GraspQualityNet("fast_vgqcnn", roi_head="jaw").eval()
+    torch.nn.init.normal_(net.roi_fc2.weight, std=0.1)  # a trained head, not its zero start
+    return net
+
+
+def test_jaw_grid_head_one_window_for_k_grasps_equals_k_copies():
+    net = _jaw_net()
+    depth = 0.6 + 0.1 * torch.rand(1, 1, 32, 32)
+    q = torch.nn.functional.normalize(torch.randn(6, 4), dim=1)
+    poses = torch.cat([torch.rand(6, 2) * 24 - 12, 0.5 + 0.3 * torch.rand(6, 1), q], 1)
+    with torch.no_grad():
+        encoding = net.encode(depth)
+        assert encoding.shape == (1, net.encoding_width) == (1, 1024 + 64 * 16 * 16)
+        shared = net.head_logits(encoding, poses)
+        copies = net(depth.expand(6, -1, -1, -1).contiguous(), poses)
+    torch.testing.assert_close(shared, copies, rtol=1e-5, atol=1e-5)
+
+
+def test_jaw_grid_lies_along_the_jaw_in_metres_at_the_grasps_depth():
+    net = _jaw_net()
+    turn = np.pi / 2  # 90 deg about the optical axis: the jaw axis (the rotation's x column) along +v
+    poses = torch.tensor([[2.0, -3.0, 0.7, np.cos(turn / 2), 0, 0, np.sin(turn / 2)]], dtype=torch.float32)
+    pts = net.jaw_grid_points(poses)[0] * 16  # crop px from the crop's centre
+    middle = pts[:, 1]  # the row across the jaw's middle
+    torch.testing.assert_close(middle[:, 0], torch.full((8,), 2.0))
+    per_metre = 525.0 / 3 / 0.7
+    torch.testing.assert_close(middle[:, 1], -3.0 + per_metre * torch.linspace(-0.04, 0.04, 8))
+
+
+def test_jaw_grid_head_reads_the_image_at_the_grasp():
+    net = _jaw_net()
+    flat = torch.full((1, 1, 32, 32), 0.7)
+    bumped = flat.clone()
+    bumped[..., 2:8, 2:8] -= 0.05  # a bump in the window's top-left corner
+    on_bump = torch.tensor([[-10.0, -10.0, 0.7, 1, 0, 0, 0]])  # a grasp there (crop px from the centre)
+    far = torch.tensor([[10.0, 10.0, 0.7, 1, 0, 0, 0]])  # one in the opposite corner
+    with torch.no_grad():
+        f0, f1 = (net.encode(d)[:, 1024:].reshape(1, 64, 16, 16) for d in (flat, bumped))
+        seen = (net.roi_term(f1, on_bump) - net.roi_term(f0, on_bump)).abs().max()
+        unseen = (net.roi_term(f1, far) - net.roi_term(f0, far)).abs().max()
+    assert unseen < 1e-6 < seen
+
+
+def test_jaw_grid_head_needs_its_feature_map_and_fast_vgqcnn():
+    net = _jaw_net()
+    with pytest.raises(ValueError, match="width"):
+        net.head_logits(torch.zeros(1, 1024), torch.zeros(1, 7) + 0.5)  # an image term without its map
+    with pytest.raises(ValueError, match="fast_vgqcnn"):
+        GraspQualityNet("vgqcnn", roi_head="jaw")
+    with pytest.raises(ValueError, match="roi_head"):
+        GraspQualityNet("fast_vgqcnn", roi_head="ring")

@@ -105,33 +105,39 @@ def net_options(ckpt: dict) -> dict:
         "depth_reference": str(cfg.get("depth_reference", "none")),
         "pose_features": str(cfg.get("pose_features", "raw")),
         "pose_units": int(cfg.get("pose_units", 16)),
+        "roi_head": str(cfg.get("roi_head", "none")),
     }
 
 
-POSE_STREAM_OPTIONS = ("pose_features", "pose_units")  # a fine-tune may change these: its pose stream starts fresh
+# a fine-tune may change these: its pose stream, or the jaw-grid head it adds, starts fresh
+POSE_STREAM_OPTIONS = ("pose_features", "pose_units", "roi_head")
 POSE_STREAM_WEIGHTS = ("pc1.weight", "pc1.bias", "fc4_pose.weight")
+ROI_WEIGHTS = ("roi_fc1.weight", "roi_fc1.bias", "roi_fc2.weight", "roi_focal_px")
 
 
 def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
     """Copy a fine-tune's initial weights into ``net``; return the names that start fresh.
 
     Every tensor whose name and shape match is copied. Only the pose stream may differ (a run
-    that changes ``pose_features`` or ``pose_units``): pc1 keeps its fresh initialisation and
+    that changes ``pose_features`` or ``pose_units``), or a jaw-grid head be added (``roi_head``;
+    its last layer starts at zero, so the fine-tune starts from the initial network): pc1 keeps its fresh initialisation and
     fc4's pose weights start at zero, so the first step's network is the initial one's image
     path with fc4's bias and no pose term, and the pose stream learns from there. CheckpointError
     for any other missing or mismatched tensor."""
     own = net.state_dict()
     fresh = sorted(k for k in own if k not in state or tuple(state[k].shape) != tuple(own[k].shape))
-    other = [k for k in fresh if k not in POSE_STREAM_WEIGHTS]
+    other = [k for k in fresh if k not in POSE_STREAM_WEIGHTS + ROI_WEIGHTS]
     if other:
         have = tuple(state[other[0]].shape) if other[0] in state else "none"
         raise CheckpointError(
             f"init weights do not fit the network: {other[0]} has {have}, needs {tuple(own[other[0]].shape)}"
         )
     net.load_state_dict({k: v for k, v in state.items() if k in own and k not in fresh}, strict=False)
-    if "fc4_pose.weight" in fresh:
-        with torch.no_grad():
+    with torch.no_grad():
+        if "fc4_pose.weight" in fresh:
             net.fc4_pose.weight.zero_()
+        if "roi_fc2.weight" in fresh:  # a new jaw-grid head adds nothing until it learns
+            net.roi_fc2.weight.zero_()
     return fresh
 
 

@@ -18,6 +18,7 @@ OPTIMIZERS = ("sgd", "adamw")
 PRECISIONS = ("fp32", "bf16", "auto")
 SELECT_ON = ("data", "mix", "mean")
 TARGETS = ("label", "success_rate", "teacher")
+ROI_HEADS = ("none", "jaw")  # training.networks.GraspQualityNet's roi_head
 
 
 @dataclass
@@ -44,6 +45,14 @@ class TrainConfig:
         },
     )
     pose_units: int = field(default=16, metadata={"help": "width of the pose stream pc1 (the paper's 16)"})
+    roi_head: str = field(
+        default="none",
+        metadata={
+            "choices": ROI_HEADS,
+            "help": "'none': the head reads the window's image term only (the paper's) | 'jaw': it also reads "
+            "the encoder's 16 x 16 feature map on a grid turned to the grasp's jaw axis (fast_vgqcnn)",
+        },
+    )
     samples: int = 10_000_000  # training samples to see in total (paper ablations: 10 M)
     batch_size: int = 64  # global batch (split evenly over DDP processes)
     optimizer: str = field(
@@ -162,6 +171,10 @@ class TrainConfig:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
         if self.class_balance not in CLASS_BALANCE:
             raise ValueError(f"class_balance must be one of {CLASS_BALANCE}, got {self.class_balance!r}")
+        if self.roi_head not in ROI_HEADS:
+            raise ValueError(f"roi_head must be one of {ROI_HEADS}, got {self.roi_head!r}")
+        if self.roi_head != "none" and self.arch != "fast_vgqcnn":
+            raise ValueError(f"roi_head {self.roi_head!r} needs arch fast_vgqcnn, got {self.arch!r}")
         if self.depth_reference not in IMAGE_REFERENCES:
             raise ValueError(f"depth_reference must be one of {IMAGE_REFERENCES}, got {self.depth_reference!r}")
         if self.target not in TARGETS:

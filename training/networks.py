@@ -26,10 +26,15 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from training.config import ROI_HEADS
 from vgq.normalization import IMAGE_REFERENCES, REFERENCE_PIXELS, Normalization
 from vgq.pose import POSE_COLUMNS, POSE_FEATURES
 
 ARCHITECTURES = tuple(POSE_COLUMNS)
+# the jaw grid (metres in the gripper's frame, at the grasp's depth): along the jaw axis, across it
+JAW_GRID_ALONG = (-0.04, 0.04, 8)
+JAW_GRID_ACROSS = (-0.012, 0.012, 3)
+ROI_UNITS = 128
 
 
 def rotation_entries(q: torch.Tensor) -> torch.Tensor:
@@ -77,8 +82,16 @@ class GraspQualityNet(nn.Module):
         depth_reference: str = "none",
         pose_features: str = "raw",
         pose_units: int = 16,
+        roi_head: str = "none",
+        roi_focal_px: float = 175.0,
     ):
         super().__init__()
+        if roi_head not in ROI_HEADS:
+            raise ValueError(f"roi_head must be one of {ROI_HEADS}, got {roi_head!r}")
+        if roi_head != "none" and arch != "fast_vgqcnn":
+            raise ValueError(f"roi_head {roi_head!r} reads (u, v) offsets: it needs fast_vgqcnn, got {arch!r}")
+        if not roi_focal_px > 0:
+            raise ValueError(f"roi_focal_px must be > 0, got {roi_focal_px}")
         if pose_features not in POSE_FEATURES:
             raise ValueError(f"pose_features must be one of {POSE_FEATURES}, got {pose_features!r}")
         if pose_units < 1:
@@ -115,6 +128,14 @@ class GraspQualityNet(nn.Module):
         self.fc4_pose = nn.Linear(self.pose_units, 1024, bias=True)  # carries fc4's bias
         self.fc5 = nn.Linear(1024, 1024) if arch != "gqcnn" else None
         self.fc6 = nn.Linear(1024, 2)
+        self.roi_head = roi_head
+        if roi_head == "jaw":
+            a, b = torch.linspace(*JAW_GRID_ALONG), torch.linspace(*JAW_GRID_ACROSS)
+            grid = torch.stack(torch.meshgrid(a, b, indexing="ij"), dim=-1)  # (Ga, Gb, 2) metres
+            self.register_buffer("jaw_grid", grid, persistent=False)
+            self.register_buffer("roi_focal_px", torch.tensor(float(roi_focal_px)))
+            self.roi_fc1 = nn.Linear(c2 * grid.shape[0] * grid.shape[1], ROI_UNITS)
+            self.roi_fc2 = nn.Linear(ROI_UNITS, 1024, bias=False)
         self.register_buffer("image_mean", torch.zeros(()))
         self.register_buffer("image_std", torch.ones(()))
         self.register_buffer("pose_mean", torch.zeros(n_pose))
@@ -148,8 +169,16 @@ class GraspQualityNet(nn.Module):
             reference_std=float(self.reference_std),
         )
 
+    @property
+    def encoding_width(self) -> int:
+        """Width of ``encode``'s output: fc4's image term (1024), then with ``roi_head`` the conv2
+        feature map (C x S/2 x S/2, channel-major) that the head's jaw grid reads."""
+        return 1024 + (self.conv2_channels * (self.image_size // 2) ** 2 if self.roi_head != "none" else 0)
+
     def encode(self, depth: torch.Tensor) -> torch.Tensor:
-        """Raw depth crops (n, 1, S, S) in metres -> image term of fc4 (n, 1024)."""
+        """Raw depth crops (n, 1, S, S) in metres -> (n, ``encoding_width``): the image term of fc4,
+        followed with ``roi_head`` by the flattened conv2 feature map. One array per window, so
+        the encoder / head split (export, the service's cache) is the same for both heads."""
         ref = None
         if self.fc4_ref is not None:
             lo = (depth.shape[-1] - REFERENCE_PIXELS) // 2
@@ -160,27 +189,64 @@ class GraspQualityNet(nn.Module):
         x = self.lrn(F.relu(self.conv1_2(x)))
         x = F.max_pool2d(x, 2)
         x = F.relu(self.conv2_1(x))
-        x = self.lrn2(F.relu(self.conv2_2(x)))
-        x = F.max_pool2d(x, 2)
+        fmap = self.lrn2(F.relu(self.conv2_2(x)))
+        x = F.max_pool2d(fmap, 2)
         x = F.relu(self.fc3(torch.flatten(x, 1)))
-        if ref is None:
-            return self.fc4_image(x)
-        return self.fc4_image(x) + self.fc4_ref((ref.flatten(1) - self.reference_mean) / self.reference_std)
+        term = self.fc4_image(x)
+        if ref is not None:
+            term = term + self.fc4_ref((ref.flatten(1) - self.reference_mean) / self.reference_std)
+        if self.roi_head == "none":
+            return term
+        return torch.cat([term, fmap.reshape(fmap.shape[0], -1)], dim=1)
 
-    def head_logits(self, image_term: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
-        """Image term (1 or k, 1024) and raw poses (k, n_pose) -> logits (k, 2)."""
+    def jaw_grid_points(self, poses: torch.Tensor) -> torch.Tensor:
+        """(k, Ga, Gb, 2) grid_sample coordinates (-1..1 across the crop, u then v) of each grasp's
+        jaw grid: raw poses (u, v offsets in crop px, z metres, q w x y z). The in-image jaw
+        direction is the projection of the rotation's x column, ignoring the perspective term of
+        the grasp's distance from the optical axis; its sign is chosen with u >= 0."""
+        u, v, z = poses[:, 0], poses[:, 1], poses[:, 2]
+        w, qx, qy, qz = poses[:, 3], poses[:, 4], poses[:, 5], poses[:, 6]
+        du, dv = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy + w * qz)
+        sign = torch.where(du < 0, -1.0, 1.0)
+        n = torch.sqrt(du * du + dv * dv).clamp_min(1e-6)
+        du, dv = du * sign / n, dv * sign / n
+        s = self.roi_focal_px / z.clamp_min(0.05)  # crop px per metre
+        a, b = self.jaw_grid[..., 0], self.jaw_grid[..., 1]  # (Ga, Gb)
+        pu = u[:, None, None] + s[:, None, None] * (a * du[:, None, None] - b * dv[:, None, None])
+        pv = v[:, None, None] + s[:, None, None] * (a * dv[:, None, None] + b * du[:, None, None])
+        half = self.image_size / 2
+        return torch.stack([pu / half, pv / half], dim=-1)
+
+    def roi_term(self, fmap: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        """fc4's jaw-grid term (k, 1024): ``fmap`` (1 or k, C, S/2, S/2), raw poses (k, n_pose)."""
+        grid = self.jaw_grid_points(poses)  # (k, Ga, Gb, 2)
+        k, ga, gb, _ = grid.shape
+        n, c = fmap.shape[0], fmap.shape[1]  # n = 1 (one window, k grasps) or k (a window each)
+        f = F.grid_sample(fmap, grid.reshape(n, -1, gb, 2), align_corners=False, padding_mode="border")
+        f = f.reshape(n, c, -1, ga, gb).transpose(1, 2)  # (n, k / n, C, Ga, Gb)
+        return self.roi_fc2(F.relu(self.roi_fc1(f.reshape(k, -1))))
+
+    def head_logits(self, encoding: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        """``encode``'s output (1 or k, ``encoding_width``) and raw poses (k, n_pose) -> logits (k, 2)."""
+        if encoding.shape[1] != self.encoding_width:
+            raise ValueError(f"the head reads encodings of width {self.encoding_width}, got {encoding.shape[1]}")
         p = (poses - self.pose_mean) / self.pose_std
         if self.pose_features == "rotation":
             p = torch.cat([p[:, : self.n_other], rotation_entries(poses[:, self.n_other :])], dim=1)
         p = F.relu(self.pc1(p))
-        x = F.relu(image_term + self.fc4_pose(p))
+        x = encoding[:, :1024] + self.fc4_pose(p)
+        if self.roi_head != "none":
+            side = self.image_size // 2
+            fmap = encoding[:, 1024:].reshape(-1, self.conv2_channels, side, side)
+            x = x + self.roi_term(fmap, poses)
+        x = F.relu(x)
         if self.fc5 is not None:
             x = F.relu(self.fc5(x))
         return self.fc6(x)
 
-    def head(self, image_term: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
-        """Success probabilities (k,) for k poses against one image term."""
-        return torch.softmax(self.head_logits(image_term, poses), dim=1)[:, 1]
+    def head(self, encoding: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        """Success probabilities (k,) for k poses against one window's encoding."""
+        return torch.softmax(self.head_logits(encoding, poses), dim=1)[:, 1]
 
     def forward(self, depth: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
         """One crop per grasp: (k, 1, S, S) metres and (k, n_pose) raw poses -> logits (k, 2)."""
