@@ -49,7 +49,7 @@ def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, Mod
     if card.architecture != "fast_vgqcnn":
         raise ValueError(f"{model_dir}: architecture {card.architecture!r}, expected fast_vgqcnn")
     enc_path, head_path = model_dir / card.files["encoder"], model_dir / card.files["head"]
-    (enc, enc_nodes), (head, _) = _load(enc_path), _load(head_path)
+    (enc, enc_nodes), (head, head_nodes) = _load(enc_path), _load(head_path)
     channels = int(_get(enc, "net.conv2_1.weight", enc_path).shape[0])  # the paper's 64, or wider
     options = net_options({"config": card.training.get("config", {})})
     net = GraspQualityNet("fast_vgqcnn", image_size=card.geometry.out, conv2_channels=channels, **options).eval()
@@ -79,6 +79,14 @@ def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, Mod
     for layer in ("fc4_pose", "fc5"):
         for what in ("weight", "bias"):
             _set(getattr(getattr(net, layer), what), _get(head, f"head.{layer}.{what}", head_path), layer)
+    if net.roi_head != "none":  # the jaw-grid head: roi_fc1 by name, roi_fc2 (no bias) as its MatMul's W^T
+        _set(net.roi_fc1.weight, _get(head, "head.roi.roi_fc1.weight", head_path), "roi_fc1")
+        _set(net.roi_fc1.bias, _get(head, "head.roi.roi_fc1.bias", head_path), "roi_fc1")
+        _set(net.roi_focal_px, _get(head, "head.roi.roi_focal_px", head_path), "roi_focal_px")
+        mm = head_nodes.get("/head/roi_fc2/MatMul")
+        if mm is None or len(mm) != 2:
+            raise ValueError(f"{head_path}: node '/head/roi_fc2/MatMul' not found; the card says roi_head jaw")
+        _set(net.roi_fc2.weight, _get(head, mm[1], head_path).T, "roi_fc2")
     w, b = _get(head, "head.out.weight", head_path), _get(head, "head.out.bias", head_path)
     _set(net.fc6.weight, np.concatenate([np.zeros_like(w), w]), "fc6")
     _set(net.fc6.bias, np.concatenate([np.zeros_like(b), b]), "fc6")

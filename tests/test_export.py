@@ -452,25 +452,39 @@ def test_relative_depth_and_rotation_features_export_and_read_back(tmp_path):
 def test_jaw_grid_head_exports_and_serves(tmp_path):
     """A net whose head reads the encoder's feature map on a grid turned to the jaw: the encoder
     graph's output carries the map, the head graph (GridSample) reproduces torch against one
-    shared window, and the service's runtime scores with it."""
+    shared window, the service's runtime scores with it, and the folder reads back into torch."""
+    from export.from_onnx import fast_net_from_model_dir
     from service.runtime import FastModel
     from vgq.normalization import Normalization
 
     torch.manual_seed(0)
     net = GraspQualityNet("fast_vgqcnn", roi_head="jaw").eval()
     torch.nn.init.normal_(net.roi_fc2.weight, std=0.05)  # a head that uses the grid
-    imgs, poses, _ = synthetic_crops(16, np.random.default_rng(7))
+    imgs, poses, labels = synthetic_crops(400, np.random.default_rng(7))
     net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns))
     card = export_model(
-        net, tmp_path / "m", imgs, poses, GEOM, DEFAULT_INTRINSICS, training={"config": {"roi_head": "jaw"}}
+        net,
+        tmp_path / "m",
+        imgs[:16],
+        poses[:16],
+        GEOM,
+        DEFAULT_INTRINSICS,
+        training={"config": {"roi_head": "jaw"}},
+        int8_check=(imgs[200:], poses[200:], labels[200:]),
+        prune_calibration=(imgs[:200], poses[:200]),
     )
-    assert card.export["verification"]["max_abs_diff_probability"] < 1e-5
+    assert card.export["verification"]["max_abs_diff_probability"] < 1e-5 and "head_int8" in card.files
+    imgs, poses = imgs[:16], poses[:16]
     served = FastModel(tmp_path / "m", head_precision="fp32")
     term = served.encode(imgs[:1])
     assert term.shape == (1, net.encoding_width)
     with torch.no_grad():
         ref = net.head(net.encode(torch.from_numpy(imgs[:1, None])), torch.from_numpy(poses)).numpy()
     np.testing.assert_allclose(served.score(term, poses), ref, atol=1e-5)
+    back, _ = fast_net_from_model_dir(tmp_path / "m")  # read back (a fine-tune's --init)
+    for k, v in net.state_dict().items():
+        if not k.startswith("fc6"):  # read back as one logit difference
+            torch.testing.assert_close(back.state_dict()[k], v, rtol=1e-5, atol=1e-6, msg=k)
     with torch.no_grad():  # the grid matters: without its layer the scores move
         net.roi_fc2.weight.zero_()
         flat = net.head(net.encode(torch.from_numpy(imgs[:1, None])), torch.from_numpy(poses)).numpy()
