@@ -272,7 +272,7 @@ def run_benchmark(
             # the peak of this k's time window: load from other processes lowers both alike
             peak = 2 * PEAK_N**3 / t.pop("peak").min() / 1e9
             peaks.append(peak)
-            head_flops = graph_flops(head_path, {HEAD_INPUTS[0]: (1, 1024), HEAD_INPUTS[1]: (k, fast.n_pose)})
+            head_flops = graph_flops(head_path, {HEAD_INPUTS[0]: tuple(term.shape), HEAD_INPUTS[1]: (k, fast.n_pose)})
             st = {name: _stats(v) for name, v in t.items()}
             floor_ms = (windows * enc_flops + head_flops) / (peak * 1e9) * 1e3
             fm, vm = st["fast"]["median_ms"], st["vgq"]["median_ms"]

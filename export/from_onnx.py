@@ -109,7 +109,7 @@ def init_checkpoint_from_model_dir(model_dir: str | Path) -> dict:
 
 def vgq_net_like(fast: GraspQualityNet) -> GraspQualityNet:
     """A VGQ-CNN (pose z, q; one centred crop per grasp) with ``fast``'s image stream, fc4,
-    fc5 and fc6, and pc1 restricted to the (z, q) columns. Same cost as the paper's VGQ-CNN;
+    fc5 and fc6, and pc1 restricted to the (z, q) columns (a jaw-grid head left out). Same cost as the paper's VGQ-CNN;
     its scores are not a trained VGQ-CNN's."""
     net = GraspQualityNet(
         "vgqcnn",
@@ -126,6 +126,8 @@ def vgq_net_like(fast: GraspQualityNet) -> GraspQualityNet:
     src = fast.state_dict()
     dst = net.state_dict()
     for k, v in src.items():
+        if k not in dst:  # a jaw-grid head's layers: VGQ-CNN's crop is centred, its head the paper's
+            continue
         if k.startswith("pc1.weight"):
             dst[k] = v[:, feature_cols].clone()
         elif k in ("pose_mean", "pose_std"):

@@ -183,7 +183,7 @@ def cover_windows(uv: np.ndarray, geom) -> np.ndarray:
 class WindowStore(Protocol):
     """Encoded windows of one image kept beyond one plan (the service's image cache), keyed
     by the window's integer top-left pixel (u, v) in the image at the model's focal lengths.
-    A term is the encoder's (1024,) float32 output for :func:`vgq.inpaint.crop_filled` of
+    A term is the encoder's (D,) float32 output for :func:`vgq.inpaint.crop_filled` of
     that window; the float is the window's missing-depth fraction."""
 
     def lookup(self, origins: list[tuple[int, int]]) -> dict[tuple[int, int], tuple[np.ndarray, float]]:

@@ -28,7 +28,7 @@ Origin = tuple[int, int]  # top-left pixel (u, v) of a crop window in the resamp
 class EncodedWindow:
     """One crop window's encoder output."""
 
-    term: np.ndarray  # (1, 1024) float32
+    term: np.ndarray  # (1, D) float32: the encoder's output (D = 1024, more with a jaw-grid head)
     missing_fraction: float  # share of the window's pixels without a depth reading (filled before encoding)
 
     @property

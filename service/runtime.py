@@ -36,7 +36,8 @@ def session_options(threads: int) -> ort.SessionOptions:
 
 
 class FastModel:
-    """Fast-VGQ-CNN: ``encode`` (1 crop -> 1024 image term) and ``score`` (k poses)."""
+    """Fast-VGQ-CNN: ``encode`` (1 crop -> its encoding: the 1024 image term, with a jaw-grid head
+    also the feature map) and ``score`` (k poses against one encoding)."""
 
     def __init__(
         self,
@@ -115,7 +116,8 @@ class FastModel:
         self.score_seconds = 0.0
 
     def encode(self, crop: np.ndarray) -> np.ndarray:
-        """(out, out) or (n, out, out) float32 crops in metres -> (n, 1024) float32 image terms."""
+        """(out, out) or (n, out, out) float32 crops in metres -> (n, D) float32 encodings (D = 1024, or
+        1024 + the feature map for a jaw-grid head: ``training.networks.GraspQualityNet.encoding_width``)."""
         t = time.perf_counter()
         x = np.ascontiguousarray(crop, dtype=np.float32).reshape(-1, 1, *crop.shape[-2:])
         term = self.encoder.run([ENCODER_OUTPUT], {ENCODER_INPUT: x})[0]
@@ -123,7 +125,7 @@ class FastModel:
         return term
 
     def score(self, image_term: np.ndarray, poses: np.ndarray) -> np.ndarray:
-        """(1, 1024) image term, (k, 7) network pose rows -> (k,) float32 probabilities."""
+        """(1, D) encoding, (k, 7) network pose rows -> (k,) float32 probabilities."""
         t = time.perf_counter()
         p = self.head.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: image_term, HEAD_INPUTS[1]: poses})[0]
         self.score_seconds = time.perf_counter() - t

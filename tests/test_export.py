@@ -453,7 +453,7 @@ def test_jaw_grid_head_exports_and_serves(tmp_path):
     """A net whose head reads the encoder's feature map on a grid turned to the jaw: the encoder
     graph's output carries the map, the head graph (GridSample) reproduces torch against one
     shared window, the service's runtime scores with it, and the folder reads back into torch."""
-    from export.from_onnx import fast_net_from_model_dir
+    from export.from_onnx import fast_net_from_model_dir, vgq_net_like
     from service.runtime import FastModel
     from vgq.normalization import Normalization
 
@@ -485,6 +485,7 @@ def test_jaw_grid_head_exports_and_serves(tmp_path):
     for k, v in net.state_dict().items():
         if not k.startswith("fc6"):  # read back as one logit difference
             torch.testing.assert_close(back.state_dict()[k], v, rtol=1e-5, atol=1e-6, msg=k)
+    assert vgq_net_like(back).roi_head == "none"  # the benchmark's VGQ-CNN of the same weights
     with torch.no_grad():  # the grid matters: without its layer the scores move
         net.roi_fc2.weight.zero_()
         flat = net.head(net.encode(torch.from_numpy(imgs[:1, None])), torch.from_numpy(poses)).numpy()

@@ -24,8 +24,8 @@ CARD_VERSION = 1
 
 #: ONNX graph I/O names (export writes them, the service reads them).
 ENCODER_INPUT = "depth_crop"  # (n, 1, out, out) float32 metres
-ENCODER_OUTPUT = "image_term"  # (n, 1024) float32
-HEAD_INPUTS = ("image_term", "poses")  # (1, 1024), (k, 7) raw pose rows
+ENCODER_OUTPUT = "image_term"  # (n, D) float32: the image term (1024), then a jaw-grid head's feature map
+HEAD_INPUTS = ("image_term", "poses")  # (1, D), (k, 7) raw pose rows
 HEAD_OUTPUT = "p_success"  # (k,) float32
 VGQ_INPUTS = ("depth_crops", "poses")  # (k, 1, out, out), (k, n_pose)
 VGQ_OUTPUT = "p_success"
