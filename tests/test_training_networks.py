@@ -154,10 +154,23 @@ def test_jaw_grid_head_reads_the_image_at_the_grasp():
     on_bump = torch.tensor([[-10.0, -10.0, 0.7, 1, 0, 0, 0]])  # a grasp there (crop px from the centre)
     far = torch.tensor([[10.0, 10.0, 0.7, 1, 0, 0, 0]])  # one in the opposite corner
     with torch.no_grad():
-        f0, f1 = (net.encode(d)[:, 1024:].reshape(1, 64, 16, 16) for d in (flat, bumped))
+        f0, f1 = (net.encode(d)[:, 1024:].reshape(1, 256, 64) for d in (flat, bumped))
         seen = (net.roi_term(f1, on_bump) - net.roi_term(f0, on_bump)).abs().max()
         unseen = (net.roi_term(f1, far) - net.roi_term(f0, far)).abs().max()
     assert unseen < 1e-6 < seen
+
+
+def test_jaw_grid_reads_are_grid_samples_bilinear_border_reads():
+    net = _jaw_net()
+    fmap = torch.randn(3, 64, 16, 16)
+    q = torch.nn.functional.normalize(torch.randn(3, 4), dim=1)
+    poses = torch.cat([torch.tensor([[0.0, 0.0], [11.9, -12.0], [30.0, 2.5]]), torch.tensor([[0.7], [0.45], [1.0]]), q], 1)
+    grid = net.jaw_grid_points(poses)  # the third grasp's grid leaves the map: border reads
+    ref = torch.nn.functional.grid_sample(fmap, grid, align_corners=False, padding_mode="border").reshape(3, -1)
+    with torch.no_grad():
+        got = net.roi_term(fmap.permute(0, 2, 3, 1).reshape(3, 256, 64), poses)
+        want = net.roi_fc2(torch.relu(net.roi_fc1(ref)))
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)
 
 
 def test_jaw_grid_head_needs_its_feature_map_and_fast_vgqcnn():

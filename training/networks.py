@@ -172,7 +172,7 @@ class GraspQualityNet(nn.Module):
     @property
     def encoding_width(self) -> int:
         """Width of ``encode``'s output: fc4's image term (1024), then with ``roi_head`` the conv2
-        feature map (C x S/2 x S/2, channel-major) that the head's jaw grid reads."""
+        feature map (S/2 x S/2 x C: a row of C channels per map cell) that the head's jaw grid reads."""
         return 1024 + (self.conv2_channels * (self.image_size // 2) ** 2 if self.roi_head != "none" else 0)
 
     def encode(self, depth: torch.Tensor) -> torch.Tensor:
@@ -197,7 +197,7 @@ class GraspQualityNet(nn.Module):
             term = term + self.fc4_ref((ref.flatten(1) - self.reference_mean) / self.reference_std)
         if self.roi_head == "none":
             return term
-        return torch.cat([term, fmap.reshape(fmap.shape[0], -1)], dim=1)
+        return torch.cat([term, fmap.permute(0, 2, 3, 1).reshape(fmap.shape[0], -1)], dim=1)  # rows of channels
 
     def jaw_grid_points(self, poses: torch.Tensor) -> torch.Tensor:
         """(k, Ga, Gb, 2) grid_sample coordinates (-1..1 across the crop, u then v) of each grasp's
@@ -217,14 +217,28 @@ class GraspQualityNet(nn.Module):
         half = self.image_size / 2
         return torch.stack([pu / half, pv / half], dim=-1)
 
-    def roi_term(self, fmap: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
-        """fc4's jaw-grid term (k, 1024): ``fmap`` (1 or k, C, S/2, S/2), raw poses (k, n_pose)."""
+    def roi_term(self, cells: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        """fc4's jaw-grid term (k, 1024): ``cells`` the conv2 feature map as rows of channels
+        (1 or k, S/2 * S/2, C), raw poses (k, n_pose). Bilinear reads at the grid points, the
+        border cells repeated outside the map (``F.grid_sample``'s bilinear, border,
+        align_corners False; a test holds them equal), done as one row gather: onnxruntime's
+        GridSample took 4.2 ms for 128 grasps where this takes a fraction of one."""
         grid = self.jaw_grid_points(poses)  # (k, Ga, Gb, 2)
         k, ga, gb, _ = grid.shape
-        n, c = fmap.shape[0], fmap.shape[1]  # n = 1 (one window, k grasps) or k (a window each)
-        f = F.grid_sample(fmap, grid.reshape(n, -1, gb, 2), align_corners=False, padding_mode="border")
-        f = f.reshape(n, c, -1, ga, gb).transpose(1, 2)  # (n, k / n, C, Ga, Gb)
-        return self.roi_fc2(F.relu(self.roi_fc1(f.reshape(k, -1))))
+        n, hw, c = cells.shape  # n = 1 (one window, k grasps) or k (a window each)
+        side = self.image_size // 2
+        xy = (((grid + 1) * side - 1) / 2).clamp(0, side - 1)  # map cells, pixel centres on integers
+        lo = xy.floor()
+        w = xy - lo  # (k, Ga, Gb, 2)
+        x0, y0 = lo[..., 0].long(), lo[..., 1].long()
+        x1, y1 = (x0 + 1).clamp(max=side - 1), (y0 + 1).clamp(max=side - 1)
+        first = (torch.arange(k, device=poses.device) // (k // n) * hw)[:, None, None]  # each grasp's window
+        idx = torch.stack([y0 * side + x0, y0 * side + x1, y1 * side + x0, y1 * side + x1], dim=-1) + first[..., None]
+        wx, wy = w[..., 0], w[..., 1]
+        wts = torch.stack([(1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy], dim=-1)
+        f = (cells.reshape(n * hw, c)[idx] * wts[..., None].to(cells.dtype)).sum(dim=-2)  # (k, Ga, Gb, C)
+        f = f.permute(0, 3, 1, 2).reshape(k, c * ga * gb)  # roi_fc1 reads channel-major
+        return self.roi_fc2(F.relu(self.roi_fc1(f)))
 
     def head_logits(self, encoding: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
         """``encode``'s output (1 or k, ``encoding_width``) and raw poses (k, n_pose) -> logits (k, 2)."""
@@ -236,9 +250,7 @@ class GraspQualityNet(nn.Module):
         p = F.relu(self.pc1(p))
         x = encoding[:, :1024] + self.fc4_pose(p)
         if self.roi_head != "none":
-            side = self.image_size // 2
-            fmap = encoding[:, 1024:].reshape(-1, self.conv2_channels, side, side)
-            x = x + self.roi_term(fmap, poses)
+            x = x + self.roi_term(encoding[:, 1024:].reshape(encoding.shape[0], -1, self.conv2_channels), poses)
         x = F.relu(x)
         if self.fc5 is not None:
             x = F.relu(self.fc5(x))
