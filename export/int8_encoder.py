@@ -43,17 +43,20 @@ def crop_split(path: str | Path, splits: tuple[str, ...], n: int | None = None, 
     from training.data import open_crop_dataset
 
     ds = open_crop_dataset(path)
-    parts = []
-    for name in splits:
-        split = ds.splits.get(name)
-        if split is not None and len(split):
-            parts.append([t.numpy() for t in split.batch(np.arange(len(split)), "fast_vgqcnn")])
-    if not parts:
+    present = [ds.splits[name] for name in splits if ds.splits.get(name) is not None and len(ds.splits[name])]
+    if not present:
         raise ValueError(f"{path}: none of the splits {splits} holds crops")
+    sizes = np.array([len(sp) for sp in present])
+    rows = np.arange(sizes.sum())
+    if n is not None and len(rows) > n:  # choose the rows first: only those are read (a split may be GBs)
+        rows = np.sort(np.random.default_rng(seed).choice(len(rows), n, replace=False))
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    parts = [
+        [t.numpy() for t in sp.batch(rows[(rows >= lo) & (rows < hi)] - lo, "fast_vgqcnn")]
+        for sp, lo, hi in zip(present, starts[:-1], starts[1:])
+        if np.any((rows >= lo) & (rows < hi))
+    ]
     crops, poses, labels = (np.concatenate([p[i] for p in parts]) for i in range(3))
-    if n is not None and len(crops) > n:
-        idx = np.sort(np.random.default_rng(seed).choice(len(crops), n, replace=False))
-        crops, poses, labels = crops[idx], poses[idx], labels[idx]
     return crops.astype(np.float32), poses.astype(np.float32), labels
 
 
@@ -110,6 +113,9 @@ def add_int8_encoder(
     if card.architecture != "fast_vgqcnn":
         raise QuantizationError(f"{model_dir}: an int8 encoder exists for fast_vgqcnn only, not {card.architecture}")
     encoder, head = model_dir / card.files["encoder"], model_dir / card.files["head"]
+    if prune and card.training.get("config", {}).get("roi_head", "none") != "none":
+        logging.info("the jaw-grid head reads conv2's every channel: the int8 encoder is not pruned")
+        prune = False
     pruning = None
     with atomic.staged(model_dir / INT8_ENCODER_FILE) as tmp:
         with tempfile.TemporaryDirectory(prefix=".prune-", dir=model_dir) as work:

@@ -165,3 +165,22 @@ def test_export_cli_int8_encoder_flag_checks_and_records_the_outcome(tmp_path, c
     assert kept or any("int8 encoder refused" in r.getMessage() for r in caplog.records)
     assert "calibrating on 16 train crops, checking on 8 val crops" in caplog.text
     assert not list((tmp_path / "m").glob(".*tmp"))
+
+
+def test_crop_split_reads_only_the_rows_it_returns(tmp_path, monkeypatch):
+    """A sample of n rows from GB-sized splits batches those n rows, not the whole split (the
+    CLI once held all 3.3 M train crops in memory and was killed), and picks the same rows."""
+    from export.int8_encoder import crop_split
+    from training.data import CropSplit
+    from training.synthetic import make_synthetic_crop_dataset
+
+    make_synthetic_crop_dataset(tmp_path / "d", 64, 32, 16, seed=4)
+    whole = crop_split(tmp_path / "d", ("train", "val"))
+    asked = []
+    real = CropSplit.batch
+    monkeypatch.setattr(CropSplit, "batch", lambda self, idx, *a, **k: asked.append(len(idx)) or real(self, idx, *a, **k))
+    crops, poses, labels = crop_split(tmp_path / "d", ("train", "val"), 10, seed=3)
+    assert sum(asked) == 10 == len(crops)
+    idx = np.sort(np.random.default_rng(3).choice(len(whole[0]), 10, replace=False))
+    np.testing.assert_array_equal(crops, whole[0][idx])
+    np.testing.assert_array_equal(poses, whole[1][idx])

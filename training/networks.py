@@ -221,8 +221,9 @@ class GraspQualityNet(nn.Module):
         """fc4's jaw-grid term (k, 1024): ``cells`` the conv2 feature map as rows of channels
         (1 or k, S/2 * S/2, C), raw poses (k, n_pose). Bilinear reads at the grid points, the
         border cells repeated outside the map (``F.grid_sample``'s bilinear, border,
-        align_corners False; a test holds them equal), done as one row gather: onnxruntime's
-        GridSample took 4.2 ms for 128 grasps where this takes a fraction of one."""
+        align_corners False; a test holds them equal), done as one row gather and a batched
+        (1 x 4) @ (4 x C) MatMul: onnxruntime's GridSample took 4.2 ms for 128 grasps, this
+        ~0.5 ms (a Mul and ReduceSum in place of the MatMul ~1 ms)."""
         grid = self.jaw_grid_points(poses)  # (k, Ga, Gb, 2)
         k, ga, gb, _ = grid.shape
         n, hw, c = cells.shape  # n = 1 (one window, k grasps) or k (a window each)
@@ -236,7 +237,7 @@ class GraspQualityNet(nn.Module):
         idx = torch.stack([y0 * side + x0, y0 * side + x1, y1 * side + x0, y1 * side + x1], dim=-1) + first[..., None]
         wx, wy = w[..., 0], w[..., 1]
         wts = torch.stack([(1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy], dim=-1)
-        f = (cells.reshape(n * hw, c)[idx] * wts[..., None].to(cells.dtype)).sum(dim=-2)  # (k, Ga, Gb, C)
+        f = (wts[..., None, :].to(cells.dtype) @ cells.reshape(n * hw, c)[idx]).squeeze(-2)  # (k, Ga, Gb, C)
         f = f.permute(0, 3, 1, 2).reshape(k, c * ga * gb)  # roi_fc1 reads channel-major
         return self.roi_fc2(F.relu(self.roi_fc1(f)))
 
