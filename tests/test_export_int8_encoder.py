@@ -178,7 +178,9 @@ def test_crop_split_reads_only_the_rows_it_returns(tmp_path, monkeypatch):
     whole = crop_split(tmp_path / "d", ("train", "val"))
     asked = []
     real = CropSplit.batch
-    monkeypatch.setattr(CropSplit, "batch", lambda self, idx, *a, **k: asked.append(len(idx)) or real(self, idx, *a, **k))
+    monkeypatch.setattr(
+        CropSplit, "batch", lambda self, idx, *a, **k: asked.append(len(idx)) or real(self, idx, *a, **k)
+    )
     crops, poses, labels = crop_split(tmp_path / "d", ("train", "val"), 10, seed=3)
     assert sum(asked) == 10 == len(crops)
     idx = np.sort(np.random.default_rng(3).choice(len(whole[0]), 10, replace=False))

@@ -164,7 +164,9 @@ def test_jaw_grid_reads_are_grid_samples_bilinear_border_reads():
     net = _jaw_net()
     fmap = torch.randn(3, 64, 16, 16)
     q = torch.nn.functional.normalize(torch.randn(3, 4), dim=1)
-    poses = torch.cat([torch.tensor([[0.0, 0.0], [11.9, -12.0], [30.0, 2.5]]), torch.tensor([[0.7], [0.45], [1.0]]), q], 1)
+    poses = torch.cat(
+        [torch.tensor([[0.0, 0.0], [11.9, -12.0], [30.0, 2.5]]), torch.tensor([[0.7], [0.45], [1.0]]), q], 1
+    )
     grid = net.jaw_grid_points(poses)  # the third grasp's grid leaves the map: border reads
     ref = torch.nn.functional.grid_sample(fmap, grid, align_corners=False, padding_mode="border").reshape(3, -1)
     with torch.no_grad():
