@@ -404,6 +404,21 @@ def test_int8_head_is_for_fast_vgqcnn_only(tmp_path, briefly_trained):
     assert not (tmp_path / "v").exists()
 
 
+def _export_with_int8_head(net, out, imgs, poses, labels, config):
+    """Export on 400 synthetic rows: 16 verify, 200 find the head's dead units, 200 check int8."""
+    return export_model(
+        net,
+        out,
+        imgs[:16],
+        poses[:16],
+        GEOM,
+        DEFAULT_INTRINSICS,
+        training={"config": config},
+        int8_check=(imgs[200:], poses[200:], labels[200:]),
+        prune_calibration=(imgs[:200], poses[:200]),
+    )
+
+
 def test_relative_depth_and_rotation_features_export_and_read_back(tmp_path):
     """A net with depth_reference centre and rotation pose features: the encoder and head graphs
     reproduce torch (export's own verification), the pruned int8 head builds, and the folder reads
@@ -417,17 +432,7 @@ def test_relative_depth_and_rotation_features_export_and_read_back(tmp_path):
     net = GraspQualityNet("fast_vgqcnn", **opts).eval()
     imgs, poses, labels = synthetic_crops(400, np.random.default_rng(5))
     net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns, "centre"))
-    card = export_model(
-        net,
-        tmp_path / "m",
-        imgs[:16],
-        poses[:16],
-        GEOM,
-        DEFAULT_INTRINSICS,
-        training={"config": opts},
-        int8_check=(imgs[200:], poses[200:], labels[200:]),
-        prune_calibration=(imgs[:200], poses[:200]),
-    )
+    card = _export_with_int8_head(net, tmp_path / "m", imgs, poses, labels, opts)
     assert card.normalization.image_reference == "centre" and "head_int8" in card.files
     back, _ = fast_net_from_model_dir(tmp_path / "m")
     for k, v in net.state_dict().items():
@@ -462,17 +467,7 @@ def test_jaw_grid_head_exports_and_serves(tmp_path):
     torch.nn.init.normal_(net.roi_fc2.weight, std=0.05)  # a head that uses the grid
     imgs, poses, labels = synthetic_crops(400, np.random.default_rng(7))
     net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns))
-    card = export_model(
-        net,
-        tmp_path / "m",
-        imgs[:16],
-        poses[:16],
-        GEOM,
-        DEFAULT_INTRINSICS,
-        training={"config": {"roi_head": "jaw"}},
-        int8_check=(imgs[200:], poses[200:], labels[200:]),
-        prune_calibration=(imgs[:200], poses[:200]),
-    )
+    card = _export_with_int8_head(net, tmp_path / "m", imgs, poses, labels, {"roi_head": "jaw"})
     assert card.export["verification"]["max_abs_diff_probability"] < 1e-5 and "head_int8" in card.files
     imgs, poses = imgs[:16], poses[:16]
     served = FastModel(tmp_path / "m", head_precision="fp32")
