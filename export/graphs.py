@@ -82,7 +82,7 @@ class _FoldedHead(nn.Module):
         if self.roi is None:
             c = image_term + self.fc4_pose.bias
         else:  # the encoding carries, after the image term, the feature map the jaw grid reads
-            cells = image_term[:, 1024:].reshape(image_term.shape[0], -1, self.roi.conv2_channels)
+            cells = self.roi.encoding_cells(image_term)
             c = image_term[:, :1024] + self.fc4_pose.bias + self.roi.roi_term(cells, poses)
         if self.rotation:
             poses = torch.cat([poses[:, : self.n_other], rotation_entries(poses[:, self.n_other :])], dim=1)

@@ -199,14 +199,19 @@ class GraspQualityNet(nn.Module):
             return term
         return torch.cat([term, fmap.permute(0, 2, 3, 1).reshape(fmap.shape[0], -1)], dim=1)  # rows of channels
 
+    def encoding_cells(self, encoding: torch.Tensor) -> torch.Tensor:
+        """The feature map an encoding (n, ``encoding_width``) carries after its image term, as
+        rows of channels (n, S/2 * S/2, C): what ``roi_term`` reads."""
+        return encoding[:, 1024:].reshape(encoding.shape[0], -1, self.conv2_channels)
+
     def jaw_grid_points(self, poses: torch.Tensor) -> torch.Tensor:
         """(k, Ga, Gb, 2) grid_sample coordinates (-1..1 across the crop, u then v) of each grasp's
         jaw grid: raw poses (u, v offsets in crop px, z metres, q w x y z). The in-image jaw
         direction is the projection of the rotation's x column, ignoring the perspective term of
         the grasp's distance from the optical axis; its sign is chosen with u >= 0."""
         u, v, z = poses[:, 0], poses[:, 1], poses[:, 2]
-        w, qx, qy, qz = poses[:, 3], poses[:, 4], poses[:, 5], poses[:, 6]
-        du, dv = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy + w * qz)
+        r = rotation_entries(poses[:, 3:7])  # row-major: the x column is entries 0, 3, 6
+        du, dv = r[:, 0], r[:, 3]
         sign = torch.where(du < 0, -1.0, 1.0)
         n = torch.sqrt(du * du + dv * dv).clamp_min(1e-6)
         du, dv = du * sign / n, dv * sign / n
@@ -251,7 +256,7 @@ class GraspQualityNet(nn.Module):
         p = F.relu(self.pc1(p))
         x = encoding[:, :1024] + self.fc4_pose(p)
         if self.roi_head != "none":
-            x = x + self.roi_term(encoding[:, 1024:].reshape(encoding.shape[0], -1, self.conv2_channels), poses)
+            x = x + self.roi_term(self.encoding_cells(encoding), poses)
         x = F.relu(x)
         if self.fc5 is not None:
             x = F.relu(self.fc5(x))
