@@ -5,11 +5,14 @@
 # Every step resumes: rerun the script after an interruption. Uses .venv from ./scripts/test.sh.
 #
 #   ./scripts/make_default_model.sh                  # the bundled model's recipe (v2): families, sensor
-#                                                    # model, physics label, plus its clean-test and
-#                                                    # leave-family-out runs
+#                                                    # model, physics label; two stages: the image and pose
+#                                                    # streams (runs/fast-v2), then the jaw-grid head
+#                                                    # fine-tuned on top (runs/fast-v2-jaw, docs/training.md);
+#                                                    # plus its clean-test and leave-family-out runs
+#   JAW_SAMPLES=0 ./scripts/make_default_model.sh   # the v2 bundled until 2026-12-05: stage one only
 #   VERSION=v1 ./scripts/make_default_model.sh       # model v1 (bundled until 2026-11-30)
-#   SAMPLES=2600000 ./scripts/make_default_model.sh  # the bundled v2 (its 2.6 M-sample schedule)
-#   SAMPLES=6000000 ./scripts/make_default_model.sh  # a longer schedule (a finished run resumes into it)
+#   SAMPLES=4000000 ./scripts/make_default_model.sh  # a longer first stage (a finished run resumes into it;
+#                                                    # 3.6 M did not pay, docs/training.md)
 #   NET_OPTS="--pose-features rotation --pose-units 64" RUN=runs/fast-v2-rot ./scripts/make_default_model.sh
 #                                                    # the pose stream reads the rotation matrix: faster at
 #                                                    # first, no better from 1.2 M samples on the v2 data
@@ -18,9 +21,10 @@
 #
 # On this project's 2-core CPU: v1's dataset takes ~17 min and training ~2.5 h per 1M samples;
 # v2's dataset ~40 min (1,040 objects; their physics trials replayed from datagen/recipes/v2_physics_trials.npz,
-# ~3 h when simulated), training ~50 min per 1M samples
-# with bf16 steps (CPUs with AVX-512 BF16; ~2.5 h without); the leave-family-out run SAMPLES_LFO (3 M: the
-# card's 79.4% on the never-seen families; 71.7% at 1 M).
+# ~3 h when simulated), training ~30-50 min per 1M samples with bf16 steps (CPUs with AVX-512 BF16 or
+# AMX; ~2.5 h without): stage one SAMPLES (2.6 M), the jaw-grid stage
+# JAW_SAMPLES (2.4 M; the bundle is its best checkpoint, 2.28 M), the leave-family-out runs SAMPLES_LFO
+# (3 M: 79.4% on the never-seen families for stage one; 71.7% at 1 M) and JAW_SAMPLES again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # the whole script is read before it runs (a function), so editing this file cannot break a running build
@@ -29,7 +33,7 @@ main() {
   VERSION=${VERSION:-v2}
   case "$VERSION" in
     v1) SAMPLES=${SAMPLES:-900000}; DATA=${DATA:-data/recipe}; RUN=${RUN:-runs/fast}; BASE=${BASE:-runs/baseline} ;;
-    v2) SAMPLES=${SAMPLES:-4000000}; DATA=${DATA:-data/v2}; RUN=${RUN:-runs/fast-v2}; BASE=${BASE:-runs/baseline-v2} ;;
+    v2) SAMPLES=${SAMPLES:-2600000}; DATA=${DATA:-data/v2}; RUN=${RUN:-runs/fast-v2}; BASE=${BASE:-runs/baseline-v2} ;;
     *) echo "make_default_model.sh: VERSION must be v1 or v2, got $VERSION" >&2; exit 2 ;;
   esac
   OUT=${OUT:-models/fast-vgqcnn-default}
@@ -37,6 +41,8 @@ main() {
     --class-balance loss_weights --val-every-samples 25000 --val-max-samples 6000 --checkpoint-every-samples 20000)
   read -r -a NET <<< "${NET_OPTS:-}"  # network options (training train --help), e.g. --pose-features rotation
   TRAIN_OPTS+=("${NET[@]}")
+  JAW_SAMPLES=${JAW_SAMPLES:-2400000}  # the jaw-grid stage (v2): stage one's best checkpoint, the new head
+  [ "$VERSION" = v2 ] || JAW_SAMPLES=0  # starting at zero, a quarter of the learning rate; 0: no jaw stage
   EXPORT_OPTS=(--int8-head)
   EVAL_OPTS=()
   if [ "$VERSION" = v2 ]; then
@@ -46,33 +52,43 @@ main() {
   fi
 
   $PY -m datagen recipe --version "$VERSION" --out "$DATA" --no-leave-out  # the leave-family-out split comes later
-  $PY -m training train --data "$DATA/crops" --out "$RUN" --samples "$SAMPLES" "${TRAIN_OPTS[@]}"
-  $PY -m training evaluate --run "$RUN" --data "$DATA/crops" "${EVAL_OPTS[@]}"
+  # train_stages DATA RUN SAMPLES: stage one into RUN, then (JAW_SAMPLES > 0) the jaw-grid stage into RUN-jaw
+  train_stages() {
+    $PY -m training train --data "$1" --out "$2" --samples "$3" "${TRAIN_OPTS[@]}"
+    if [ "$JAW_SAMPLES" != 0 ]; then
+      $PY -m training train --data "$1" --out "$2-jaw" --samples "$JAW_SAMPLES" "${TRAIN_OPTS[@]}" \
+        --init "$2" --roi-head jaw --base-lr 0.00005
+    fi
+  }
+  final() { if [ "$JAW_SAMPLES" != 0 ]; then echo "$1-jaw"; else echo "$1"; fi; }
+  FINAL=$(final "$RUN")
+  train_stages "$DATA/crops" "$RUN" "$SAMPLES"
+  $PY -m training evaluate --run "$FINAL" --data "$DATA/crops" "${EVAL_OPTS[@]}"
   if [ -d "$DATA/crops_clean_test" ]; then  # the same test grasps without the sensor model
-    $PY -m training evaluate --run "$RUN" --data "$DATA/crops_clean_test" --name test_clean "${EVAL_OPTS[@]}"
+    $PY -m training evaluate --run "$FINAL" --data "$DATA/crops_clean_test" --name test_clean "${EVAL_OPTS[@]}"
   fi
   $PY -m training baseline --data "$DATA/crops" --model mlp --out "$BASE"
   export_model() {
-    $PY -m export --run "$RUN" --data "$DATA/crops" --out "$OUT" "$@" \
+    $PY -m export --run "$FINAL" --data "$DATA/crops" --out "$OUT" "$@" \
       --recipe "python -m datagen recipe --version $VERSION --out $DATA" --baseline "$BASE/baseline_mlp.json" \
       "${EXPORT_OPTS[@]}"
   }
   export_model
   $PY -m datagen recipe --version "$VERSION" --out "$DATA"  # the rest of the recipe: the leave-family-out split
-  if [ -d "$DATA/crops_lfo" ]; then  # leave-family-out: a second run that never sees the held-out families
-    $PY -m training train --data "$DATA/crops_lfo" --out "$RUN-lfo" --samples "${SAMPLES_LFO:-3000000}" \
-      "${TRAIN_OPTS[@]}"
-    $PY -m training evaluate --run "$RUN-lfo" --data "$DATA/crops_lfo" "${EVAL_OPTS[@]}"
-    $PY -m export.leave_family_out --model-dir "$OUT" "$RUN-lfo/eval/metrics_test.json"  # into the card, no re-export
+  if [ -d "$DATA/crops_lfo" ]; then  # leave-family-out: the same stages, never seeing the held-out families
+    train_stages "$DATA/crops_lfo" "$RUN-lfo" "${SAMPLES_LFO:-3000000}"
+    LFO=$(final "$RUN-lfo")
+    $PY -m training evaluate --run "$LFO" --data "$DATA/crops_lfo" "${EVAL_OPTS[@]}"
+    $PY -m export.leave_family_out --model-dir "$OUT" "$LFO/eval/metrics_test.json"  # into the card, no re-export
   fi
-  cp "$RUN/eval/heatmap_test.png" "$RUN/eval/curves.png" "$OUT/"
+  cp "$FINAL/eval/heatmap_test.png" "$FINAL/eval/curves.png" "$OUT/"
   if [ "$VERSION" = v2 ]; then  # planned grasps' p_hold (the score mapped to how often planner candidates
     # hold) and their order (a ranker on the score, the jaw width and the gripper's pose against the table)
     # (~35 min: 150 scenes of objects outside the dataset (docs/planning.md, top view), 32 candidates each, 8 pybullet trials; docs/planning.md)
-    [ -f "$RUN/pool_train.json" ] || $PY -m planning.bench pool --model "$OUT" --heldout unseen \
-      --scenes 150 --per-scene 32 --trials 8 --threads 1 --json "$RUN/pool_train.json"
-    $PY -m planning.calibration "$RUN/pool_train.json" --model "$OUT"
-    $PY -m planning.ranker "$RUN/pool_train.json" --model "$OUT"  # the planner's order (score, width, table pose)
+    [ -f "$FINAL/pool_train.json" ] || $PY -m planning.bench pool --model "$OUT" --heldout unseen \
+      --scenes 150 --per-scene 32 --trials 8 --threads 1 --json "$FINAL/pool_train.json"
+    $PY -m planning.calibration "$FINAL/pool_train.json" --model "$OUT"
+    $PY -m planning.ranker "$FINAL/pool_train.json" --model "$OUT"  # the planner's order (score, width, table pose)
   fi
   if [ "$OUT" = models/fast-vgqcnn-default ]; then
     # the held-out examples the tests score the bundled model on: test-split crops and whole images
