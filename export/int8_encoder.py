@@ -113,9 +113,6 @@ def add_int8_encoder(
     if card.architecture != "fast_vgqcnn":
         raise QuantizationError(f"{model_dir}: an int8 encoder exists for fast_vgqcnn only, not {card.architecture}")
     encoder, head = model_dir / card.files["encoder"], model_dir / card.files["head"]
-    if prune and card.training.get("config", {}).get("roi_head", "none") != "none":
-        logging.info("the jaw-grid head reads conv2's every channel: the int8 encoder is not pruned")
-        prune = False
     pruning = None
     with atomic.staged(model_dir / INT8_ENCODER_FILE) as tmp:
         with tempfile.TemporaryDirectory(prefix=".prune-", dir=model_dir) as work:

@@ -198,11 +198,34 @@ def _slice_consumers(graph: _Graph, start: str, keep: np.ndarray, total: int, wh
                 raise PruningError(f"{where}: cannot prune {start} through {node.op_type} {node.name}")
 
 
+def _leaves_graph(graph: _Graph, start: str) -> bool:
+    """Whether ``start``'s channels reach a graph output without passing a weighted layer (e.g. the
+    jaw-grid head's feature map, which the encoding carries as it is): the head reads every channel."""
+    outputs = {o.name for o in graph.g.output}
+    todo, seen = [start], set()
+    while todo:
+        name = todo.pop()
+        if name in outputs:
+            return True
+        for node in graph.consumers.get(name, []):
+            weighted = node.op_type in ("Conv", "Gemm", "MatMul") and graph.stored(node.input[1])
+            if id(node) in seen or (weighted and not _is_band(graph, node)):
+                continue
+            seen.add(id(node))
+            todo.extend(node.output)
+    return False
+
+
 def dead_channels(encoder_path: str | Path, crops: np.ndarray) -> dict[str, np.ndarray]:
-    """The channels of every ReLU that fire (max > 0) on some calibration crop: {relu output: kept}."""
+    """The channels of every ReLU that fire (max > 0) on some calibration crop: {relu output: kept};
+    a ReLU whose channels leave the encoder as they are (a jaw-grid model's conv2 map) keeps them all."""
     if len(crops) < 16 or not np.isfinite(crops).all():
         raise PruningError(f"need >= 16 finite calibration crops, got {len(crops)}")
-    return {name: np.flatnonzero(m > 0) for name, m in relu_maxima(encoder_path, crops).items()}
+    graph = _Graph(onnx.load(str(encoder_path)))
+    return {
+        name: np.arange(len(m)) if _leaves_graph(graph, name) else np.flatnonzero(m > 0)
+        for name, m in relu_maxima(encoder_path, crops).items()
+    }
 
 
 def prune_encoder(

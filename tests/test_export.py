@@ -485,3 +485,30 @@ def test_jaw_grid_head_exports_and_serves(tmp_path):
         net.roi_fc2.weight.zero_()
         flat = net.head(net.encode(torch.from_numpy(imgs[:1, None])), torch.from_numpy(poses)).numpy()
     assert np.abs(flat - ref).max() > 1e-3
+
+
+def test_jaw_grid_encoder_keeps_the_map_it_hands_the_head_when_pruned(tmp_path):
+    """Pruning a jaw-grid model's encoder: conv2_2's channels leave the encoder as the head's
+    feature map, so all of them stay (the whole encoding unchanged); conv1_2's dead ones still go."""
+    from export.prune_encoder import dead_channels, prune_encoder_graph
+    from export.quantize import image_terms
+    from vgq.normalization import Normalization
+
+    torch.manual_seed(0)
+    net = GraspQualityNet("fast_vgqcnn", roi_head="jaw").eval()
+    with torch.no_grad():  # dead channels: zero filters, bias -0.1 (a constant -0.1 before the ReLU)
+        for conv in (net.conv1_2, net.conv2_2):
+            conv.weight[::2] = 0.0
+            conv.bias[::2] = -0.1
+    imgs, poses, _ = synthetic_crops(64, np.random.default_rng(3))
+    net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns))
+    export_model(
+        net, tmp_path / "m", imgs[:16], poses[:16], GEOM, DEFAULT_INTRINSICS, training={"config": {"roi_head": "jaw"}}
+    )
+    enc = tmp_path / "m" / "encoder.onnx"
+    kept = dead_channels(enc, imgs)  # the crops compared below: no unit dead on them fires on them
+    summary = prune_encoder_graph(enc, tmp_path / "p.onnx", kept)
+    assert sorted(summary.values())[:4] == [(32, 64), (64, 64), (64, 64), (64, 64)]  # conv1_2 pruned; conv2_2 whole
+    full, pruned = image_terms(enc, imgs), image_terms(tmp_path / "p.onnx", imgs)
+    assert pruned.shape == full.shape == (64, net.encoding_width)
+    np.testing.assert_allclose(pruned, full, rtol=1e-4, atol=1e-4 * np.abs(full).max())
