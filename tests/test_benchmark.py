@@ -32,6 +32,23 @@ def test_graph_flops_of_head_grow_with_k(model_dir):
     assert flops == 2 * 10 * HEAD_MACS_PER_GRASP
 
 
+def test_graph_flops_of_a_jaw_grid_head_count_its_grid_reads_and_layers(tmp_path):
+    """The jaw grid's shapes follow from values (gathered rows): counted by running the graph once."""
+    from export.onnx_export import export_model
+    from training.networks import GraspQualityNet
+    from vgq.camera import DEFAULT_INTRINSICS
+    from vgq.crop import CropGeometry
+    from vgq.normalization import Normalization
+
+    net = GraspQualityNet("fast_vgqcnn", roi_head="jaw").eval()
+    imgs, poses, _ = synthetic_crops(16, np.random.default_rng(5))
+    net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns))
+    export_model(net, tmp_path / "m", imgs, poses, CropGeometry(96, 32, 0.0), DEFAULT_INTRINSICS)
+    flops = graph_flops(tmp_path / "m" / "head.onnx", {"image_term": (1, net.encoding_width), "poses": (10, 7)})
+    grid = 8 * 3 * 4 * 64 + 8 * 3 * 64 * 128 + 128 * 1024  # corner weights, roi_fc1, roi_fc2
+    assert flops == 2 * 10 * (HEAD_MACS_PER_GRASP + grid)
+
+
 def test_net_read_back_from_onnx_reproduces_the_graphs(model_dir):
     net, card = fast_net_from_model_dir(model_dir)
     imgs, poses, _ = synthetic_crops(16, np.random.default_rng(11))
