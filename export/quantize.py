@@ -2,7 +2,8 @@
 
 Nearly all of the head's work is fc5 (1024 x 1024 per grasp: 2.1 of its 2.2 MFLOP). Only that
 layer is quantised (onnxruntime dynamic quantisation: int8 weights per output channel, uint8
-activations scaled per call); the pose layers stay fp32, since raw poses mix pixels (tens)
+activations scaled per call), and in a jaw-grid head the two layers that read its grid; the pose
+layers stay fp32, since raw poses mix pixels (tens)
 with depths that matter to the millimetre and do not survive one shared 8-bit scale.
 
 Dynamic quantisation scales fc5's input per call, so an int8 score depends slightly on the
@@ -63,23 +64,33 @@ def largest_gemm(model_path: str | Path) -> str:
     return max(nodes)[1]
 
 
+def head_nodes_to_quantize(head_path: str | Path) -> tuple[str, ...]:
+    """The head's layers worth int8: its largest fully connected layer (fc5) and, in a jaw-grid
+    head, the two layers that read the grid (``roi_fc1``, ``roi_fc2``: 1,536 x 128 and 128 x 1,024
+    per grasp, fed by image features, not raw poses)."""
+    m = onnx.load(str(head_path))
+    grid = [n.name for n in m.graph.node if n.op_type in ("Gemm", "MatMul") and "/roi_fc" in n.name]
+    return (largest_gemm(head_path), *grid)
+
+
 def quantize_head(head_path: str | Path, out_path: str | Path) -> tuple[str, ...]:
-    """Write ``out_path``: ``head_path`` with its largest fully connected layer in int8.
+    """Write ``out_path``: ``head_path`` with ``head_nodes_to_quantize`` in int8.
     Returns the names of the quantised nodes."""
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
-    node = largest_gemm(head_path)
+    nodes = head_nodes_to_quantize(head_path)
     # dynamic quantisation rewrites a Gemm as MatMul + Add first; the MatMul keeps the name + "_MatMul"
     quantize_dynamic(
         str(head_path),
         str(out_path),
         per_channel=True,
         weight_type=QuantType.QInt8,
-        nodes_to_quantize=[node, node + "_MatMul"],
+        nodes_to_quantize=[x for node in nodes for x in (node, node + "_MatMul")],
     )
-    if not any(n.op_type == "MatMulInteger" for n in onnx.load(str(out_path)).graph.node):
-        raise QuantizationError(f"onnxruntime left {node} of {head_path} unquantised")
-    return (node,)
+    done = sum(n.op_type in ("MatMulInteger", "DynamicQuantizeMatMul") for n in onnx.load(str(out_path)).graph.node)
+    if done < len(nodes):
+        raise QuantizationError(f"onnxruntime left {len(nodes) - done} of {nodes} of {head_path} unquantised")
+    return nodes
 
 
 def session(path) -> ort.InferenceSession:

@@ -469,6 +469,8 @@ def test_jaw_grid_head_exports_and_serves(tmp_path):
     net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns))
     card = _export_with_int8_head(net, tmp_path / "m", imgs, poses, labels, {"roi_head": "jaw"})
     assert card.export["verification"]["max_abs_diff_probability"] < 1e-5 and "head_int8" in card.files
+    grid_layers = {"/head/roi_fc1/Gemm", "/head/roi_fc2/MatMul"}  # in int8 beside fc5
+    assert set(card.export["int8_head"]["quantized_nodes"]) == {"/head/fc5/Gemm", *grid_layers}
     imgs, poses = imgs[:16], poses[:16]
     served = FastModel(tmp_path / "m", head_precision="fp32")
     term = served.encode(imgs[:1])
