@@ -83,7 +83,8 @@ class _FoldedHead(nn.Module):
             c = image_term + self.fc4_pose.bias
         else:  # the encoding carries, after the image term, the feature map the jaw grid reads
             cells = self.roi.encoding_cells(image_term)
-            c = image_term[:, :1024] + self.fc4_pose.bias + self.roi.roi_term(cells, poses)
+            crop = self.roi.encoding_crop(image_term)  # "jaw_depth": the crop, read at the same points
+            c = image_term[:, :1024] + self.fc4_pose.bias + self.roi.roi_term(cells, poses, crop)
         if self.rotation:
             poses = torch.cat([poses[:, : self.n_other], rotation_entries(poses[:, self.n_other :])], dim=1)
         # Gemm(p, W, C = image term + bias): the merge Add and Relu fuse into the Gemm

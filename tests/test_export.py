@@ -454,6 +454,28 @@ def test_relative_depth_and_rotation_features_export_and_read_back(tmp_path):
     assert np.abs(t8 - t32).max() < 0.05 * np.abs(t32).max() and np.abs(tp - t8).max() < 1e-3 * np.abs(t8).max()
 
 
+def test_jaw_depth_head_exports_and_serves(tmp_path):
+    """ "jaw_depth": the encoder graph's output also carries the crop; the head graph reproduces
+    torch and the service's runtime scores with it."""
+    from service.runtime import FastModel
+    from vgq.normalization import Normalization
+
+    torch.manual_seed(0)
+    net = GraspQualityNet("fast_vgqcnn", roi_head="jaw_depth").eval()
+    torch.nn.init.normal_(net.roi_fc2.weight, std=0.05)
+    torch.nn.init.normal_(net.roi_fc1.weight[:, -24:], std=0.5)  # a head that reads the depths
+    imgs, poses, labels = synthetic_crops(400, np.random.default_rng(7))
+    net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns))
+    card = _export_with_int8_head(net, tmp_path / "m", imgs, poses, labels, {"roi_head": "jaw_depth"})
+    assert card.export["verification"]["max_abs_diff_probability"] < 1e-5
+    served = FastModel(tmp_path / "m", head_precision="fp32")
+    term = served.encode(imgs[:1])
+    assert term.shape == (1, net.encoding_width)
+    with torch.no_grad():
+        ref = net.head(net.encode(torch.from_numpy(imgs[:1, None])), torch.from_numpy(poses[:16])).numpy()
+    np.testing.assert_allclose(served.score(term, poses[:16]), ref, atol=1e-5)
+
+
 def test_jaw_grid_head_exports_and_serves(tmp_path):
     """A net whose head reads the encoder's feature map on a grid turned to the jaw: the encoder
     graph's output carries the map, the head graph (GridSample) reproduces torch against one

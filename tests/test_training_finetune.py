@@ -57,6 +57,22 @@ def test_init_may_add_a_jaw_grid_head_that_starts_at_zero(datasets, base_run, tm
     assert float(ft["model"]["roi_focal_px"]) > 0
 
 
+def test_a_jaw_depth_head_starts_from_a_jaw_grid_runs_head(datasets, base_run, tmp_path):
+    """From a jaw-grid run, "jaw_depth" keeps the grid's learnt weights; the new relative-depth
+    inputs start at zero, so the first network is the init's."""
+    jaw = TrainConfig(samples=16, **FAST, init=str(base_run), roi_head="jaw")
+    train(jaw, datasets / "main", tmp_path / "jaw", progress=False)
+    init = load_checkpoint(tmp_path / "jaw" / "checkpoints" / "last.pt")
+    cfg = TrainConfig(samples=16, **{**FAST, "base_lr": 1e-12}, init=str(tmp_path / "jaw"), roi_head="jaw_depth")
+    train(cfg, datasets / "main", tmp_path / "ft", progress=False)
+    ft = load_checkpoint(tmp_path / "ft" / "checkpoints" / "last.pt")["model"]
+    w0 = init["model"]["roi_fc1.weight"]
+    assert ft["roi_fc1.weight"].shape == (w0.shape[0], w0.shape[1] + 24)
+    assert torch.allclose(ft["roi_fc1.weight"][:, : w0.shape[1]].float(), w0.float(), atol=1e-6)
+    assert ft["roi_fc1.weight"][:, w0.shape[1] :].abs().max() < 1e-9
+    assert torch.allclose(ft["roi_fc2.weight"].float(), init["model"]["roi_fc2.weight"].float(), atol=1e-6)
+
+
 def test_init_of_other_crop_geometry_is_refused(datasets, base_run, tmp_path):
     with pytest.raises(CheckpointError, match="crops"):
         train(TrainConfig(samples=16, **FAST, init=str(base_run)), datasets / "kappa0", tmp_path / "x", progress=False)

@@ -175,6 +175,38 @@ def test_jaw_grid_reads_are_grid_samples_bilinear_border_reads():
     torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)
 
 
+def test_jaw_depth_head_reads_the_crops_depth_relative_to_the_grasp():
+    """ "jaw_depth": the encoding also carries the crop; the head reads it at the grid points as
+    depth relative to the grasp's z (grid_sample's bilinear border reads, in cm), one window for
+    k grasps as k copies."""
+    from training.networks import JAW_DEPTH_SCALE
+
+    torch.manual_seed(0)
+    net = GraspQualityNet("fast_vgqcnn", roi_head="jaw_depth").eval()
+    torch.nn.init.normal_(net.roi_fc2.weight, std=0.1)
+    depth = 0.6 + 0.1 * torch.rand(1, 1, 32, 32)
+    q = torch.nn.functional.normalize(torch.randn(5, 4), dim=1)
+    poses = torch.cat([torch.rand(5, 2) * 40 - 20, 0.5 + 0.3 * torch.rand(5, 1), q], 1)
+    with torch.no_grad():
+        enc = net.encode(depth)
+        assert enc.shape == (1, net.encoding_width) == (1, 1024 + 64 * 16 * 16 + 32 * 32)
+        torch.testing.assert_close(net.encoding_crop(enc).reshape(1, 1, 32, 32), depth)
+        shared = net.head_logits(enc, poses)
+        copies = net(depth.expand(5, -1, -1, -1).contiguous(), poses)
+        grid = net.jaw_grid_points(poses)
+        fmap = net.encoding_cells(enc).reshape(1, 16, 16, 64).permute(0, 3, 1, 2).expand(5, -1, -1, -1)
+        f = torch.nn.functional.grid_sample(fmap, grid, align_corners=False, padding_mode="border").reshape(5, -1)
+        d = torch.nn.functional.grid_sample(
+            depth.expand(5, -1, -1, -1), grid, align_corners=False, padding_mode="border"
+        )
+        want = net.roi_fc2(
+            torch.relu(net.roi_fc1(torch.cat([f, (d.reshape(5, -1) - poses[:, 2:3]) / JAW_DEPTH_SCALE], 1)))
+        )
+        got = net.roi_term(net.encoding_cells(enc), poses, net.encoding_crop(enc))
+    torch.testing.assert_close(shared, copies, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-4)
+
+
 def test_jaw_grid_head_needs_its_feature_map_and_fast_vgqcnn():
     net = _jaw_net()
     with pytest.raises(ValueError, match="width"):

@@ -18,7 +18,7 @@ OPTIMIZERS = ("sgd", "adamw")
 PRECISIONS = ("fp32", "bf16", "auto")
 SELECT_ON = ("data", "mix", "mean")
 TARGETS = ("label", "success_rate", "teacher")
-ROI_HEADS = ("none", "jaw")  # training.networks.GraspQualityNet's roi_head
+ROI_HEADS = ("none", "jaw", "jaw_depth")  # training.networks.GraspQualityNet's roi_head
 
 
 @dataclass

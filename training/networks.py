@@ -35,6 +35,7 @@ ARCHITECTURES = tuple(POSE_COLUMNS)
 JAW_GRID_ALONG = (-0.04, 0.04, 8)
 JAW_GRID_ACROSS = (-0.012, 0.012, 3)
 ROI_UNITS = 128
+JAW_DEPTH_SCALE = 0.01  # metres: "jaw_depth" reads the depth at each grid point relative to the grasp's, in cm
 
 
 def rotation_entries(q: torch.Tensor) -> torch.Tensor:
@@ -129,12 +130,13 @@ class GraspQualityNet(nn.Module):
         self.fc5 = nn.Linear(1024, 1024) if arch != "gqcnn" else None
         self.fc6 = nn.Linear(1024, 2)
         self.roi_head = roi_head
-        if roi_head == "jaw":
+        if roi_head != "none":
             a, b = torch.linspace(*JAW_GRID_ALONG), torch.linspace(*JAW_GRID_ACROSS)
             grid = torch.stack(torch.meshgrid(a, b, indexing="ij"), dim=-1)  # (Ga, Gb, 2) metres
             self.register_buffer("jaw_grid", grid, persistent=False)
             self.register_buffer("roi_focal_px", torch.tensor(float(roi_focal_px)))
-            self.roi_fc1 = nn.Linear(c2 * grid.shape[0] * grid.shape[1], ROI_UNITS)
+            points = grid.shape[0] * grid.shape[1]  # "jaw_depth": then one relative depth per point
+            self.roi_fc1 = nn.Linear((c2 + (roi_head == "jaw_depth")) * points, ROI_UNITS)
             self.roi_fc2 = nn.Linear(ROI_UNITS, 1024, bias=False)
         self.register_buffer("image_mean", torch.zeros(()))
         self.register_buffer("image_std", torch.ones(()))
@@ -173,13 +175,14 @@ class GraspQualityNet(nn.Module):
     def encoding_width(self) -> int:
         """Width of ``encode``'s output: fc4's image term (1024), then with ``roi_head`` the conv2
         feature map (S/2 x S/2 x C: a row of C channels per map cell) that the head's jaw grid reads."""
-        return 1024 + (self.conv2_channels * (self.image_size // 2) ** 2 if self.roi_head != "none" else 0)
+        cells = self.conv2_channels * (self.image_size // 2) ** 2 if self.roi_head != "none" else 0
+        return 1024 + cells + (self.image_size**2 if self.roi_head == "jaw_depth" else 0)
 
     def encode(self, depth: torch.Tensor) -> torch.Tensor:
         """Raw depth crops (n, 1, S, S) in metres -> (n, ``encoding_width``): the image term of fc4,
         followed with ``roi_head`` by the flattened conv2 feature map. One array per window, so
         the encoder / head split (export, the service's cache) is the same for both heads."""
-        ref = None
+        ref, raw = None, depth
         if self.fc4_ref is not None:
             lo = (depth.shape[-1] - REFERENCE_PIXELS) // 2
             ref = depth[:, :, lo : lo + REFERENCE_PIXELS, lo : lo + REFERENCE_PIXELS].mean(dim=(2, 3), keepdim=True)
@@ -197,12 +200,22 @@ class GraspQualityNet(nn.Module):
             term = term + self.fc4_ref((ref.flatten(1) - self.reference_mean) / self.reference_std)
         if self.roi_head == "none":
             return term
-        return torch.cat([term, fmap.permute(0, 2, 3, 1).reshape(fmap.shape[0], -1)], dim=1)  # rows of channels
+        parts = [term, fmap.permute(0, 2, 3, 1).reshape(fmap.shape[0], -1)]  # rows of channels
+        if self.roi_head == "jaw_depth":  # and the crop itself (metres), read at the grid points
+            parts.append(raw.reshape(raw.shape[0], -1))
+        return torch.cat(parts, dim=1)
 
     def encoding_cells(self, encoding: torch.Tensor) -> torch.Tensor:
         """The feature map an encoding (n, ``encoding_width``) carries after its image term, as
         rows of channels (n, S/2 * S/2, C): what ``roi_term`` reads."""
-        return encoding[:, 1024:].reshape(encoding.shape[0], -1, self.conv2_channels)
+        n_cells = self.conv2_channels * (self.image_size // 2) ** 2
+        return encoding[:, 1024 : 1024 + n_cells].reshape(encoding.shape[0], -1, self.conv2_channels)
+
+    def encoding_crop(self, encoding: torch.Tensor) -> torch.Tensor | None:
+        """The raw crop (n, S * S, 1) in metres a "jaw_depth" encoding carries last (else None)."""
+        if self.roi_head != "jaw_depth":
+            return None
+        return encoding[:, -(self.image_size**2) :].reshape(encoding.shape[0], -1, 1)
 
     def jaw_grid_points(self, poses: torch.Tensor) -> torch.Tensor:
         """(k, Ga, Gb, 2) grid_sample coordinates (-1..1 across the crop, u then v) of each grasp's
@@ -222,28 +235,38 @@ class GraspQualityNet(nn.Module):
         half = self.image_size / 2
         return torch.stack([pu / half, pv / half], dim=-1)
 
-    def roi_term(self, cells: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
-        """fc4's jaw-grid term (k, 1024): ``cells`` the conv2 feature map as rows of channels
-        (1 or k, S/2 * S/2, C), raw poses (k, n_pose). Bilinear reads at the grid points, the
-        border cells repeated outside the map (``F.grid_sample``'s bilinear, border,
-        align_corners False; a test holds them equal), done as one row gather and a batched
-        (1 x 4) @ (4 x C) MatMul: onnxruntime's GridSample took 4.2 ms for 128 grasps, this
-        ~0.5 ms (a Mul and ReduceSum in place of the MatMul ~1 ms)."""
-        grid = self.jaw_grid_points(poses)  # (k, Ga, Gb, 2)
-        k, ga, gb, _ = grid.shape
-        n, hw, c = cells.shape  # n = 1 (one window, k grasps) or k (a window each)
-        side = self.image_size // 2
+    @staticmethod
+    def _bilinear_rows(rows: torch.Tensor, side: int, grid: torch.Tensor) -> torch.Tensor:
+        """Bilinear reads of a map stored as rows of channels (n, side * side, C), n = 1 (one
+        window, k grasps) or k (a window each), at grid_sample coordinates (k, Ga, Gb, 2) -> (k, Ga,
+        Gb, C): ``F.grid_sample``'s bilinear, border, align_corners False (a test holds them equal),
+        done as one row gather and a batched (1 x 4) @ (4 x C) MatMul: onnxruntime's GridSample
+        took 4.2 ms for 128 grasps, this ~0.5 ms (a Mul and ReduceSum in place of the MatMul ~1 ms)."""
+        k = grid.shape[0]
+        n, hw, c = rows.shape
         xy = (((grid + 1) * side - 1) / 2).clamp(0, side - 1)  # map cells, pixel centres on integers
         lo = xy.floor()
         w = xy - lo  # (k, Ga, Gb, 2)
         x0, y0 = lo[..., 0].long(), lo[..., 1].long()
         x1, y1 = (x0 + 1).clamp(max=side - 1), (y0 + 1).clamp(max=side - 1)
-        first = (torch.arange(k, device=poses.device) // (k // n) * hw)[:, None, None]  # each grasp's window
+        first = (torch.arange(k, device=grid.device) // (k // n) * hw)[:, None, None]  # each grasp's window
         idx = torch.stack([y0 * side + x0, y0 * side + x1, y1 * side + x0, y1 * side + x1], dim=-1) + first[..., None]
         wx, wy = w[..., 0], w[..., 1]
         wts = torch.stack([(1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy], dim=-1)
-        f = (wts[..., None, :].to(cells.dtype) @ cells.reshape(n * hw, c)[idx]).squeeze(-2)  # (k, Ga, Gb, C)
-        f = f.permute(0, 3, 1, 2).reshape(k, c * ga * gb)  # roi_fc1 reads channel-major
+        return (wts[..., None, :].to(rows.dtype) @ rows.reshape(n * hw, c)[idx]).squeeze(-2)
+
+    def roi_term(self, cells: torch.Tensor, poses: torch.Tensor, crop: torch.Tensor | None = None) -> torch.Tensor:
+        """fc4's jaw-grid term (k, 1024): ``cells`` the conv2 feature map as rows of channels
+        (1 or k, S/2 * S/2, C), raw poses (k, n_pose); for "jaw_depth" also the raw crop as rows
+        (1 or k, S * S, 1), read at the same points as depth relative to the grasp's z (in
+        JAW_DEPTH_SCALE units)."""
+        grid = self.jaw_grid_points(poses)  # (k, Ga, Gb, 2)
+        k, ga, gb, _ = grid.shape
+        f = self._bilinear_rows(cells, self.image_size // 2, grid)  # (k, Ga, Gb, C)
+        f = f.permute(0, 3, 1, 2).reshape(k, -1)  # roi_fc1 reads channel-major
+        if self.roi_head == "jaw_depth":
+            d = self._bilinear_rows(crop, self.image_size, grid).reshape(k, ga * gb)
+            f = torch.cat([f, (d - poses[:, 2:3]) / JAW_DEPTH_SCALE], dim=1)
         return self.roi_fc2(F.relu(self.roi_fc1(f)))
 
     def head_logits(self, encoding: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
@@ -256,7 +279,7 @@ class GraspQualityNet(nn.Module):
         p = F.relu(self.pc1(p))
         x = encoding[:, :1024] + self.fc4_pose(p)
         if self.roi_head != "none":
-            x = x + self.roi_term(self.encoding_cells(encoding), poses)
+            x = x + self.roi_term(self.encoding_cells(encoding), poses, self.encoding_crop(encoding))
         x = F.relu(x)
         if self.fc5 is not None:
             x = F.relu(self.fc5(x))
