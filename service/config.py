@@ -47,7 +47,7 @@ class Settings:
     max_url_bytes: int = 8 * 1024  # request target (path + query)
     max_image_side: int = 4096  # pixels, either dimension of an uploaded depth image
     cache_entries: int = 4096
-    cache_bytes: int = 256 * 1024 * 1024  # an image holds its depth (4 B/px) and 4.2 kB per encoded window
+    cache_bytes: int = 256 * 1024 * 1024  # an image: its depth (4 B/px) + its windows' encodings (70 kB each, bundle)
     cache_backend: str = field(default="memory", metadata={"choices": CACHE_BACKENDS, "help": "memory | redis"})
     redis_url: str = "redis://127.0.0.1:6379/0"
     cache_ttl_s: float = 86400.0  # redis backend: an image unused this long expires (each hit renews it)
