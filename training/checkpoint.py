@@ -138,12 +138,12 @@ def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
             net.fc4_pose.weight.zero_()
         if "roi_fc2.weight" in fresh:  # a new jaw-grid head adds nothing until it learns
             net.roi_fc2.weight.zero_()
-        w = state.get("roi_fc1.weight")
-        if "roi_fc1.weight" in fresh and w is not None and w.shape[0] == own["roi_fc1.weight"].shape[0]:
-            if w.shape[1] < own["roi_fc1.weight"].shape[1]:  # a jaw grid that reads more per point ("jaw_depth"):
-                net.roi_fc1.weight.zero_()  # its features first, the new inputs' weights at zero
-                net.roi_fc1.weight[:, : w.shape[1]] = w
-                fresh.remove("roi_fc1.weight")
+        w, mine = state.get("roi_fc1.weight"), own.get("roi_fc1.weight")
+        wider = w is not None and mine is not None and w.shape[0] == mine.shape[0] and w.shape[1] < mine.shape[1]
+        if wider:  # a jaw grid that reads more per point ("jaw_depth"): its features first, the new inputs at zero
+            net.roi_fc1.weight.zero_()
+            net.roi_fc1.weight[:, : w.shape[1]] = w
+            fresh.remove("roi_fc1.weight")
     return fresh
 
 

@@ -175,12 +175,18 @@ class GraspQualityNet(nn.Module):
     def encoding_width(self) -> int:
         """Width of ``encode``'s output: fc4's image term (1024), then with ``roi_head`` the conv2
         feature map (S/2 x S/2 x C: a row of C channels per map cell) that the head's jaw grid reads."""
-        cells = self.conv2_channels * (self.image_size // 2) ** 2 if self.roi_head != "none" else 0
+        cells = self._cells_width if self.roi_head != "none" else 0
         return 1024 + cells + (self.image_size**2 if self.roi_head == "jaw_depth" else 0)
+
+    @property
+    def _cells_width(self) -> int:
+        """Floats of the conv2 feature map a jaw-grid encoding carries (S/2 * S/2 * C)."""
+        return self.conv2_channels * (self.image_size // 2) ** 2
 
     def encode(self, depth: torch.Tensor) -> torch.Tensor:
         """Raw depth crops (n, 1, S, S) in metres -> (n, ``encoding_width``): the image term of fc4,
-        followed with ``roi_head`` by the flattened conv2 feature map. One array per window, so
+        followed with ``roi_head`` by the flattened conv2 feature map (and for "jaw_depth" the raw
+        crop). One array per window, so
         the encoder / head split (export, the service's cache) is the same for both heads."""
         ref, raw = None, depth
         if self.fc4_ref is not None:
@@ -208,8 +214,8 @@ class GraspQualityNet(nn.Module):
     def encoding_cells(self, encoding: torch.Tensor) -> torch.Tensor:
         """The feature map an encoding (n, ``encoding_width``) carries after its image term, as
         rows of channels (n, S/2 * S/2, C): what ``roi_term`` reads."""
-        n_cells = self.conv2_channels * (self.image_size // 2) ** 2
-        return encoding[:, 1024 : 1024 + n_cells].reshape(encoding.shape[0], -1, self.conv2_channels)
+        cells = encoding[:, 1024 : 1024 + self._cells_width]
+        return cells.reshape(encoding.shape[0], -1, self.conv2_channels)
 
     def encoding_crop(self, encoding: torch.Tensor) -> torch.Tensor | None:
         """The raw crop (n, S * S, 1) in metres a "jaw_depth" encoding carries last (else None)."""
