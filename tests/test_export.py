@@ -455,19 +455,24 @@ def test_relative_depth_and_rotation_features_export_and_read_back(tmp_path):
 
 
 def test_jaw_depth_head_exports_and_serves(tmp_path):
-    """ "jaw_depth": the encoder graph's output also carries the crop; the head graph reproduces
-    torch and the service's runtime scores with it."""
+    """ "jaw_depth" (here with a wider hidden layer, ``roi_units``): the encoder graph's output
+    also carries the crop; the head graph reproduces torch, the service's runtime scores with it
+    and the folder reads back into the same net."""
+    from export.from_onnx import fast_net_from_model_dir
     from service.runtime import FastModel
     from vgq.normalization import Normalization
 
     torch.manual_seed(0)
-    net = GraspQualityNet("fast_vgqcnn", roi_head="jaw_depth").eval()
+    opts = {"roi_head": "jaw_depth", "roi_units": 48}
+    net = GraspQualityNet("fast_vgqcnn", **opts).eval()
     torch.nn.init.normal_(net.roi_fc2.weight, std=0.05)
     torch.nn.init.normal_(net.roi_fc1.weight[:, -24:], std=0.5)  # a head that reads the depths
     imgs, poses, labels = synthetic_crops(400, np.random.default_rng(7))
     net.set_normalization(Normalization.from_data(imgs, poses, net.pose_columns))
-    card = _export_with_int8_head(net, tmp_path / "m", imgs, poses, labels, {"roi_head": "jaw_depth"})
+    card = _export_with_int8_head(net, tmp_path / "m", imgs, poses, labels, opts)
     assert card.export["verification"]["max_abs_diff_probability"] < 1e-5
+    back, _ = fast_net_from_model_dir(tmp_path / "m")
+    torch.testing.assert_close(back.roi_fc2.weight, net.roi_fc2.weight)  # (1024, 48)
     served = FastModel(tmp_path / "m", head_precision="fp32")
     term = served.encode(imgs[:1])
     assert term.shape == (1, net.encoding_width)

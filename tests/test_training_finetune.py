@@ -7,9 +7,10 @@ import json
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from training.__main__ import main as cli
-from training.checkpoint import CheckpointError, load_checkpoint
+from training.checkpoint import CheckpointError, load_checkpoint, net_from_checkpoint
 from training.config import TrainConfig
 from training.data import DatasetError
 from training.synthetic import make_synthetic_crop_dataset
@@ -71,6 +72,35 @@ def test_a_jaw_depth_head_starts_from_a_jaw_grid_runs_head(datasets, base_run, t
     assert torch.allclose(ft["roi_fc1.weight"][:, : w0.shape[1]].float(), w0.float(), atol=1e-6)
     assert ft["roi_fc1.weight"][:, w0.shape[1] :].abs().max() < 1e-9
     assert torch.allclose(ft["roi_fc2.weight"].float(), init["model"]["roi_fc2.weight"].float(), atol=1e-6)
+
+
+def test_a_wider_jaw_grid_starts_as_the_narrower_runs_network(datasets, base_run, tmp_path):
+    """``roi_units``: a fine-tune into more hidden units keeps the init's units first and its
+    scores (the new units' weights into fc4 start at zero, their inputs fresh so they can learn);
+    a narrower grid than the init's is refused by name."""
+    jaw = TrainConfig(samples=16, **FAST, init=str(base_run), roi_head="jaw", roi_units=8)
+    train(jaw, datasets / "main", tmp_path / "jaw", progress=False)
+    ckpt = load_checkpoint(tmp_path / "jaw" / "checkpoints" / "last.pt")
+    for name in ("roi_fc1.bias", "roi_fc2.weight"):  # a grid that has learnt something (one step has not)
+        ckpt["model"][name] = 0.3 * torch.randn(ckpt["model"][name].shape, generator=torch.Generator().manual_seed(1))
+    torch.save(ckpt, tmp_path / "jaw.pt")
+    cfg = TrainConfig(
+        samples=16, **{**FAST, "base_lr": 1e-12}, init=str(tmp_path / "jaw.pt"), roi_head="jaw", roi_units=24
+    )
+    train(cfg, datasets / "main", tmp_path / "ft", progress=False)
+    init = net_from_checkpoint(ckpt)
+    ft = net_from_checkpoint(load_checkpoint(tmp_path / "ft" / "checkpoints" / "last.pt"))
+    assert ft.roi_fc1.weight.shape[0] == 24 and ft.roi_fc1.weight[8:].abs().min() > 0
+    g = torch.Generator().manual_seed(0)
+    s = init.image_size
+    crops = 0.6 + 0.05 * torch.rand(6, 1, s, s, generator=g)
+    poses = torch.cat([torch.rand(6, 2, generator=g) * 8 - 4, 0.6 + 0.1 * torch.rand(6, 1, generator=g),
+                       F.normalize(torch.randn(6, 4, generator=g), dim=1)], dim=1)  # fmt: skip
+    with torch.no_grad():
+        assert torch.allclose(ft(crops, poses), init(crops, poses), atol=1e-5)
+    narrow = TrainConfig(samples=16, **FAST, init=str(tmp_path / "jaw.pt"), roi_head="jaw", roi_units=4)
+    with pytest.raises(CheckpointError, match="roi_fc1"):
+        train(narrow, datasets / "main", tmp_path / "narrow", progress=False)
 
 
 def test_init_of_other_crop_geometry_is_refused(datasets, base_run, tmp_path):

@@ -106,11 +106,12 @@ def net_options(ckpt: dict) -> dict:
         "pose_features": str(cfg.get("pose_features", "raw")),
         "pose_units": int(cfg.get("pose_units", 16)),
         "roi_head": str(cfg.get("roi_head", "none")),
+        "roi_units": int(cfg.get("roi_units", 128)),
     }
 
 
 # a fine-tune may change these: its pose stream, or the jaw-grid head it adds, starts fresh
-POSE_STREAM_OPTIONS = ("pose_features", "pose_units", "roi_head")
+POSE_STREAM_OPTIONS = ("pose_features", "pose_units", "roi_head", "roi_units")
 POSE_STREAM_WEIGHTS = ("pc1.weight", "pc1.bias", "fc4_pose.weight")
 ROI_WEIGHTS = ("roi_fc1.weight", "roi_fc1.bias", "roi_fc2.weight", "roi_focal_px")
 
@@ -120,7 +121,8 @@ def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
 
     Every tensor whose name and shape match is copied. Only the pose stream may differ (a run
     that changes ``pose_features`` or ``pose_units``), or a jaw-grid head be added (``roi_head``;
-    its last layer starts at zero, so the fine-tune starts from the initial network): pc1 keeps its fresh initialisation and
+    its last layer starts at zero, so the fine-tune starts from the initial network) or widened
+    (``roi_head`` jaw_depth, ``roi_units``: :func:`_widen_roi`): pc1 keeps its fresh initialisation and
     fc4's pose weights start at zero, so the first step's network is the initial one's image
     path with fc4's bias and no pose term, and the pose stream learns from there. CheckpointError
     for any other missing or mismatched tensor."""
@@ -139,12 +141,31 @@ def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
         if "roi_fc2.weight" in fresh:  # a new jaw-grid head adds nothing until it learns
             net.roi_fc2.weight.zero_()
         w, mine = state.get("roi_fc1.weight"), own.get("roi_fc1.weight")
-        wider = w is not None and mine is not None and w.shape[0] == mine.shape[0] and w.shape[1] < mine.shape[1]
-        if wider:  # a jaw grid that reads more per point ("jaw_depth"): its features first, the new inputs at zero
-            net.roi_fc1.weight.zero_()
-            net.roi_fc1.weight[:, : w.shape[1]] = w
-            fresh.remove("roi_fc1.weight")
+        if w is not None and mine is not None and tuple(w.shape) != tuple(mine.shape):
+            _widen_roi(net, state, fresh)
     return fresh
+
+
+def _widen_roi(net: GraspQualityNet, state: dict, fresh: list[str]) -> None:
+    """Load a jaw grid into a wider one, the network's function unchanged: more inputs per
+    point ("jaw_depth": the init's features first, the new inputs at zero) and / or more hidden
+    units (``roi_units``: the init's units first; the new ones keep their fresh inputs and start
+    with zero weight into fc4, so they add nothing until they learn). Narrower is an error."""
+    w, b, w2 = state["roi_fc1.weight"], state["roi_fc1.bias"], state["roi_fc2.weight"]
+    (units, inputs), (my_units, my_inputs) = w.shape, net.roi_fc1.weight.shape
+    if units > my_units or inputs > my_inputs:
+        raise CheckpointError(
+            f"init weights do not fit the network: roi_fc1.weight has {tuple(w.shape)}, needs at most "
+            f"{(my_units, my_inputs)} (a jaw grid can be widened, not narrowed)"
+        )
+    net.roi_fc1.weight[:units] = 0.0
+    net.roi_fc1.weight[:units, :inputs] = w
+    net.roi_fc1.bias[:units] = b
+    net.roi_fc2.weight.zero_()
+    net.roi_fc2.weight[:, :units] = w2
+    for name in ("roi_fc1.weight", "roi_fc1.bias", "roi_fc2.weight"):
+        if name in fresh:
+            fresh.remove(name)
 
 
 def net_from_checkpoint(ckpt: dict) -> GraspQualityNet:

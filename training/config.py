@@ -19,6 +19,7 @@ PRECISIONS = ("fp32", "bf16", "auto")
 SELECT_ON = ("data", "mix", "mean")
 TARGETS = ("label", "success_rate", "teacher")
 ROI_HEADS = ("none", "jaw", "jaw_depth")  # training.networks.GraspQualityNet's roi_head
+ROI_UNITS = 128  # the jaw grid's hidden layer (roi_fc1's outputs): the default of roi_units
 
 
 @dataclass
@@ -52,6 +53,10 @@ class TrainConfig:
             "help": "'none': the head reads the window's image term only (the paper's) | 'jaw': it also reads "
             "the encoder's 16 x 16 feature map on a grid turned to the grasp's jaw axis (fast_vgqcnn)",
         },
+    )
+    roi_units: int = field(
+        default=ROI_UNITS,
+        metadata={"help": "width of the jaw grid's hidden layer (roi_fc1; roi_head jaw or jaw_depth)"},
     )
     samples: int = 10_000_000  # training samples to see in total (paper ablations: 10 M)
     batch_size: int = 64  # global batch (split evenly over DDP processes)
@@ -156,6 +161,7 @@ class TrainConfig:
             "eval_batch_size",
             "conv2_channels",
             "pose_units",
+            "roi_units",
         ):
             if int(getattr(self, name)) <= 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")

@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from training.config import ROI_HEADS
+from training.config import ROI_HEADS, ROI_UNITS
 from vgq.normalization import IMAGE_REFERENCES, REFERENCE_PIXELS, Normalization
 from vgq.pose import POSE_COLUMNS, POSE_FEATURES
 
@@ -34,7 +34,6 @@ ARCHITECTURES = tuple(POSE_COLUMNS)
 # the jaw grid (metres in the gripper's frame, at the grasp's depth): along the jaw axis, across it
 JAW_GRID_ALONG = (-0.04, 0.04, 8)
 JAW_GRID_ACROSS = (-0.012, 0.012, 3)
-ROI_UNITS = 128
 JAW_DEPTH_SCALE = 0.01  # metres: "jaw_depth" reads the depth at each grid point relative to the grasp's, in cm
 
 
@@ -85,6 +84,7 @@ class GraspQualityNet(nn.Module):
         pose_units: int = 16,
         roi_head: str = "none",
         roi_focal_px: float = 175.0,
+        roi_units: int = ROI_UNITS,
     ):
         super().__init__()
         if roi_head not in ROI_HEADS:
@@ -97,6 +97,8 @@ class GraspQualityNet(nn.Module):
             raise ValueError(f"pose_features must be one of {POSE_FEATURES}, got {pose_features!r}")
         if pose_units < 1:
             raise ValueError(f"pose_units must be >= 1, got {pose_units}")
+        if roi_units < 1:
+            raise ValueError(f"roi_units must be >= 1, got {roi_units}")
         if depth_reference not in IMAGE_REFERENCES:
             raise ValueError(f"depth_reference must be one of {IMAGE_REFERENCES}, got {depth_reference!r}")
         self.depth_reference = depth_reference
@@ -136,8 +138,8 @@ class GraspQualityNet(nn.Module):
             self.register_buffer("jaw_grid", grid, persistent=False)
             self.register_buffer("roi_focal_px", torch.tensor(float(roi_focal_px)))
             points = grid.shape[0] * grid.shape[1]  # "jaw_depth": then one relative depth per point
-            self.roi_fc1 = nn.Linear((c2 + (roi_head == "jaw_depth")) * points, ROI_UNITS)
-            self.roi_fc2 = nn.Linear(ROI_UNITS, 1024, bias=False)
+            self.roi_fc1 = nn.Linear((c2 + (roi_head == "jaw_depth")) * points, int(roi_units))
+            self.roi_fc2 = nn.Linear(int(roi_units), 1024, bias=False)
         self.register_buffer("image_mean", torch.zeros(()))
         self.register_buffer("image_std", torch.ones(()))
         self.register_buffer("pose_mean", torch.zeros(n_pose))

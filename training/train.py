@@ -410,6 +410,7 @@ def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit
         pose_features=cfg.pose_features,
         pose_units=cfg.pose_units,
         roi_head=cfg.roi_head,
+        roi_units=cfg.roi_units,
         roi_focal_px=data.intrinsics.fx * data.geometry.out / data.geometry.window,  # crop px per unit depth
     ).to(memory_format=torch.channels_last)  # oneDNN's convolutions ~1.1x faster (training.bench)
     opt = _optimizer(cfg, net)
