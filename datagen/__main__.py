@@ -381,6 +381,34 @@ def cmd_recipe(args) -> int:
                 "crops_lfo",
             ),
         ]
+    if args.more_test:  # more held-out objects per family: tighter per-family test numbers, no retraining
+        if not recipe["families"]:
+            raise CliError(f"--more-test: recipe {args.version} has no procedural families")
+        from .families import family_names
+
+        names = [f.split("=")[0] for f in recipe["families"].split(",")]
+        more = f"all={args.more_test}" if names == ["all"] else ",".join(f"{n}={args.more_test}" for n in names)
+        names = family_names() if names == ["all"] else names
+        held = shlex.quote("sampling.holdout_families=" + json.dumps(names, separators=(",", ":")))
+        seed = recipe["seed"] + 1  # another run seed: shapes the recipe never drew (same names, new parameters)
+        steps += [
+            (
+                f"python -m datagen generate --out {out / 'grasps_more'} --objects 0 --families {more} "
+                f"--cameras {recipe['cameras']} --seed {seed} --workers {workers} "
+                + " ".join(f"--set {k}={json.dumps(v)}" for k, v in recipe["set"].items()),
+                None,
+            ),
+            (
+                f"python -m datagen sample --in {out / 'grasps_more'} --out {out / 'sampled_more'} "
+                f"--seed {recipe['seed']} {samp} --set {held}",
+                "sampled_more",
+            ),
+            (
+                f"python -m datagen crops --in {out / 'sampled_more'} --out {out / 'crops_more'} {crops} "
+                f"--sensor {recipe['sensor']} --splits test",
+                "crops_more",
+            ),
+        ]
     for s, _ in steps:
         print(s)
     if args.dry_run:
@@ -702,6 +730,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-leave-out",
         action="store_true",
         help="skip the leave-family-out split (build it later by rerunning without this flag)",
+    )
+    r.add_argument(
+        "--more-test",
+        type=_positive_int("--more-test"),
+        metavar="N",
+        help="also N new objects of each procedural family (run seed + 1), all in test: grasps_more, "
+        "sampled_more, crops_more (per-family test numbers on more objects, for the same model)",
     )
     r.add_argument(
         "--no-physics-cache",

@@ -202,3 +202,28 @@ def test_v2_recipe_replays_its_recorded_physics_trials_when_the_file_is_there(tm
     g = generate()
     assert g[g.index("--physics-cache") + 1] == str(tmp_path / cli.RECIPES["v2"]["physics_cache"])
     assert "--physics-cache" not in generate("--no-physics-cache")
+
+
+def test_more_test_objects_are_new_shapes_of_every_family_all_held_out(tmp_path, capsys, monkeypatch):
+    import shlex
+
+    import datagen.__main__ as cli
+    from datagen.families import family_names
+    from vgq.cli_config import parse_override
+
+    argv = ("recipe", "--version", "v2", "--out", tmp_path, "--dry-run", "--no-leave-out", "--more-test", "3")
+    rc, out, _ = run_main(capsys, *argv)
+    lines = [shlex.split(ln) for ln in out.strip().splitlines()]
+    assert rc == 0 and [a[3] for a in lines[-3:]] == ["generate", "sample", "crops"]
+    gen, samp, crops = lines[-3:]
+    assert gen[gen.index("--families") + 1] == "all=3" and gen[gen.index("--objects") + 1] == "0"
+    assert gen[gen.index("--seed") + 1] == "1" != lines[0][lines[0].index("--seed") + 1]  # not the recipe's shapes
+    assert "--physics-cache" not in gen  # the recorded trials are the recipe's objects'
+    key, held = parse_override(samp[-1])
+    assert key == "sampling.holdout_families" and sorted(held) == sorted(family_names())
+    assert crops[-2:] == ["--splits", "test"] and crops[crops.index("--out") + 1].endswith("crops_more")
+    monkeypatch.setitem(cli.RECIPES, "v2", {**cli.RECIPES["v2"], "families": "mug=5,box=2"})
+    gen = shlex.split(run_main(capsys, *argv)[1].strip().splitlines()[-3])
+    assert gen[gen.index("--families") + 1] == "mug=3,box=3"
+    rc, _, err = run_main(capsys, "recipe", "--version", "v1", "--out", tmp_path, "--dry-run", "--more-test", "3")
+    assert rc == 2 and "no procedural families" in err
