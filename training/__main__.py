@@ -1,4 +1,4 @@
-"""Command line: ``python -m training {train,evaluate,baseline,ablation,label-noise,bench} ...``.
+"""Command line: ``python -m training {train,evaluate,baseline,ablation,label-noise,centroid-probe,bench} ...``.
 
 Training options are generated from ``TrainConfig`` (``--batch-size``, ``--base-lr``, ...)
 by the shared bridge ``vgq.cli_config``, so the dataclass stays the one place where they
@@ -93,6 +93,16 @@ def build_parser() -> argparse.ArgumentParser:
     n = sub.add_parser("label-noise", help="the balanced accuracy / AUC ceiling the physics label's trial noise sets")
     n.add_argument("--data", required=True, help="crop dataset folder (physics label)")
     n.add_argument("--split", default="test", choices=("train", "val", "test"))
+
+    c = sub.add_parser(
+        "centroid-probe", help="what a grasp's offset from the object's visible centroid adds to a model's score"
+    )
+    c.add_argument("--sampled", required=True, help="sampled dataset folder (datagen sample) the crops were cut from")
+    c.add_argument("--crops", required=True, help="its crop dataset folder (the test split is probed)")
+    c.add_argument("--model-dir", required=True, help="exported Fast-VGQ-CNN folder")
+    c.add_argument("--per-object", type=int, default=1500, help="grasps drawn per object (default 1500)")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--json", help="also write the result here")
 
     s = sub.add_parser("bench", help="training throughput (samples/s) of full SGD steps on this CPU")
     s.add_argument("--arch", default="fast_vgqcnn", choices=("fast_vgqcnn", "vgqcnn", "gqcnn"))
@@ -200,6 +210,17 @@ def main(argv: list[str] | None = None) -> int:
 
             c = dataset_ceiling(args.data, args.split)
             print(json.dumps({"split": args.split, **asdict(c)}))
+        elif args.command == "centroid-probe":
+            from .centroid_probe import probe, table
+
+            if args.per_object < 1:
+                raise ValueError(f"--per-object must be >= 1, got {args.per_object}")
+            rec = probe(args.sampled, args.crops, args.model_dir, args.per_object, args.seed)
+            print(table(rec))
+            if args.json:
+                from vgq import atomic
+
+                atomic.write_json(args.json, rec)
         elif args.command == "bench":
             from .bench import measure_predict_throughput, measure_train_throughput
 

@@ -1,0 +1,202 @@
+"""What the score misses: does a grasp's distance from the object's centre add to the model?
+
+A lift holds an object against gravity, so a grasp far from the centre of mass must resist a
+torque the 32 x 32 window may not show (a tall bottle held by its neck). This probe measures,
+on a sampled dataset (``datagen sample``: its shards keep each image with its camera pose) and
+its crops:
+
+* per grasp, the horizontal distance (metres, world frame, z up from the table) of the grasp
+  centre from the centroid of the object's points that the image sees, the grasp centre's height
+  above the table and the visible top's height;
+* how success and the model's "good" rate fall with that distance, per family;
+* object-wise two-fold cross-validation of two class-balanced logistic fits on the same rows:
+  the score alone (a recalibration) and the score with the geometry. The difference is what the
+  geometry adds on objects the fit never saw.
+
+``python -m training centroid-probe --sampled data/v2x/sampled_more --crops data/v2x/crops_more
+--model-dir models/fast-vgqcnn-default``
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+
+from vgq.camera import Intrinsics, deproject
+
+#: points this high above the table (metres) belong to the object
+OBJECT_MIN_HEIGHT_M = 0.003
+#: horizontal offset bins of the report (metres)
+OFFSET_BINS_M = (0.0, 0.01, 0.02, 0.04, 0.08, np.inf)
+
+
+def visible_centroid(depth: np.ndarray, T_world_camera: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, float]:
+    """World-frame centroid (3,) of the object's visible points in a depth image (H, W) (metres)
+    and the highest visible point's height; (nan, nan) when the image shows no object."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w]
+    pts = deproject(np.stack([u.ravel(), v.ravel(), depth.ravel()], axis=1), intr)
+    world = pts @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
+    obj = world[(depth.ravel() > 0) & (world[:, 2] > OBJECT_MIN_HEIGHT_M)]
+    if len(obj) == 0:
+        return np.full(3, np.nan), float("nan")
+    return obj.mean(axis=0), float(obj[:, 2].max())
+
+
+def grasp_offsets(shard: dict, rows: np.ndarray, intr: Intrinsics) -> dict[str, np.ndarray]:
+    """For the grasp ``rows`` of a sampled shard (arrays ``depth``, ``T_world_camera``,
+    ``image_index``, ``u``, ``v``, ``z``): ``offset`` (horizontal distance of the grasp centre from
+    its image's visible centroid), ``height`` (grasp centre above the table) and ``top`` (the
+    visible top's height), all (n,) metres."""
+    images = np.asarray(shard["image_index"])[rows]
+    cent = {int(i): visible_centroid(shard["depth"][i], shard["T_world_camera"][i], intr) for i in np.unique(images)}
+    g = deproject(np.stack([shard["u"][rows], shard["v"][rows], shard["z"][rows]], axis=1), intr)
+    T = np.asarray(shard["T_world_camera"])[images]
+    gw = np.einsum("nij,nj->ni", T[:, :3, :3], g) + T[:, :3, 3]
+    c = np.stack([cent[int(i)][0] for i in images])
+    return {
+        "offset": np.linalg.norm(gw[:, :2] - c[:, :2], axis=1),
+        "height": gw[:, 2],
+        "top": np.array([cent[int(i)][1] for i in images]),
+    }
+
+
+def fit_balanced_logistic(X: np.ndarray, y: np.ndarray, l2: float = 1e-3):
+    """Logistic regression on standardised features with class-balanced weights; returns a function
+    (m, d) -> (m,) bool (predicted positive)."""
+    mu, sd = X.mean(axis=0), X.std(axis=0) + 1e-9
+    Z = np.c_[(X - mu) / sd, np.ones(len(X))]
+    y = np.asarray(y, dtype=np.float64)
+    w = np.where(y > 0, 0.5 / y.mean(), 0.5 / (1 - y.mean()))
+
+    def loss(b):
+        t = Z @ b
+        return (
+            float(np.sum(w * (np.logaddexp(0, t) - y * t)) + l2 * b @ b),
+            Z.T @ (w * (1 / (1 + np.exp(-t)) - y)) + 2 * l2 * b,
+        )
+
+    b = minimize(loss, np.zeros(Z.shape[1]), jac=True, method="L-BFGS-B").x
+    return lambda X2: np.c_[(X2 - mu) / sd, np.ones(len(X2))] @ b > 0
+
+
+def balanced_accuracy(y: np.ndarray, p: np.ndarray) -> float:
+    return 0.5 * (float(np.mean(p[y])) + float(np.mean(~p[~y])))
+
+
+def features(score: np.ndarray, geo: dict[str, np.ndarray] | None) -> np.ndarray:
+    """(n, d) rows: the score's logit, and with ``geo`` the offset, height and top (cm) and log terms."""
+    s = np.clip(np.asarray(score, np.float64), 1e-6, 1 - 1e-6)
+    lg = np.log(s / (1 - s))
+    if geo is None:
+        return lg[:, None]
+    off, h, top = (100 * geo[k] for k in ("offset", "height", "top"))
+    return np.stack([lg, off, np.log1p(off), h, top, h / np.maximum(top, 1e-3), lg * np.log1p(off)], axis=1)
+
+
+def object_cv(
+    X: dict[str, np.ndarray], y: np.ndarray, object_id: np.ndarray, family: np.ndarray, repeats: int = 5
+) -> dict[str, dict[str, float]]:
+    """Mean balanced accuracy over ``repeats`` object-wise two-fold splits (objects halved within
+    each family) of a balanced logistic fit per feature set ``X`` (name -> (n, d)): name -> family
+    (and "all") -> fraction."""
+    fams = sorted(set(family.tolist()))
+    out: dict[str, dict[str, list]] = {k: {} for k in X}
+    for rep in range(repeats):
+        rng = np.random.default_rng(rep)
+        half = {}
+        for f in fams:
+            objs = np.unique(object_id[family == f])
+            rng.shuffle(objs)
+            half.update({int(o): i % 2 for i, o in enumerate(objs)})
+        fold = np.array([half[int(o)] for o in object_id])
+        for name, Xs in X.items():
+            pred = np.zeros(len(y), bool)
+            for k in (0, 1):
+                pred[fold == k] = fit_balanced_logistic(Xs[fold != k], y[fold != k])(Xs[fold == k])
+            for f in ["all", *fams]:
+                r = np.ones(len(y), bool) if f == "all" else family == f
+                out[name].setdefault(f, []).append(balanced_accuracy(y[r], pred[r]))
+    return {n: {f: float(np.mean(v)) for f, v in d.items()} for n, d in out.items()}
+
+
+def probe(sampled: str | Path, crops: str | Path, model_dir: str | Path, per_object: int = 1500, seed: int = 0) -> dict:
+    """Run the probe on the test split of ``crops`` (cut from ``sampled``, rows in shard order) with
+    the exported model ``model_dir``: up to ``per_object`` random grasps of each object."""
+    from datagen import storage
+    from export.evaluate import raw_scores
+
+    crops, sampled = Path(crops), Path(sampled)
+    m = json.loads((crops / storage.MANIFEST).read_text())
+    intr = Intrinsics(**m["intrinsics"])
+    fam = {int(o["object_id"]): o.get("family") or "random_urdfs" for o in m["source"]["objects"]}
+    arr = storage.open_crops(crops, "test")
+    test_objects = set(np.unique(np.asarray(arr["object_id"])).tolist())
+    rng = np.random.default_rng(seed)
+    start, parts = 0, []
+    for path in sorted((sampled / "shards").glob("*.npz")):
+        with np.load(path) as z:
+            if int(z["object_id"][0]) not in test_objects:
+                continue
+            shard = {k: z[k] for k in ("depth", "T_world_camera", "image_index", "u", "v", "z", "quality", "object_id")}
+        n = len(shard["quality"])
+        if not np.array_equal(shard["quality"], np.asarray(arr["quality"][start : start + n])):
+            raise ValueError(f"{crops} test rows are not {sampled}'s shards in order (at {path.name})")
+        take = np.sort(rng.choice(n, min(n, per_object), replace=False))
+        parts.append((start + take, grasp_offsets(shard, take, intr)))
+        start += n
+    if start != len(arr["quality"]):
+        raise ValueError(f"{crops} test split has {len(arr['quality'])} rows; {sampled}'s test shards {start}")
+    ix = np.concatenate([p[0] for p in parts])
+    geo = {k: np.concatenate([p[1][k] for p in parts]) for k in ("offset", "height", "top")}
+    ok = np.isfinite(geo["offset"])
+    ix, geo = ix[ok], {k: v[ok] for k, v in geo.items()}
+    y = np.asarray(arr["labels"][ix]).astype(bool)
+    oid = np.asarray(arr["object_id"][ix])
+    family = np.array([fam[int(o)] for o in oid])
+    score = raw_scores(model_dir, np.asarray(arr["images"][ix], np.float32), np.asarray(arr["poses"][ix], np.float32))
+    good = score >= 0.5
+    bins = {}
+    for f in sorted(set(family.tolist())):
+        r = family == f
+        rows = []
+        for lo, hi in zip(OFFSET_BINS_M[:-1], OFFSET_BINS_M[1:]):
+            b = r & (geo["offset"] >= lo) & (geo["offset"] < hi)
+            if b.sum() >= 50:
+                rows.append(
+                    {
+                        "offset_m": [lo, hi],
+                        "n": int(b.sum()),
+                        "success": float(y[b].mean()),
+                        "good": float(good[b].mean()),
+                    }
+                )
+        bins[f] = rows
+    cv = object_cv({"score": features(score, None), "score_geometry": features(score, geo)}, y, oid, family)
+    raw = {
+        f: balanced_accuracy(y[r], good[r])
+        for f, r in [("all", np.ones(len(y), bool))] + [(f, family == f) for f in sorted(set(family.tolist()))]
+    }
+    return {"rows": int(len(y)), "raw": raw, "cv": cv, "bins": bins}
+
+
+def table(rec: dict) -> str:
+    lines = [
+        "| family | score >= 0.5 | score recalibrated (object CV) | score + centroid offset, height (object CV) |",
+        "|---|---:|---:|---:|",
+    ]
+    for f, v in rec["raw"].items():
+        lines.append(
+            f"| {f} | {100 * v:.1f}% | {100 * rec['cv']['score'][f]:.1f}% | {100 * rec['cv']['score_geometry'][f]:.1f}% |"
+        )
+    lines.append("\nsuccess / scored good (>= 0.5) by horizontal offset from the visible centroid:")
+    for f, rows in rec["bins"].items():
+        cells = ", ".join(
+            f"{100 * r['offset_m'][0]:.0f}-{100 * r['offset_m'][1]:.0f} cm {r['success']:.2f} / {r['good']:.2f}"
+            for r in rows
+        )
+        lines.append(f"  {f}: {cells}".replace("-inf cm", "+ cm"))
+    return "\n".join(lines)
