@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -77,6 +78,22 @@ def raw_scores(model_dir: str | Path, images: np.ndarray, poses: np.ndarray, bat
         terms = model.encode(images[s : s + batch])
         out[s : s + batch] = model.score(terms, poses[s : s + batch])
     return out
+
+
+#: metrics keys of the card that the export writes (``python -m export``, ``export.leave_family_out``)
+EXPORT_METRICS = frozenset({"test", "test_clean", "leave_family_out", "baseline_mlp"})
+
+
+def record_in_card(model_dir: str | Path, key: str, value: dict) -> None:
+    """Set ``metrics[key]`` of the model card in ``model_dir`` to ``value``, every other key as it was
+    (the card rewritten atomically)."""
+    from vgq import atomic
+    from vgq.model_card import CARD_NAME
+
+    path = Path(model_dir) / CARD_NAME
+    d = json.loads(path.read_text())
+    d.setdefault("metrics", {})[key] = value
+    atomic.write_json(path, d)
 
 
 def mirrored(images: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -141,7 +158,15 @@ def main(argv=None) -> dict:
         help="score a model on crops cut for another geometry (e.g. an unturned model on windows turned "
         "towards the jaw: the start of a fine-tune into them); refused otherwise",
     )
+    p.add_argument(
+        "--card-key",
+        metavar="KEY",
+        help="also record each model's result in its model card as metrics.KEY (with the data folder, split, "
+        "rows and seed), e.g. test_more_objects; the card is rewritten atomically, its other keys kept",
+    )
     a = p.parse_args(argv)
+    if a.card_key is not None and (a.card_key in EXPORT_METRICS or not re.fullmatch(r"[a-z][a-z0-9_]*", a.card_key)):
+        p.error(f"--card-key {a.card_key!r}: use lower-case letters, digits and _, not one of {sorted(EXPORT_METRICS)}")
     if a.max_n < 1:
         p.error("--max-n must be >= 1")
     for d in a.model_dir:
@@ -164,6 +189,10 @@ def main(argv=None) -> dict:
             variants[f"{d} (mean of it and its mirror)"] = 0.5 * (scores + m_scores)
         for name, sc in variants.items():
             results[name] = _report(name, sc, rows, a)
+        if a.card_key:
+            where = {"data": str(a.data), "split": a.split, "max_n": a.max_n, "seed": a.seed}
+            record_in_card(d, a.card_key, {**results[d], **where})
+            print(f"{d}: model card metrics.{a.card_key} written")
         if a.mirror:
             corr = float(np.corrcoef(scores, m_scores)[0, 1])
             results[f"{d} (mirrored)"]["score_correlation_with_original"] = corr

@@ -96,3 +96,23 @@ def test_a_model_is_not_scored_on_crops_cut_for_another_geometry_unless_asked(mo
         ["--model-dir", str(model_dir), "--data", str(turned), "--split", "train", "--max-n", "20", "--other-crops"]
     )
     assert res[str(model_dir)]["all"]["n"] == 20
+
+
+def test_card_key_records_the_result_in_the_card_keeping_every_other_key(model_dir, crops, tmp_path, capsys):
+    import json
+    import shutil
+
+    card = tmp_path / "m"
+    shutil.copytree(model_dir, card)
+    before = json.loads((card / "model_card.json").read_text())
+    res = main(
+        ["--model-dir", str(card), "--data", str(crops), "--split", "train", "--max-n", "40", "--card-key", "more"]
+    )
+    after = json.loads((card / "model_card.json").read_text())
+    got = after["metrics"].pop("more")
+    assert after == before  # nothing else touched
+    assert got["all"] == res[str(card)]["all"] and got["split"] == "train" and got["max_n"] == 40
+    for bad in ("test", "Not-A-Key"):
+        with pytest.raises(SystemExit) as e:
+            main(["--model-dir", str(card), "--data", str(crops), "--card-key", bad])
+        assert e.value.code == 2 and "--card-key" in capsys.readouterr().err
