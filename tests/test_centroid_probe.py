@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from training.centroid_probe import features, grasp_offsets, object_cv
+from training.centroid_probe import features, grasp_offsets, image_offsets, object_cv
 from vgq.camera import Intrinsics
 
 INTR = Intrinsics(fx=100.0, fy=100.0, cx=50.0, cy=50.0, width=100, height=100)
@@ -27,6 +27,24 @@ def test_offset_is_the_horizontal_distance_from_the_visible_top_centroid():
     assert g["offset"][0] == pytest.approx(np.hypot(0.11 - centre[0], 0.0 - centre[1]))
     assert g["offset"][1] == pytest.approx(np.hypot(*(np.array([-0.5, 0.5]) * 0.58 / 100 - centre)), abs=1e-9)
     assert g["height"] == pytest.approx([0.05, 0.02]) and g["top"] == pytest.approx([0.05, 0.05])
+
+
+def test_the_image_alone_gives_the_same_offsets_through_its_table_plane():
+    depth = np.full((100, 100), 0.6)
+    depth[40:60, 40:60] = 0.55
+    shard = {
+        "depth": depth[None],
+        "T_world_camera": DOWN[None],
+        "image_index": np.array([0, 0]),
+        "u": np.array([70.0, 20.0]),
+        "v": np.array([50.0, 45.0]),
+        "z": np.array([0.55, 0.6]),
+    }
+    known, seen = grasp_offsets(shard, np.array([0, 1]), INTR), image_offsets(shard, np.array([0, 1]), INTR)
+    for k in ("offset", "height", "top"):
+        np.testing.assert_allclose(seen[k], known[k], atol=2e-3)
+    flat = {**shard, "depth": np.full((1, 100, 100), 0.6)}  # nothing on the table
+    assert np.isnan(image_offsets(flat, np.array([0]), INTR)["offset"]).all()
 
 
 def test_object_cv_credits_geometry_only_where_it_predicts_on_unseen_objects():

@@ -9,9 +9,11 @@ its crops:
   centre from the centroid of the object's points that the image sees, the grasp centre's height
   above the table and the visible top's height;
 * how success and the model's "good" rate fall with that distance, per family;
-* object-wise two-fold cross-validation of two class-balanced logistic fits on the same rows:
-  the score alone (a recalibration) and the score with the geometry. The difference is what the
-  geometry adds on objects the fit never saw.
+* object-wise two-fold cross-validation of class-balanced logistic fits on the same rows: the
+  score alone (a recalibration), the score with the geometry from the known camera pose, and the
+  score with the same geometry estimated from the depth image alone (the planner's table plane and
+  object regions: what a service could compute). The differences are what the geometry adds on
+  objects the fit never saw.
 
 ``python -m training centroid-probe --sampled data/v2x/sampled_more --crops data/v2x/crops_more
 --model-dir models/fast-vgqcnn-default``
@@ -62,6 +64,38 @@ def grasp_offsets(shard: dict, rows: np.ndarray, intr: Intrinsics) -> dict[str, 
         "height": gw[:, 2],
         "top": np.array([cent[int(i)][1] for i in images]),
     }
+
+
+def image_offsets(shard: dict, rows: np.ndarray, intr: Intrinsics, seed: int = 0) -> dict[str, np.ndarray]:
+    """:func:`grasp_offsets` from the depth image alone, as a service could compute them: the table
+    by the planner's RANSAC (``planning.sampler.find_table``), the largest object region's centre of
+    mass guess (``planning.sampler.object_centres``), distances in the table plane; NaN where the
+    image shows no table or no object."""
+    from planning.cloud import backproject
+    from planning.sampler import find_table, object_centres
+    from planning.types import PlanParams
+
+    params, rng = PlanParams(), np.random.default_rng(seed)
+    images = np.asarray(shard["image_index"])[rows]
+    g = deproject(np.stack([shard["u"][rows], shard["v"][rows], shard["z"][rows]], axis=1), intr)
+    out = {k: np.full(len(rows), np.nan) for k in ("offset", "height", "top")}
+    for i in np.unique(images):
+        pts, valid = backproject(np.asarray(shard["depth"][i], np.float64), intr)
+        table = find_table(pts, valid, params, rng)
+        if table is None:
+            continue
+        objects = valid & (table.height(pts) > params.object_height)
+        labels, centres = object_centres(pts, objects, table)
+        if len(centres) < 2:
+            continue
+        big = 1 + int(np.argmax(np.bincount(labels[labels > 0])[1:]))
+        r = images == i
+        d = centres[big] - g[r]
+        d -= (d @ table.normal)[:, None] * table.normal
+        out["offset"][r] = np.linalg.norm(d, axis=1)
+        out["height"][r] = table.height(g[r])
+        out["top"][r] = table.height(pts[labels == big]).max()
+    return out
 
 
 def fit_balanced_logistic(X: np.ndarray, y: np.ndarray, l2: float = 1e-3):
@@ -146,14 +180,15 @@ def probe(sampled: str | Path, crops: str | Path, model_dir: str | Path, per_obj
         if not np.array_equal(shard["quality"], np.asarray(arr["quality"][start : start + n])):
             raise ValueError(f"{crops} test rows are not {sampled}'s shards in order (at {path.name})")
         take = np.sort(rng.choice(n, min(n, per_object), replace=False))
-        parts.append((start + take, grasp_offsets(shard, take, intr)))
+        parts.append((start + take, grasp_offsets(shard, take, intr), image_offsets(shard, take, intr, seed)))
         start += n
     if start != len(arr["quality"]):
         raise ValueError(f"{crops} test split has {len(arr['quality'])} rows; {sampled}'s test shards {start}")
     ix = np.concatenate([p[0] for p in parts])
     geo = {k: np.concatenate([p[1][k] for p in parts]) for k in ("offset", "height", "top")}
-    ok = np.isfinite(geo["offset"])
-    ix, geo = ix[ok], {k: v[ok] for k, v in geo.items()}
+    seen = {k: np.concatenate([p[2][k] for p in parts]) for k in ("offset", "height", "top")}
+    ok = np.isfinite(geo["offset"]) & np.isfinite(seen["offset"])
+    ix, geo, seen = ix[ok], {k: v[ok] for k, v in geo.items()}, {k: v[ok] for k, v in seen.items()}
     y = np.asarray(arr["labels"][ix]).astype(bool)
     oid = np.asarray(arr["object_id"][ix])
     family = np.array([fam[int(o)] for o in oid])
@@ -175,24 +210,37 @@ def probe(sampled: str | Path, crops: str | Path, model_dir: str | Path, per_obj
                     }
                 )
         bins[f] = rows
-    cv = object_cv({"score": features(score, None), "score_geometry": features(score, geo)}, y, oid, family)
+    X = {"score": features(score, None), "score_geometry": features(score, geo), "score_image": features(score, seen)}
+    cv = object_cv(X, y, oid, family)
     raw = {
         f: balanced_accuracy(y[r], good[r])
         for f, r in [("all", np.ones(len(y), bool))] + [(f, family == f) for f in sorted(set(family.tolist()))]
     }
-    return {"rows": int(len(y)), "raw": raw, "cv": cv, "bins": bins}
+    agree = float(np.corrcoef(geo["offset"], seen["offset"])[0, 1])
+    return {
+        "rows": int(len(y)),
+        "dropped": int((~ok).sum()),
+        "raw": raw,
+        "cv": cv,
+        "bins": bins,
+        "offset_correlation": agree,
+    }
 
 
 def table(rec: dict) -> str:
+    """The probe's result as a Markdown table (object-wise CV balanced accuracy) and offset bins."""
     lines = [
-        "| family | score >= 0.5 | score recalibrated (object CV) | score + centroid offset, height (object CV) |",
-        "|---|---:|---:|---:|",
+        "| family | score >= 0.5 | score recalibrated | + offset, heights (camera pose known) | + offset, heights (image alone) |",
+        "|---|---:|---:|---:|---:|",
     ]
+    cv = rec["cv"]
     for f, v in rec["raw"].items():
-        lines.append(
-            f"| {f} | {100 * v:.1f}% | {100 * rec['cv']['score'][f]:.1f}% | {100 * rec['cv']['score_geometry'][f]:.1f}% |"
-        )
-    lines.append("\nsuccess / scored good (>= 0.5) by horizontal offset from the visible centroid:")
+        cells = " | ".join(f"{100 * cv[k][f]:.1f}%" for k in ("score", "score_geometry", "score_image"))
+        lines.append(f"| {f} | {100 * v:.1f}% | {cells} |")
+    lines.append(
+        f"\n{rec['rows']} grasps ({rec['dropped']} dropped: no object or table found); the two offsets correlate "
+        f"{rec['offset_correlation']:.3f}\nsuccess / scored good (>= 0.5) by horizontal offset from the visible centroid:"
+    )
     for f, rows in rec["bins"].items():
         cells = ", ".join(
             f"{100 * r['offset_m'][0]:.0f}-{100 * r['offset_m'][1]:.0f} cm {r['success']:.2f} / {r['good']:.2f}"
