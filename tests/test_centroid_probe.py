@@ -10,18 +10,25 @@ INTR = Intrinsics(fx=100.0, fy=100.0, cx=50.0, cy=50.0, width=100, height=100)
 DOWN = np.array([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 0.6], [0, 0, 0, 1]], float)  # 0.6 m above, looking down
 
 
-def test_offset_is_the_horizontal_distance_from_the_visible_top_centroid():
-    depth = np.full((100, 100), 0.6)  # the table, z = 0
-    depth[40:60, 40:60] = 0.55  # a 5 cm tall box's top
-    depth[0, 0] = 0.0  # no reading: ignored
-    shard = {
+def box_scene(u, v, z) -> dict:
+    """A sampled shard of one image from DOWN: the table (z = 0) and a 5 cm tall box's 20 x 20 px top
+    around pixel (49.5, 49.5), with grasps at pixels (u, v) and depths z."""
+    depth = np.full((100, 100), 0.6)
+    depth[40:60, 40:60] = 0.55
+    n = len(u)
+    return {
         "depth": depth[None],
         "T_world_camera": DOWN[None],
-        "image_index": np.array([0, 0]),
-        "u": np.array([70.0, 49.5]),
-        "v": np.array([50.0, 49.5]),
-        "z": np.array([0.55, 0.58]),
+        "image_index": np.zeros(n, int),
+        "u": np.asarray(u, float),
+        "v": np.asarray(v, float),
+        "z": np.asarray(z, float),
     }
+
+
+def test_offset_is_the_horizontal_distance_from_the_visible_top_centroid():
+    shard = box_scene([70.0, 49.5], [50.0, 49.5], [0.55, 0.58])
+    shard["depth"][0, 0, 0] = 0.0  # no reading: ignored
     g = grasp_offsets(shard, np.array([0, 1]), INTR)
     centre = np.array([-0.5 * 0.55 / 100, 0.5 * 0.55 / 100])  # world x, y of the top's mean pixel (49.5, 49.5)
     assert g["offset"][0] == pytest.approx(np.hypot(0.11 - centre[0], 0.0 - centre[1]))
@@ -30,16 +37,7 @@ def test_offset_is_the_horizontal_distance_from_the_visible_top_centroid():
 
 
 def test_the_image_alone_gives_the_same_offsets_through_its_table_plane():
-    depth = np.full((100, 100), 0.6)
-    depth[40:60, 40:60] = 0.55
-    shard = {
-        "depth": depth[None],
-        "T_world_camera": DOWN[None],
-        "image_index": np.array([0, 0]),
-        "u": np.array([70.0, 20.0]),
-        "v": np.array([50.0, 45.0]),
-        "z": np.array([0.55, 0.6]),
-    }
+    shard = box_scene([70.0, 20.0], [50.0, 45.0], [0.55, 0.6])
     known, seen = grasp_offsets(shard, np.array([0, 1]), INTR), image_offsets(shard, np.array([0, 1]), INTR)
     for k in ("offset", "height", "top"):
         np.testing.assert_allclose(seen[k], known[k], atol=2e-3)
