@@ -80,8 +80,10 @@ def raw_scores(model_dir: str | Path, images: np.ndarray, poses: np.ndarray, bat
     return out
 
 
-#: metrics keys of the card that the export writes (``python -m export``, ``export.leave_family_out``)
-EXPORT_METRICS = frozenset({"test", "test_clean", "leave_family_out", "baseline_mlp"})
+def export_writes(key: str) -> bool:
+    """Whether the export writes the card's ``metrics[key]`` itself (``python -m export``: test,
+    test_clean, baseline_<model>; ``export.leave_family_out``): not for ``--card-key`` to replace."""
+    return key in ("test", "test_clean", "leave_family_out") or key.startswith("baseline_")
 
 
 def record_in_card(model_dir: str | Path, key: str, value: dict) -> None:
@@ -165,8 +167,11 @@ def main(argv=None) -> dict:
         "rows and seed), e.g. test_more_objects; the card is rewritten atomically, its other keys kept",
     )
     a = p.parse_args(argv)
-    if a.card_key is not None and (a.card_key in EXPORT_METRICS or not re.fullmatch(r"[a-z][a-z0-9_]*", a.card_key)):
-        p.error(f"--card-key {a.card_key!r}: use lower-case letters, digits and _, not one of {sorted(EXPORT_METRICS)}")
+    if a.card_key is not None and (export_writes(a.card_key) or not re.fullmatch(r"[a-z][a-z0-9_]*", a.card_key)):
+        p.error(
+            f"--card-key {a.card_key!r}: use lower-case letters, digits and _, and none of the export's own keys "
+            "(test, test_clean, leave_family_out, baseline_*)"
+        )
     if a.max_n < 1:
         p.error("--max-n must be >= 1")
     for d in a.model_dir:

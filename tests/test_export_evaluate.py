@@ -112,7 +112,7 @@ def test_card_key_records_the_result_in_the_card_keeping_every_other_key(model_d
     got = after["metrics"].pop("more")
     assert after == before  # nothing else touched
     assert got["all"] == res[str(card)]["all"] and got["split"] == "train" and got["max_n"] == 40
-    for bad in ("test", "Not-A-Key"):
+    for bad in ("test", "baseline_gbt", "Not-A-Key"):
         with pytest.raises(SystemExit) as e:
             main(["--model-dir", str(card), "--data", str(crops), "--card-key", bad])
         assert e.value.code == 2 and "--card-key" in capsys.readouterr().err

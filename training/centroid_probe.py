@@ -29,6 +29,8 @@ from scipy.optimize import minimize
 
 from vgq.camera import Intrinsics, deproject
 
+from . import metrics as M
+
 #: points this high above the table (metres) belong to the object
 OBJECT_MIN_HEIGHT_M = 0.003
 #: horizontal offset bins of the report (metres)
@@ -38,14 +40,19 @@ OFFSET_BINS_M = (0.0, 0.01, 0.02, 0.04, 0.08, np.inf)
 def visible_centroid(depth: np.ndarray, T_world_camera: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, float]:
     """World-frame centroid (3,) of the object's visible points in a depth image (H, W) (metres)
     and the highest visible point's height; (nan, nan) when the image shows no object."""
-    h, w = depth.shape
-    v, u = np.mgrid[0:h, 0:w]
-    pts = deproject(np.stack([u.ravel(), v.ravel(), depth.ravel()], axis=1), intr)
-    world = pts @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
-    obj = world[(depth.ravel() > 0) & (world[:, 2] > OBJECT_MIN_HEIGHT_M)]
+    from planning.cloud import backproject
+
+    pts, valid = backproject(depth, intr)
+    world = pts[valid].astype(np.float64) @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
+    obj = world[world[:, 2] > OBJECT_MIN_HEIGHT_M]
     if len(obj) == 0:
         return np.full(3, np.nan), float("nan")
     return obj.mean(axis=0), float(obj[:, 2].max())
+
+
+def grasp_centres(shard: dict, rows: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """Camera-frame centres (n, 3) (metres) of the grasp ``rows`` of a sampled shard (its ``u``, ``v``, ``z``)."""
+    return deproject(np.stack([shard["u"][rows], shard["v"][rows], shard["z"][rows]], axis=1), intr)
 
 
 def grasp_offsets(shard: dict, rows: np.ndarray, intr: Intrinsics) -> dict[str, np.ndarray]:
@@ -55,7 +62,7 @@ def grasp_offsets(shard: dict, rows: np.ndarray, intr: Intrinsics) -> dict[str, 
     visible top's height), all (n,) metres."""
     images = np.asarray(shard["image_index"])[rows]
     cent = {int(i): visible_centroid(shard["depth"][i], shard["T_world_camera"][i], intr) for i in np.unique(images)}
-    g = deproject(np.stack([shard["u"][rows], shard["v"][rows], shard["z"][rows]], axis=1), intr)
+    g = grasp_centres(shard, rows, intr)
     T = np.asarray(shard["T_world_camera"])[images]
     gw = np.einsum("nij,nj->ni", T[:, :3, :3], g) + T[:, :3, 3]
     c = np.stack([cent[int(i)][0] for i in images])
@@ -77,7 +84,7 @@ def image_offsets(shard: dict, rows: np.ndarray, intr: Intrinsics, seed: int = 0
 
     params, rng = PlanParams(), np.random.default_rng(seed)
     images = np.asarray(shard["image_index"])[rows]
-    g = deproject(np.stack([shard["u"][rows], shard["v"][rows], shard["z"][rows]], axis=1), intr)
+    g = grasp_centres(shard, rows, intr)
     out = {k: np.full(len(rows), np.nan) for k in ("offset", "height", "top")}
     for i in np.unique(images):
         pts, valid = backproject(np.asarray(shard["depth"][i], np.float64), intr)
@@ -117,10 +124,6 @@ def fit_balanced_logistic(X: np.ndarray, y: np.ndarray, l2: float = 1e-3):
     return lambda X2: np.c_[(X2 - mu) / sd, np.ones(len(X2))] @ b > 0
 
 
-def balanced_accuracy(y: np.ndarray, p: np.ndarray) -> float:
-    return 0.5 * (float(np.mean(p[y])) + float(np.mean(~p[~y])))
-
-
 def features(score: np.ndarray, geo: dict[str, np.ndarray] | None) -> np.ndarray:
     """(n, d) rows: the score's logit, and with ``geo`` the offset, height and top (cm) and log terms."""
     s = np.clip(np.asarray(score, np.float64), 1e-6, 1 - 1e-6)
@@ -153,7 +156,7 @@ def object_cv(
                 pred[fold == k] = fit_balanced_logistic(Xs[fold != k], y[fold != k])(Xs[fold == k])
             for f in ["all", *fams]:
                 r = np.ones(len(y), bool) if f == "all" else family == f
-                out[name].setdefault(f, []).append(balanced_accuracy(y[r], pred[r]))
+                out[name].setdefault(f, []).append(M.from_confusion(M.confusion(y[r], pred[r]))["balanced_accuracy"])
     return {n: {f: float(np.mean(v)) for f, v in d.items()} for n, d in out.items()}
 
 
@@ -193,9 +196,9 @@ def probe(sampled: str | Path, crops: str | Path, model_dir: str | Path, per_obj
     oid = np.asarray(arr["object_id"][ix])
     family = np.array([fam[int(o)] for o in oid])
     score = raw_scores(model_dir, np.asarray(arr["images"][ix], np.float32), np.asarray(arr["poses"][ix], np.float32))
-    good = score >= 0.5
+    good = score > 0.5  # the threshold of training.metrics and export.evaluate
     bins = {}
-    for f in sorted(set(family.tolist())):
+    for f in np.unique(family):
         r = family == f
         rows = []
         for lo, hi in zip(OFFSET_BINS_M[:-1], OFFSET_BINS_M[1:]):
@@ -209,13 +212,11 @@ def probe(sampled: str | Path, crops: str | Path, model_dir: str | Path, per_obj
                         "good": float(good[b].mean()),
                     }
                 )
-        bins[f] = rows
+        bins[str(f)] = rows
     X = {"score": features(score, None), "score_geometry": features(score, geo), "score_image": features(score, seen)}
     cv = object_cv(X, y, oid, family)
-    raw = {
-        f: balanced_accuracy(y[r], good[r])
-        for f, r in [("all", np.ones(len(y), bool))] + [(f, family == f) for f in sorted(set(family.tolist()))]
-    }
+    raw = {"all": M.binary_metrics(y, score)["balanced_accuracy"]}
+    raw.update({f: m["balanced_accuracy"] for f, m in M.metrics_by_group(y, score, family).items()})
     agree = float(np.corrcoef(geo["offset"], seen["offset"])[0, 1])
     return {
         "rows": int(len(y)),
@@ -230,7 +231,7 @@ def probe(sampled: str | Path, crops: str | Path, model_dir: str | Path, per_obj
 def table(rec: dict) -> str:
     """The probe's result as a Markdown table (object-wise CV balanced accuracy) and offset bins."""
     lines = [
-        "| family | score >= 0.5 | score recalibrated | + offset, heights (camera pose known) | + offset, heights (image alone) |",
+        "| family | score > 0.5 | score recalibrated | + offset, heights (camera pose known) | + offset, heights (image alone) |",
         "|---|---:|---:|---:|---:|",
     ]
     cv = rec["cv"]
@@ -239,7 +240,7 @@ def table(rec: dict) -> str:
         lines.append(f"| {f} | {100 * v:.1f}% | {cells} |")
     lines.append(
         f"\n{rec['rows']} grasps ({rec['dropped']} dropped: no object or table found); the two offsets correlate "
-        f"{rec['offset_correlation']:.3f}\nsuccess / scored good (>= 0.5) by horizontal offset from the visible centroid:"
+        f"{rec['offset_correlation']:.3f}\nsuccess / scored good (> 0.5) by horizontal offset from the visible centroid:"
     )
     for f, rows in rec["bins"].items():
         cells = ", ".join(
