@@ -13,7 +13,8 @@ Before cropping, each rendered depth image passes through the depth-sensor model
 seeded per image by (seed, object id, image row)). Missing pixels are then filled by the
 shared contract (:mod:`vgq.inpaint`): the window plus a margin for ``fast_vgqcnn`` and
 ``vgqcnn``, exactly as the service fills an upload; the whole image for ``gqcnn`` (which the
-service does not serve).
+service does not serve). Each grasp also gets its placement row (:mod:`vgq.placement`: where it
+sits on its object, from the corrupted image, by the function the service calls).
 """
 
 from __future__ import annotations
@@ -27,12 +28,13 @@ from pathlib import Path
 
 import numpy as np
 
+from planning.placement import ImagePlacement
 from vgq import atomic, inpaint
 from vgq import crop as vcrop
 from vgq import turns as vturns
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
 from vgq.pose import canonical_quaternion, roll_quaternions
-from vgq.schema import CROP_FIELDS, SPLITS, crop_counts, write_crop_manifest
+from vgq.schema import SPLITS, WRITTEN_CROP_FIELDS, crop_counts, write_crop_manifest
 
 from . import sensor as sensor_model
 from . import storage
@@ -164,7 +166,7 @@ _OPEN: dict[str, storage.GraspDataset] = {}  # per process: folder -> opened dat
 def crop_object(
     src: str, entry: dict, arch: str, geom: vcrop.CropGeometry, sensor, seed: int, intr: Intrinsics, thr: float
 ) -> dict:
-    """The CROP_FIELDS rows (in image order) of one shard ``entry`` of the grasp dataset ``src``,
+    """The WRITTEN_CROP_FIELDS rows (in image order) of one shard ``entry`` of the grasp dataset ``src``,
     plus ``missing`` (the summed missing fraction of its windows). Seeded by (seed, object id) and
     the sensor model's per-image seeds, so it is the same in any process and any order."""
     if src not in _OPEN:  # one manifest read per process, not per object
@@ -172,7 +174,7 @@ def crop_object(
     sh = _OPEN[src].load(entry)
     g, im = sh.grasps, sh.images
     n = len(g["u"])
-    out = {k: np.empty((n, *shape), dtype) for k, (dtype, shape, _) in CROP_FIELDS.items()}
+    out = {k: np.empty((n, *shape), dtype) for k, (dtype, shape, _) in WRITTEN_CROP_FIELDS.items()}
     rng = np.random.default_rng([seed, sh.object_id])
     order = np.argsort(g["image_index"], kind="stable")
     bounds = np.flatnonzero(np.diff(g["image_index"][order])) + 1
@@ -182,6 +184,8 @@ def crop_object(
         uv = np.stack([g["u"][rows], g["v"][rows]], axis=1)
         depth = sensor.apply(im["depth"][img_i], sensor_model.image_rng(seed, sh.object_id, img_i), intr)
         q = g["q"][rows]
+        # the grasps' places on their object, from the image as the sensor gives it (as the service does)
+        place = ImagePlacement.analyse(depth, intr).rows(np.stack([uv[:, 0], uv[:, 1], g["z"][rows]], 1), q)
         if geom.jaw_turns:  # windows of the image turned in steps towards each jaw axis
             crops, puv, miss, q = turned_crops(depth, uv, g["z"][rows], q, geom, intr, rng)
         else:
@@ -199,6 +203,7 @@ def crop_object(
         out["camera_phi"][dst] = im["camera_phi"][img_i]
         out["beta"][dst] = g["beta"][rows]
         out["psi"][dst] = g["psi"][rows]
+        out["placement"][dst] = place
         fill += len(rows)
     return {"object_id": sh.object_id, "rows": out, "missing": missing}
 
@@ -402,7 +407,7 @@ def _resume_state(out: Path, job: dict, n: dict, log: Callable[[str], None]) -> 
             f"{out} holds an unfinished crop run with other inputs (source, architecture, seed, sensor or splits); "
             f"delete the folder or choose a new --out"
         )
-    parts = [out / s / f".{k}.npy.partial" for s in SPLITS if n[s] for k in CROP_FIELDS]
+    parts = [out / s / f".{k}.npy.partial" for s in SPLITS if n[s] for k in WRITTEN_CROP_FIELDS]
     if not all(p.is_file() for p in parts):
         log(f"{out}: the unfinished run's files are incomplete; starting over")
         return {}
@@ -424,7 +429,7 @@ def _resume_state(out: Path, job: dict, n: dict, log: Callable[[str], None]) -> 
 def _clear_leftovers(out: Path) -> None:
     """Remove the temporary files of earlier unfinished runs in ``out`` (they can be gigabytes)."""
     for s in SPLITS:
-        for k in CROP_FIELDS:
+        for k in WRITTEN_CROP_FIELDS:
             for p in (out / s).glob(f".{k}.npy.*"):
                 p.unlink()
     (out / DONE_FILE).unlink(missing_ok=True)

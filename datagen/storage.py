@@ -27,6 +27,7 @@ import numpy as np
 from vgq import __version__ as vgq_version
 from vgq import atomic, schema
 from vgq.schema import (
+    CROP_EXTRA_FIELDS,
     CROP_FIELDS,
     CROP_FORMAT,
     FORMAT_VERSION,
@@ -36,6 +37,8 @@ from vgq.schema import (
     IMAGE_FIELDS,
     MANIFEST,
     SPLITS,
+    WRITTEN_CROP_FIELDS,
+    check_extra_fields,
     check_fields,
 )
 
@@ -376,16 +379,17 @@ class NpyWriter:
 def crop_writers(
     root: str | Path, split: str, n: int, partial: bool = False, resume: bool = False
 ) -> dict[str, NpyWriter]:
-    """One :class:`NpyWriter` per CROP_FIELDS field for ``n`` rows of ``root/split``
+    """One :class:`NpyWriter` per WRITTEN_CROP_FIELDS field for ``n`` rows of ``root/split``
     (``partial``/``resume``: see :class:`NpyWriter`)."""
     return {
         k: NpyWriter(Path(root) / split / f"{k}.npy", dtype, (n, *shape), partial=partial, resume=resume)
-        for k, (dtype, shape, _) in CROP_FIELDS.items()
+        for k, (dtype, shape, _) in WRITTEN_CROP_FIELDS.items()
     }
 
 
 def open_crops(root: str | Path, split: str, mmap: bool = True) -> dict[str, np.ndarray]:
-    """Load (memory-mapped) the CROP_FIELDS arrays of one split of a ``vgq-crops`` dataset."""
+    """Load (memory-mapped) the CROP_FIELDS arrays of one split of a ``vgq-crops`` dataset, and the
+    CROP_EXTRA_FIELDS it has."""
     root = Path(root)
     m = read_manifest(root, CROP_FORMAT)
     if split not in SPLITS:
@@ -397,8 +401,16 @@ def open_crops(root: str | Path, split: str, mmap: bool = True) -> dict[str, np.
             arrays[k] = np.load(p, mmap_mode="r" if mmap else None, allow_pickle=False)
         except (OSError, ValueError) as e:
             raise DatasetError(f"cannot read crop field file {p} ({e})") from e
+    for k in CROP_EXTRA_FIELDS:
+        p = root / split / f"{k}.npy"
+        if p.is_file():
+            try:
+                arrays[k] = np.load(p, mmap_mode="r" if mmap else None, allow_pickle=False)
+            except (OSError, ValueError) as e:
+                raise DatasetError(f"cannot read crop field file {p} ({e})") from e
     try:
         n = check_fields(CROP_FIELDS, arrays, str(root / split))
+        check_extra_fields(arrays, n, str(root / split))
     except ValueError as e:
         raise DatasetError(str(e)) from e
     expected = m.get("counts", {}).get(split, {}).get("grasps")

@@ -28,6 +28,7 @@ import numpy as np
 
 from . import atomic
 from .crop import CropGeometry
+from .placement import PLACEMENT_COLUMNS
 from .pose import FULL_POSE_COLUMNS
 
 GRASP_FORMAT = "vgq-grasps"
@@ -101,6 +102,32 @@ CROP_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
     "beta": ("float32", (), "radians"),
     "psi": ("float32", (), "radians"),
 }
+
+
+#: Crop fields written by ``datagen crops`` since placement rows (``vgq.placement``) and read
+#: where present: datasets cropped before them lack them (a network that reads placement needs them).
+CROP_EXTRA_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
+    "placement": (
+        "float32",
+        (len(PLACEMENT_COLUMNS),),
+        f"placement row {PLACEMENT_COLUMNS} from the (sensor-corrupted) depth image, metres",
+    ),
+}
+#: every field a crop run writes
+WRITTEN_CROP_FIELDS = {**CROP_FIELDS, **CROP_EXTRA_FIELDS}
+
+
+def check_extra_fields(arrays: dict[str, np.ndarray], n: int, where: str) -> None:
+    """Check the ``CROP_EXTRA_FIELDS`` that ``arrays`` holds (any subset): dtype, row shape and
+    ``n`` rows. Raises ValueError naming ``where`` and the field."""
+    for name, (dtype, shape, _) in CROP_EXTRA_FIELDS.items():
+        a = arrays.get(name)
+        if a is None:
+            continue
+        if a.dtype != np.dtype(dtype) or tuple(a.shape) != (n, *shape):
+            raise ValueError(
+                f"{where}: field {name!r} has dtype {a.dtype} shape {a.shape}, expected {dtype} ({n}, *{shape})"
+            )
 
 
 def check_fields(fields: dict, arrays: dict[str, np.ndarray], where: str) -> int:

@@ -1,0 +1,83 @@
+"""Placement rows (:mod:`vgq.placement`) of grasps from a depth image alone (camera frame, metres).
+
+The table is the planner's RANSAC plane (:func:`planning.sampler.find_table`, seeded, so one image
+gives one answer), the objects its connected regions above it with their centre-of-mass guesses
+(:func:`planning.sampler.object_centres`). A grasp belongs to the region under its pixel, or the
+nearest one within ``vgq.placement.MAX_REGION_DISTANCE_PX``. Datagen's crop stage and the service
+both call :meth:`ImagePlacement.analyse` then :meth:`ImagePlacement.rows`, so training and serving
+read the same numbers; the service keeps the analysis with its cached image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from vgq.camera import Intrinsics, deproject
+from vgq.placement import MAX_REGION_DISTANCE_PX, rows_from_geometry, unknown_rows
+from vgq.pose import matrix_from_quaternion
+
+from .cloud import backproject
+from .sampler import find_table, object_centres
+from .types import PlanParams
+
+
+@dataclass(frozen=True)
+class ImagePlacement:
+    """What one depth image says about placement: the table plane (None: none found), each pixel's
+    object region (H, W) int32 (0: none; or the nearest region within reach), the regions'
+    centre-of-mass guesses (n + 1, 3) and tops (n + 1,) (metres above the table)."""
+
+    intr: Intrinsics
+    normal: np.ndarray | None
+    offset: float
+    region: np.ndarray | None
+    centres: np.ndarray | None
+    tops: np.ndarray | None
+
+    @classmethod
+    def analyse(cls, depth: np.ndarray, intr: Intrinsics, seed: int = 0, params: PlanParams | None = None):
+        """Analyse ``depth`` (H, W) metres (0 or non-finite: no reading) seen with ``intr``."""
+        params = params or PlanParams()
+        pts, valid = backproject(depth, intr)
+        table = find_table(pts, valid, params, np.random.default_rng(seed))
+        if table is None:
+            return cls(intr, None, 0.0, None, None, None)
+        h = table.height(pts)
+        objects = valid & (h > params.object_height)
+        labels, centres = object_centres(pts, objects, table)
+        n = len(centres) - 1
+        if n == 0:
+            return cls(intr, table.normal, float(table.offset), None, None, None)
+        tops = np.zeros(n + 1)
+        tops[1:] = ndimage.maximum(h, labels, index=np.arange(1, n + 1))
+        # every pixel off the regions takes its nearest region pixel's label within reach
+        dist, (iy, ix) = ndimage.distance_transform_edt(labels == 0, return_indices=True)
+        region = np.where(dist <= MAX_REGION_DISTANCE_PX, labels[iy, ix], 0).astype(np.int32)
+        return cls(intr, table.normal, float(table.offset), region, centres, tops)
+
+    def rows(self, uvz: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Placement rows (k, 6) float32 of grasps at image pixels and depths ``uvz`` (k, 3) (px, px,
+        metres) with orientations ``q`` (k, 4) (w, x, y, z, camera frame); ``known`` 0 rows where the
+        image shows no table or no object region at the grasp."""
+        uvz = np.asarray(uvz, np.float64).reshape(-1, 3)
+        out = unknown_rows(len(uvz))
+        if self.region is None or len(uvz) == 0:
+            return out
+        h, w = self.region.shape
+        u = np.clip(np.rint(uvz[:, 0]), 0, w - 1).astype(np.intp)
+        v = np.clip(np.rint(uvz[:, 1]), 0, h - 1).astype(np.intp)
+        lab = self.region[v, u]
+        ok = lab > 0
+        if ok.any():
+            g = deproject(uvz[ok], self.intr)
+            R = matrix_from_quaternion(np.asarray(q, np.float64).reshape(-1, 4)[ok])
+            out[ok] = rows_from_geometry(self.centres[lab[ok]], self.tops[lab[ok]], g, R, self.normal, self.offset)
+        return out
+
+
+def placement_rows(depth: np.ndarray, intr: Intrinsics, uvz: np.ndarray, q: np.ndarray, seed: int = 0) -> np.ndarray:
+    """:meth:`ImagePlacement.rows` of one image's grasps in one call (datagen's crop stage)."""
+    return ImagePlacement.analyse(depth, intr, seed).rows(uvz, q)
