@@ -72,26 +72,27 @@ def _leave_family_out(path: str | None) -> dict:
         raise ValueError(f"--leave-family-out {e}") from None
 
 
-def _sample(ds, order: tuple[str, ...], n: int, seed: int, arch: str):
-    """(split, crops, poses, labels) as numpy: ``n`` random rows of the first non-empty split in ``order``."""
+def _sample(ds, order: tuple[str, ...], n: int, seed: int, arch: str, placement: bool = False):
+    """(split, crops, poses, labels) as numpy: ``n`` random rows of the first non-empty split in ``order``
+    (``placement``: each pose row followed by its placement row, as a placement head reads them)."""
     from training.data import DatasetError
 
     split = next((ds.splits[s] for s in order if s in ds.splits and len(ds.splits[s])), None)
     if split is None:
         raise DatasetError(f"{ds.path}: no non-empty split among {order}")
     idx = np.sort(np.random.default_rng(seed).choice(len(split), min(n, len(split)), replace=False))
-    return (split, *(t.numpy() for t in split.batch(idx, arch)))
+    return (split, *(t.numpy() for t in split.batch(idx, arch, placement=placement)))
 
 
-def _add_int8_encoder(out: str, ds, arch: str, n_check: int, seed: int, prune_crops) -> None:
+def _add_int8_encoder(out: str, ds, arch: str, n_check: int, seed: int, prune_crops, placement: bool = False) -> None:
     """Calibrate an int8 encoder on train crops, check it on val (else test) crops, add it to
     ``out`` when it passes (``export.int8_encoder``); a refusal is logged, not an error.
     ``prune_crops``: train crops that find the dead channels removed first (None: no pruning)."""
     from .int8_encoder import add_int8_encoder
     from .quantize import QuantizationError
 
-    calib = _sample(ds, ("train",), 2048, seed, arch)
-    chk, *labelled = _sample(ds, ("val", "test"), n_check, seed, arch)
+    calib = _sample(ds, ("train",), 2048, seed, arch, placement)
+    chk, *labelled = _sample(ds, ("val", "test"), n_check, seed, arch, placement)
     logging.info(
         "int8 encoder: calibrating on %d %s crops, checking on %d %s crops",
         len(calib[1]),
@@ -214,12 +215,13 @@ def main(argv=None) -> None:
         logging.info("loading %s", a.run)
         net, meta = load_trained(a.run)
         ds = open_crop_dataset(a.data)
-        split, crops, poses, _ = _sample(ds, ("test", "val", "train"), a.verify_n, a.seed, meta["arch"])
+        place = bool(net.n_place)
+        split, crops, poses, _ = _sample(ds, ("test", "val", "train"), a.verify_n, a.seed, meta["arch"], place)
         int8 = prune_calibration = None
         if not a.no_prune and (a.int8_head or a.int8_encoder):  # (crops, poses) that find the dead units, once
-            prune_calibration = tuple(_sample(ds, ("train",), a.prune_calibration_n, a.seed, meta["arch"])[1:3])
+            prune_calibration = tuple(_sample(ds, ("train",), a.prune_calibration_n, a.seed, meta["arch"], place)[1:3])
         if a.int8_head:
-            chk, *labelled = _sample(ds, ("val", "test", "train"), a.int8_check_n, a.seed, meta["arch"])
+            chk, *labelled = _sample(ds, ("val", "test", "train"), a.int8_check_n, a.seed, meta["arch"], place)
             int8 = tuple(labelled)
             logging.info("int8 head check on %d %s crops", len(labelled[0]), chk.name)
         if a.recipe:
@@ -251,7 +253,7 @@ def main(argv=None) -> None:
         _copy_baseline_models(a.baseline, a.out)
         if a.int8_encoder:
             prune_crops = None if prune_calibration is None else prune_calibration[0]
-            _add_int8_encoder(a.out, ds, meta["arch"], a.int8_check_n, a.seed, prune_crops)
+            _add_int8_encoder(a.out, ds, meta["arch"], a.int8_check_n, a.seed, prune_crops, place)
         if calibration is not None and a.reliability_png:
             atomic.write_bytes(a.reliability_png, (Path(a.out) / DIAGRAM).read_bytes())
     except CalibrationError as e:

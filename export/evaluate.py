@@ -48,6 +48,7 @@ def crop_rows(data: str | Path, split: str, max_n: int, seed: int = 0) -> dict[s
         "family": np.array([fam.get(int(i), "") for i in oid]),
         "object_id": oid,
         "beta": np.asarray(arrays["beta"][idx], np.float64) if "beta" in arrays else None,
+        "placement": np.asarray(arrays["placement"][idx], np.float32) if "placement" in arrays else None,
     }
 
 
@@ -68,11 +69,19 @@ def check_geometry(model_dirs, data: str | Path) -> None:
             )
 
 
-def raw_scores(model_dir: str | Path, images: np.ndarray, poses: np.ndarray, batch: int = 256) -> np.ndarray:
-    """(n,) raw scores of the folder's fp32 graphs for crops (n, 32, 32) and pose rows (n, 7)."""
+def raw_scores(
+    model_dir: str | Path, images: np.ndarray, poses: np.ndarray, batch: int = 256, placement: np.ndarray | None = None
+) -> np.ndarray:
+    """(n,) raw scores of the folder's fp32 graphs for crops (n, 32, 32) and pose rows (n, 7); a
+    placement head (its card's ``placement_columns``) also reads ``placement`` (n, 6), the crops'
+    placement rows (ValueError without them)."""
     from service.runtime import FastModel
 
     model = FastModel(model_dir, threads=0, head_precision="fp32", encoder_precision="fp32")
+    if model.card.placement_columns:
+        if placement is None:
+            raise ValueError(f"{model_dir} reads placement rows; the crops have none (cut them again with datagen)")
+        poses = np.concatenate([poses, placement], axis=1).astype(np.float32)
     out = np.empty(len(images), np.float32)
     for s in range(0, len(images), batch):
         terms = model.encode(images[s : s + batch])
@@ -181,15 +190,20 @@ def main(argv=None) -> dict:
         if not a.other_crops:
             check_geometry(a.model_dir, a.data)
         rows = crop_rows(a.data, a.split, a.max_n, a.seed)
+        from vgq.model_card import ModelCard
+
+        for d in a.model_dir:
+            if ModelCard.load(d).placement_columns and rows["placement"] is None:
+                raise ValueError(f"{d} reads placement rows; {a.data} has none (crop it again with this datagen)")
     except (OSError, ValueError) as e:
         print(f"export.evaluate: {e}", file=sys.stderr)
         sys.exit(2)
     results = {}
     for d in a.model_dir:
-        scores = raw_scores(d, rows["images"], rows["poses"])
+        scores = raw_scores(d, rows["images"], rows["poses"], placement=rows["placement"])
         variants = {d: scores}
-        if a.mirror:
-            m_scores = raw_scores(d, *mirrored(rows["images"], rows["poses"]))
+        if a.mirror:  # a placement row is the same in the mirror image
+            m_scores = raw_scores(d, *mirrored(rows["images"], rows["poses"]), placement=rows["placement"])
             variants[f"{d} (mirrored)"] = m_scores
             variants[f"{d} (mean of it and its mirror)"] = 0.5 * (scores + m_scores)
         for name, sc in variants.items():

@@ -52,6 +52,7 @@ def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, Mod
     (enc, enc_nodes), (head, head_nodes) = _load(enc_path), _load(head_path)
     channels = int(_get(enc, "net.conv2_1.weight", enc_path).shape[0])  # the paper's 64, or wider
     options = net_options({"config": card.training.get("config", {})})
+    options["placement"] = bool(card.placement_columns)  # the card says what the head reads
     net = GraspQualityNet("fast_vgqcnn", image_size=card.geometry.out, conv2_channels=channels, **options).eval()
     norm = card.normalization
     net.set_normalization(norm)
@@ -74,6 +75,8 @@ def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, Mod
     mean, std = np.asarray(norm.pose_mean, np.float64)[:n], np.asarray(norm.pose_std, np.float64)[:n]
     w = wf.copy()
     w[:, :n] = wf[:, :n] * std[None, :]
+    if net.n_place:  # the placement row's columns: its scale folded in too
+        w[:, -net.n_place :] = wf[:, -net.n_place :] * net.place_scale.numpy().astype(np.float64)[None, :]
     _set(net.pc1.weight, w, "pc1")
     _set(net.pc1.bias, bf + wf[:, :n] @ mean, "pc1")
     for layer in ("fc4_pose", "fc5"):

@@ -7,7 +7,8 @@ onnxruntime runs them fast:
   ``ExportLRN``: alpha and bias folded into the band Conv, and ``d ** -0.75`` as
   ``1 / sqrt(d sqrt(d))`` (onnxruntime's general Pow is far slower than two Sqrt);
 * the image term and fc4's bias enter the pose Gemm as its C input (Gemm + Relu fuse);
-* the pose normalisation is folded into pc1 (``W' = W / std``, ``b' = b - W' mean``);
+* the pose normalisation is folded into pc1 (``W' = W / std``, ``b' = b - W' mean``), and a
+  placement row's scale (``vgq.placement``) into its columns;
 * softmax(fc6)[:, 1] becomes ``sigmoid((w1 - w0) x + b1 - b0)``: one dot product per
   grasp instead of a 2-wide Gemm, a Softmax and a Gather.
 
@@ -62,11 +63,14 @@ class _FoldedHead(nn.Module):
     def __init__(self, net: GraspQualityNet):
         super().__init__()
         self.n_other = net.n_other  # the columns normalised; "rotation": the quaternion follows them
+        self.n_pose, self.n_place = net.n_pose, net.n_place  # placement: its row follows the pose columns
         self.rotation = net.pose_features == "rotation"
         with torch.no_grad():
             n = net.n_other
             w = net.pc1.weight.clone()
             w[:, :n] = w[:, :n] / net.pose_std[None, :n]
+            if net.n_place:  # pc1's last inputs: the placement row over its scale
+                w[:, -net.n_place :] = w[:, -net.n_place :] / net.place_scale[None, :]
             b = net.pc1.bias - w[:, :n] @ net.pose_mean[:n]
             self.pc1 = nn.Linear(w.shape[1], w.shape[0])
             self.pc1.weight.copy_(w)
@@ -79,6 +83,8 @@ class _FoldedHead(nn.Module):
             self.out.bias.copy_((net.fc6.bias[1] - net.fc6.bias[0]).reshape(1))
 
     def forward(self, image_term: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        place = poses[:, self.n_pose :] if self.n_place else None
+        poses = poses[:, : self.n_pose] if self.n_place else poses
         if self.roi is None:
             c = image_term + self.fc4_pose.bias
         else:  # the encoding carries, after the image term, the feature map the jaw grid reads
@@ -87,6 +93,8 @@ class _FoldedHead(nn.Module):
             c = image_term[:, :1024] + self.fc4_pose.bias + self.roi.roi_term(cells, poses, crop)
         if self.rotation:
             poses = torch.cat([poses[:, : self.n_other], rotation_entries(poses[:, self.n_other :])], dim=1)
+        if place is not None:
+            poses = torch.cat([poses, place], dim=1)
         # Gemm(p, W, C = image term + bias): the merge Add and Relu fuse into the Gemm
         x = F.relu(torch.addmm(c, F.relu(self.pc1(poses)), self.fc4_pose.weight.t()))
         if self.fc5 is not None:

@@ -30,9 +30,10 @@ from .quantize import EncoderCheck, QuantizationError, check_encoder_variant, qu
 INT8_ENCODER_FILE = "encoder_int8.onnx"
 
 
-def crop_split(path: str | Path, splits: tuple[str, ...], n: int | None = None, seed: int = 0):
+def crop_split(path: str | Path, splits: tuple[str, ...], n: int | None = None, seed: int = 0, placement: bool = False):
     """(crops (n, 1, S, S), poses (n, 7), labels (n,)) as numpy: up to ``n`` random rows of the
-    named splits of a Fast-VGQ-CNN crop dataset, or all rows of a .npz (images, poses, labels)."""
+    named splits of a Fast-VGQ-CNN crop dataset, or all rows of a .npz (images, poses, labels);
+    ``placement`` (a dataset): each pose row followed by its placement row (a placement head's input)."""
     path = Path(path)
     if path.suffix == ".npz":
         with np.load(path, allow_pickle=False) as z:
@@ -52,7 +53,7 @@ def crop_split(path: str | Path, splits: tuple[str, ...], n: int | None = None, 
         rows = np.sort(np.random.default_rng(seed).choice(len(rows), n, replace=False))
     starts = np.concatenate([[0], np.cumsum(sizes)])
     parts = [
-        [t.numpy() for t in sp.batch(rows[(rows >= lo) & (rows < hi)] - lo, "fast_vgqcnn")]
+        [t.numpy() for t in sp.batch(rows[(rows >= lo) & (rows < hi)] - lo, "fast_vgqcnn", placement=placement)]
         for sp, lo, hi in zip(present, starts[:-1], starts[1:])
         if np.any((rows >= lo) & (rows < hi))
     ]
@@ -86,9 +87,11 @@ def parse_variant_args(p: argparse.ArgumentParser, argv, log_name: str) -> argpa
     return a
 
 
-def check_crops(path: str) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], str]:
-    """The labelled check crops of ``path`` (a dataset's val + test splits, or a .npz) and their label."""
-    return crop_split(path, ("val", "test")), f"{path} (val + test)" if Path(path).is_dir() else path
+def check_crops(path: str, model_dir: str | Path) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], str]:
+    """The labelled check crops of ``path`` (a dataset's val + test splits, or a .npz) and their label,
+    with placement rows where ``model_dir``'s head reads them."""
+    place = bool(ModelCard.load(model_dir).placement_columns)
+    return crop_split(path, ("val", "test"), placement=place), f"{path} (val + test)" if Path(path).is_dir() else path
 
 
 def add_int8_encoder(
@@ -171,7 +174,7 @@ def main(argv=None) -> EncoderCheck:
     try:
         prune_crops = None if a.no_prune else crop_split(a.calibration, ("train",), a.prune_n, a.seed)[0]
         calib = crop_split(a.calibration, ("train",), a.calibration_n, a.seed)[0]
-        check, check_data = check_crops(a.check)
+        check, check_data = check_crops(a.check, a.model_dir)
         logging.info(
             "calibrating on %d crops of %s, checking on %d crops of %s",
             len(calib),

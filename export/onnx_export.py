@@ -33,6 +33,7 @@ from vgq.model_card import (
     VGQ_OUTPUT,
     ModelCard,
 )
+from vgq.placement import PLACEMENT_COLUMNS
 
 from .calibrate import DIAGRAM, CalibrationReport, plot_reliability
 from .graphs import EncoderGraph, HeadGraph, OnePieceGraph
@@ -115,8 +116,9 @@ def _check_inputs(net: GraspQualityNet, crops: np.ndarray, poses: np.ndarray) ->
         crops = crops[:, None]
     if crops.ndim != 4 or crops.shape[1:] != (1, s, s) or len(crops) == 0:
         raise ExportError(f"verification crops must be (n, {s}, {s}) with n >= 1, got {crops.shape}")
-    if poses.shape != (len(crops), len(net.pose_columns)):
-        raise ExportError(f"verification poses must be ({len(crops)}, {len(net.pose_columns)}), got {poses.shape}")
+    width = len(net.pose_columns) + net.n_place  # a placement head: its placement row after the pose columns
+    if poses.shape != (len(crops), width):
+        raise ExportError(f"verification poses must be ({len(crops)}, {width}), got {poses.shape}")
     if not (np.all(np.isfinite(crops)) and np.all(np.isfinite(poses))):
         raise ExportError("verification inputs contain non-finite values")
     return crops, poses
@@ -271,6 +273,7 @@ def export_model(
             },
             label_threshold=label_threshold,
             calibration=calibration.to_dict() if calibration is not None else {},
+            placement_columns=PLACEMENT_COLUMNS if net.n_place else (),
         )
         if calibration is not None:
             plot_reliability(calibration, tmp / DIAGRAM)

@@ -314,8 +314,9 @@ def main(argv=None) -> dict:
     if a.cross_pairs < 0:
         p.error("--cross-pairs must be >= 0")
     try:
-        crops, poses, _ = crop_split(a.calibration, ("train",), a.calibration_n)
-        check, check_data = check_crops(a.check)
+        place = bool(ModelCard.load(a.model_dir).placement_columns)
+        crops, poses, _ = crop_split(a.calibration, ("train",), a.calibration_n, placement=place)
+        check, check_data = check_crops(a.check, a.model_dir)
         record = rebuild_int8_head(
             a.model_dir,
             (crops, poses),

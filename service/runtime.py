@@ -111,7 +111,7 @@ class FastModel:
             "threads": threads,
         }
         self.version = self.card.model_version
-        self.n_pose = len(self.card.normalization.pose_columns)
+        self.n_pose = self.card.head_pose_width  # the pose columns, then a placement head's placement row
         self.encode_seconds = 0.0
         self.score_seconds = 0.0
 
@@ -125,7 +125,8 @@ class FastModel:
         return term
 
     def score(self, image_term: np.ndarray, poses: np.ndarray) -> np.ndarray:
-        """(1, D) encoding, (k, 7) network pose rows -> (k,) float32 probabilities."""
+        """(1, D) encoding, (k, 7) network pose rows (k, 13 for a placement head: each followed by its
+        placement row, ``vgq.placement``) -> (k,) float32 probabilities."""
         t = time.perf_counter()
         p = self.head.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: image_term, HEAD_INPUTS[1]: poses})[0]
         self.score_seconds = time.perf_counter() - t

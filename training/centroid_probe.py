@@ -195,7 +195,10 @@ def probe(sampled: str | Path, crops: str | Path, model_dir: str | Path, per_obj
     y = np.asarray(arr["labels"][ix]).astype(bool)
     oid = np.asarray(arr["object_id"][ix])
     family = np.array([fam[int(o)] for o in oid])
-    score = raw_scores(model_dir, np.asarray(arr["images"][ix], np.float32), np.asarray(arr["poses"][ix], np.float32))
+    place = np.asarray(arr["placement"][ix], np.float32) if "placement" in arr else None
+    score = raw_scores(
+        model_dir, np.asarray(arr["images"][ix], np.float32), np.asarray(arr["poses"][ix], np.float32), placement=place
+    )
     good = score > 0.5  # the threshold of training.metrics and export.evaluate
     bins = {}
     for f in np.unique(family):

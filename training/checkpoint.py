@@ -107,11 +107,12 @@ def net_options(ckpt: dict) -> dict:
         "pose_units": int(cfg.get("pose_units", 16)),
         "roi_head": str(cfg.get("roi_head", "none")),
         "roi_units": int(cfg.get("roi_units", 128)),
+        "placement": str(cfg.get("placement", "none")) == "image",
     }
 
 
 # a fine-tune may change these: its pose stream, or the jaw-grid head it adds, starts fresh
-POSE_STREAM_OPTIONS = ("pose_features", "pose_units", "roi_head", "roi_units")
+POSE_STREAM_OPTIONS = ("pose_features", "pose_units", "roi_head", "roi_units", "placement")
 POSE_STREAM_WEIGHTS = ("pc1.weight", "pc1.bias", "fc4_pose.weight")
 ROI_WEIGHTS = ("roi_fc1.weight", "roi_fc1.bias", "roi_fc2.weight", "roi_focal_px")
 
@@ -127,6 +128,7 @@ def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
     path with fc4's bias and no pose term, and the pose stream learns from there. CheckpointError
     for any other missing or mismatched tensor."""
     own = net.state_dict()
+    state = _widen_pc1(net, state)
     fresh = sorted(k for k in own if k not in state or tuple(state[k].shape) != tuple(own[k].shape))
     other = [k for k in fresh if k not in POSE_STREAM_WEIGHTS + ROI_WEIGHTS]
     if other:
@@ -144,6 +146,15 @@ def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
         if w is not None and mine is not None and tuple(w.shape) != tuple(mine.shape):
             _widen_roi(net, state, fresh)
     return fresh
+
+
+def _widen_pc1(net: GraspQualityNet, state: dict) -> dict:
+    """``state`` with pc1 widened by zero columns for placement inputs a fine-tune adds (``net.n_place``
+    more inputs than the init's pc1, same width otherwise): the first step's network is the init's."""
+    w, mine = state.get("pc1.weight"), net.pc1.weight
+    if w is None or not net.n_place or tuple(w.shape) != (mine.shape[0], mine.shape[1] - net.n_place):
+        return state
+    return {**state, "pc1.weight": torch.cat([w, torch.zeros(w.shape[0], net.n_place, dtype=w.dtype)], dim=1)}
 
 
 def _widen_roi(net: GraspQualityNet, state: dict, fresh: list[str]) -> None:

@@ -19,6 +19,7 @@ PRECISIONS = ("fp32", "bf16", "auto")
 SELECT_ON = ("data", "mix", "mean")
 TARGETS = ("label", "success_rate", "teacher")
 ROI_HEADS = ("none", "jaw", "jaw_depth")  # training.networks.GraspQualityNet's roi_head
+PLACEMENTS = ("none", "image")  # training.networks.GraspQualityNet's placement off / on
 ROI_UNITS = 128  # the jaw grid's hidden layer (roi_fc1's outputs): the default of roi_units
 
 
@@ -57,6 +58,21 @@ class TrainConfig:
     roi_units: int = field(
         default=ROI_UNITS,
         metadata={"help": "width of the jaw grid's hidden layer (roi_fc1; roi_head jaw or jaw_depth)"},
+    )
+    placement: str = field(
+        default="none",
+        metadata={
+            "choices": PLACEMENTS,
+            "help": "'none': the head reads the window and the pose (the paper's) | 'image': also each grasp's "
+            "placement on its whole object (vgq.placement; crops cut since placement rows), pc1's last inputs",
+        },
+    )
+    placement_dropout: float = field(
+        default=0.1,
+        metadata={
+            "help": "placement 'image': the share of training rows whose placement row is made unknown (all 0, "
+            "as an image without a table gives), drawn per step, so the network scores without one too"
+        },
     )
     samples: int = 10_000_000  # training samples to see in total (paper ablations: 10 M)
     batch_size: int = 64  # global batch (split evenly over DDP processes)
@@ -167,6 +183,8 @@ class TrainConfig:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if not 0.0 <= self.mirror <= 1.0:
             raise ValueError(f"mirror must be in [0, 1], got {self.mirror}")
+        if not 0.0 <= self.placement_dropout <= 1.0:
+            raise ValueError(f"placement_dropout must be in [0, 1], got {self.placement_dropout}")
         if self.val_max_samples < 0 or self.num_threads < 0:
             raise ValueError("val_max_samples and num_threads must be >= 0")
         if not (self.base_lr > 0 and 0 < self.lr_decay <= 1 and 0 <= self.momentum < 1 and self.weight_decay >= 0):

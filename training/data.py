@@ -27,7 +27,15 @@ import torch
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
 from vgq.crop import CropGeometry
 from vgq.pose import FULL_POSE_COLUMNS, POSE_COLUMNS, pose_column_indices
-from vgq.schema import CROP_FIELDS, CROP_FORMAT, SPLITS, check_fields, read_manifest
+from vgq.schema import (
+    CROP_EXTRA_FIELDS,
+    CROP_FIELDS,
+    CROP_FORMAT,
+    SPLITS,
+    check_extra_fields,
+    check_fields,
+    read_manifest,
+)
 
 from .config import TARGETS
 
@@ -55,9 +63,10 @@ class CropSplit:
         return np.ascontiguousarray(self.arrays["poses"][:, pose_column_indices(arch)], dtype=np.float32)
 
     def batch(
-        self, index: np.ndarray, arch: str, target: str = "label"
+        self, index: np.ndarray, arch: str, target: str = "label", placement: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Rows ``index`` as tensors: images (b, 1, S, S) metres, poses (b, n_pose), and labels (b,)
+        """Rows ``index`` as tensors: images (b, 1, S, S) metres, poses (b, n_pose) (``placement``:
+        (b, n_pose + 6), each row's placement row after its pose columns), and labels (b,)
         int64 (``target`` "label"), the physics label's success rates (b,) float32 in [0, 1]
         (``target`` "success_rate": the crops' ``quality``) or (b, 2) float32 of the label and the
         teacher's score, NaN where it has none (``target`` "teacher": ``arrays["teacher"]``)."""
@@ -70,6 +79,12 @@ class CropSplit:
         inv[order] = np.arange(len(order))
         img = np.asarray(self.arrays["images"][srt], dtype=np.float32)[inv]
         pose = np.asarray(self.arrays["poses"][srt], dtype=np.float32)[inv][:, pose_column_indices(arch)]
+        if placement:
+            if "placement" not in self.arrays:
+                raise DatasetError(
+                    f"split {self.name!r} has no placement rows (placement.npy): crop it again with this datagen"
+                )
+            pose = np.concatenate([pose, np.asarray(self.arrays["placement"][srt], dtype=np.float32)[inv]], axis=1)
         if target == "success_rate":
             lab = np.clip(np.asarray(self.arrays["quality"][srt], dtype=np.float32)[inv], 0.0, 1.0)
         elif target == "teacher":
@@ -187,8 +202,16 @@ def _open_split(path: Path, name: str) -> CropSplit | None:
             arrays[f] = np.load(p, mmap_mode="r", allow_pickle=False)
         except ValueError as e:
             raise DatasetError(f"{p}: not a readable .npy array ({e})") from e
+    for f in CROP_EXTRA_FIELDS:  # cut since the field exists: read where present
+        p = d / f"{f}.npy"
+        if p.is_file():
+            try:
+                arrays[f] = np.load(p, mmap_mode="r", allow_pickle=False)
+            except ValueError as e:
+                raise DatasetError(f"{p}: not a readable .npy array ({e})") from e
     try:
-        check_fields(CROP_FIELDS, arrays, f"crop dataset {path} split {name!r}")
+        n = check_fields(CROP_FIELDS, arrays, f"crop dataset {path} split {name!r}")
+        check_extra_fields(arrays, n, f"crop dataset {path} split {name!r}")
     except ValueError as e:
         raise DatasetError(str(e)) from e
     return CropSplit(name, arrays)

@@ -17,7 +17,9 @@ Inputs are raw (metres, crop pixels); normalisation is done inside from buffers 
 own central depth and adds a learnt linear term of that depth (``fc4_ref``) to its output, so
 the head and the encoder / head split are unchanged. ``pose_features`` "rotation": the pose
 stream reads the grasp's rotation matrix (9 entries, from the quaternion) in place of the 4
-quaternion components, ``pose_units`` wide (the paper's pc1: 16).
+quaternion components, ``pose_units`` wide (the paper's pc1: 16). ``placement``: the head's pose
+rows carry, after the pose columns, the grasp's placement row (``vgq.placement``: where it sits on
+its whole object), which pc1 reads divided by ``PLACEMENT_SCALE_M`` after the pose features.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from torch import nn
 
 from training.config import ROI_HEADS, ROI_UNITS
 from vgq.normalization import IMAGE_REFERENCES, REFERENCE_PIXELS, Normalization
+from vgq.placement import PLACEMENT_COLUMNS, PLACEMENT_SCALE_M
 from vgq.pose import POSE_COLUMNS, POSE_FEATURES
 
 ARCHITECTURES = tuple(POSE_COLUMNS)
@@ -85,6 +88,7 @@ class GraspQualityNet(nn.Module):
         roi_head: str = "none",
         roi_focal_px: float = 175.0,
         roi_units: int = ROI_UNITS,
+        placement: bool = False,
     ):
         super().__init__()
         if roi_head not in ROI_HEADS:
@@ -111,7 +115,8 @@ class GraspQualityNet(nn.Module):
         self.arch = arch
         self.image_size = image_size
         self.pose_columns = POSE_COLUMNS[arch]
-        n_pose = len(self.pose_columns)
+        self.n_pose = n_pose = len(self.pose_columns)
+        self.n_place = len(PLACEMENT_COLUMNS) if placement else 0
         self.conv1_1 = nn.Conv2d(1, 64, 7, padding=3)
         self.conv1_2 = nn.Conv2d(64, 64, 5, padding=2)
         self.conv2_channels = c2 = int(conv2_channels)
@@ -124,8 +129,9 @@ class GraspQualityNet(nn.Module):
             raise ValueError(f"pose_features 'rotation' needs quaternion columns; {arch} has {self.pose_columns}")
         self.pose_features, self.pose_units = pose_features, int(pose_units)
         self.n_other = n_pose - 4 if pose_features == "rotation" else n_pose  # columns read as they are
-        n_in = n_pose if pose_features == "raw" else self.n_other + 9
+        n_in = (n_pose if pose_features == "raw" else self.n_other + 9) + self.n_place
         self.pc1 = nn.Linear(n_in, self.pose_units)
+        self.register_buffer("place_scale", torch.tensor(PLACEMENT_SCALE_M[: self.n_place]), persistent=False)
         self.fc4_image = nn.Linear(1024, 1024, bias=False)
         self.fc4_ref = nn.Linear(1, 1024, bias=False) if depth_reference != "none" else None
         self.fc4_pose = nn.Linear(self.pose_units, 1024, bias=True)  # carries fc4's bias
@@ -278,12 +284,18 @@ class GraspQualityNet(nn.Module):
         return self.roi_fc2(F.relu(self.roi_fc1(f)))
 
     def head_logits(self, encoding: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
-        """``encode``'s output (1 or k, ``encoding_width``) and raw poses (k, n_pose) -> logits (k, 2)."""
+        """``encode``'s output (1 or k, ``encoding_width``) and raw poses (k, n_pose) -> logits (k, 2)
+        (with ``placement``: (k, n_pose + 6), the placement row after the pose columns)."""
         if encoding.shape[1] != self.encoding_width:
             raise ValueError(f"the head reads encodings of width {self.encoding_width}, got {encoding.shape[1]}")
+        if poses.shape[1] != self.n_pose + self.n_place:
+            raise ValueError(f"the head reads pose rows of width {self.n_pose + self.n_place}, got {poses.shape[1]}")
+        place, poses = poses[:, self.n_pose :], poses[:, : self.n_pose]
         p = (poses - self.pose_mean) / self.pose_std
         if self.pose_features == "rotation":
             p = torch.cat([p[:, : self.n_other], rotation_entries(poses[:, self.n_other :])], dim=1)
+        if self.n_place:
+            p = torch.cat([p, place / self.place_scale], dim=1)
         p = F.relu(self.pc1(p))
         x = encoding[:, :1024] + self.fc4_pose(p)
         if self.roi_head != "none":

@@ -14,9 +14,16 @@ from vgq import atomic
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
 from vgq.crop import CropGeometry
 from vgq.pose import canonical_quaternion
-from vgq.schema import CROP_FIELDS, check_fields, crop_counts, write_crop_manifest
+from vgq.schema import (
+    CROP_EXTRA_FIELDS,
+    CROP_FIELDS,
+    check_extra_fields,
+    check_fields,
+    crop_counts,
+    write_crop_manifest,
+)
 
-SIGNALS = ("image", "pose", "none")
+SIGNALS = ("image", "pose", "placement", "none")
 
 
 def write_crop_dataset(
@@ -29,7 +36,8 @@ def write_crop_dataset(
     source: dict | None = None,
     recipe: dict | None = None,
 ) -> dict:
-    """Write ``splits`` (split name -> CROP_FIELDS arrays) as a crop dataset at ``path``.
+    """Write ``splits`` (split name -> CROP_FIELDS arrays, and the CROP_EXTRA_FIELDS they have) as a
+    crop dataset at ``path``.
 
     Arrays are checked against ``vgq.schema.CROP_FIELDS`` first. Returns the manifest.
     """
@@ -37,9 +45,10 @@ def write_crop_dataset(
     counts = {}
     for name, arrays in splits.items():
         n = check_fields(CROP_FIELDS, arrays, f"split {name!r}")
+        check_extra_fields(arrays, n, f"split {name!r}")
         counts[name] = crop_counts(n, int(np.asarray(arrays["labels"]).sum()))
     for name, arrays in splits.items():
-        for f in CROP_FIELDS:
+        for f in [*CROP_FIELDS, *(k for k in CROP_EXTRA_FIELDS if k in arrays)]:
             atomic.save_npy(path / name / f"{f}.npy", arrays[f])
     return write_crop_manifest(
         path,
@@ -67,9 +76,11 @@ def synthetic_split(
     * ``"image"``: positives show a 10 x 10 px block 10 cm nearer the camera at the crop
       centre, negatives do not. Poses carry no signal.
     * ``"pose"``: label = 1 where the quaternion's w > its (data) threshold; images noise.
+    * ``"placement"``: label = 1 where the placement row's ``along`` is below its (data) threshold.
     * ``"none"``: random labels (nothing to learn).
 
-    Depth is in metres around the camera distance; (u, v) are uniform within
+    Every row has a placement row (``vgq.placement``, drawn from its own stream, so the other fields
+    are as they were before placement rows). Depth is in metres around the camera distance; (u, v) are uniform within
     +/- kappa_px / scale crop px; quaternions are canonical unit (w, x, y, z).
     """
     if signal not in SIGNALS:
@@ -82,6 +93,19 @@ def synthetic_split(
     uv = rng.uniform(-k, k, (n, 2)).astype(np.float32)
     q = canonical_quaternion(rng.normal(size=(n, 4))).astype(np.float32)
     images = (z[:, None, None] + 0.03 + rng.normal(0.0, 0.002, (n, s, s))).astype(np.float32)
+    prng = np.random.default_rng([n, first_object, 0x706C])
+    height = prng.uniform(0.01, 0.1, n)
+    place = np.stack(
+        [
+            np.ones(n),
+            prng.uniform(0.0, 0.08, n),
+            prng.uniform(0.0, 0.04, n),
+            prng.uniform(-0.05, 0.05, n),
+            height,
+            height + prng.uniform(0.0, 0.1, n),
+        ],
+        axis=1,
+    ).astype(np.float32)
     if signal == "image":
         labels = rng.random(n) < positive_rate
         c, h = s // 2, 5
@@ -89,6 +113,8 @@ def synthetic_split(
     elif signal == "pose":
         thr = np.quantile(q[:, 0], 1.0 - positive_rate) if n else 0.0
         labels = q[:, 0] > thr
+    elif signal == "placement":
+        labels = place[:, 1] < (np.quantile(place[:, 1], positive_rate) if n else 0.0)
     else:
         labels = rng.random(n) < positive_rate
     quality = np.where(labels, rng.uniform(0.0025, 0.01, n), rng.uniform(0.0, 0.0019, n)).astype(np.float32)
@@ -102,6 +128,7 @@ def synthetic_split(
         "camera_phi": phi,
         "beta": rng.uniform(0.0, np.pi / 2, n).astype(np.float32),
         "psi": rng.uniform(0.0, np.pi / 2, n).astype(np.float32),
+        "placement": place,
     }
 
 

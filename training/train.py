@@ -230,7 +230,21 @@ def _mirror_rows(cfg: TrainConfig, batch, step: int, rank: int):
     idx = torch.from_numpy(np.flatnonzero(pick))
     img, pose = img.clone(), pose.clone()
     img[idx] = torch.flip(img[idx], dims=(-1,))
-    pose[idx] = torch.from_numpy(mirror_poses(pose[idx].numpy(), POSE_COLUMNS[cfg.arch]).astype(np.float32))
+    n = len(POSE_COLUMNS[cfg.arch])  # a placement row after them is the same in the mirror image
+    pose[idx, :n] = torch.from_numpy(mirror_poses(pose[idx, :n].numpy(), POSE_COLUMNS[cfg.arch]).astype(np.float32))
+    return img, pose, lab
+
+
+def _drop_placement(cfg: TrainConfig, batch, step: int, rank: int):
+    """``batch`` with a ``cfg.placement_dropout`` share of its rows' placement rows made unknown
+    (``vgq.placement.unknown_rows``: what an image without a table gives), drawn from a stream of
+    (seed, step, rank) alone, so a resumed run drops the same rows."""
+    img, pose, lab = batch
+    pick = np.random.default_rng((cfg.seed, 0x706C6163, step, rank)).random(len(lab)) < cfg.placement_dropout
+    if not pick.any():
+        return batch
+    pose = pose.clone()
+    pose[torch.from_numpy(np.flatnonzero(pick)), len(POSE_COLUMNS[cfg.arch]) :] = 0.0
     return img, pose, lab
 
 
@@ -296,6 +310,13 @@ def _check_target(cfg: TrainConfig, data: CropDataset) -> None:
             f"target 'success_rate' needs every grasp's full trials; {data.path} was labelled with "
             "label.early_stop (its rates are over the trials run until the label was decided)"
         )
+    if cfg.placement == "image":
+        lacking = [s for s, sp in data.splits.items() if sp is not None and len(sp) and "placement" not in sp.arrays]
+        if lacking:
+            raise DatasetError(
+                f"placement 'image' needs placement rows; {data.path} split {lacking[0]!r} has none "
+                "(cropped before them: run datagen crops again)"
+            )
 
 
 def _open_data(cfg: TrainConfig, data_dir, d: _Dist) -> tuple[CropDataset, CropSplit, CropSplit]:
@@ -411,6 +432,7 @@ def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit
         pose_units=cfg.pose_units,
         roi_head=cfg.roi_head,
         roi_units=cfg.roi_units,
+        placement=cfg.placement == "image",
         roi_focal_px=data.intrinsics.fx * data.geometry.out / data.geometry.window,  # crop px per unit depth
     ).to(memory_format=torch.channels_last)  # oneDNN's convolutions ~1.1x faster (training.bench)
     opt = _optimizer(cfg, net)
@@ -600,10 +622,15 @@ def train(
 
     def load(order: np.ndarray, bi: int, step: int):
         """Batch ``bi`` of an epoch's ``order``, read for optimizer step ``step``."""
-        batch = train_split.batch(order[bi * local_main : (bi + 1) * local_main], cfg.arch, cfg.target)
+        place = cfg.placement == "image"
+        batch = train_split.batch(order[bi * local_main : (bi + 1) * local_main], cfg.arch, cfg.target, place)
         if local_mix:
-            extra = mix_train.batch(_mix_index(cfg, step, d.rank, len(mix_train), local_mix), cfg.arch, cfg.target)
+            extra = mix_train.batch(
+                _mix_index(cfg, step, d.rank, len(mix_train), local_mix), cfg.arch, cfg.target, place
+            )
             batch = tuple(torch.cat(pair) for pair in zip(batch, extra))
+        if place and cfg.placement_dropout:
+            batch = _drop_placement(cfg, batch, step, d.rank)
         return _mirror_rows(cfg, batch, step, d.rank) if cfg.mirror else batch
 
     # the next batch is read from the memory map in a thread while this one's step runs (numpy and

@@ -25,7 +25,7 @@ CARD_VERSION = 1
 #: ONNX graph I/O names (export writes them, the service reads them).
 ENCODER_INPUT = "depth_crop"  # (n, 1, out, out) float32 metres
 ENCODER_OUTPUT = "image_term"  # (n, D) float32: the image term (1024), then a jaw-grid head's feature map
-HEAD_INPUTS = ("image_term", "poses")  # (1, D), (k, 7) raw pose rows
+HEAD_INPUTS = ("image_term", "poses")  # (1, D), (k, 7) raw pose rows (+ the placement row: card.placement_columns)
 HEAD_OUTPUT = "p_success"  # (k,) float32
 VGQ_INPUTS = ("depth_crops", "poses")  # (k, 1, out, out), (k, n_pose)
 VGQ_OUTPUT = "p_success"
@@ -50,6 +50,14 @@ class ModelCard:
     label_threshold: float = 0.002
     #: Calibration.to_dict() + how it was fitted and measured (export.calibrate); {} if none
     calibration: dict = field(default_factory=dict)
+    #: ``vgq.placement.PLACEMENT_COLUMNS`` when the head reads each grasp's placement row after its
+    #: pose columns (computed from the uploaded image by ``planning.placement``); () when it does not
+    placement_columns: tuple[str, ...] = ()
+
+    @property
+    def head_pose_width(self) -> int:
+        """Columns of the head's ``poses`` input: the pose columns, then any placement row."""
+        return len(self.normalization.pose_columns) + len(self.placement_columns)
 
     def z_range(self) -> tuple[tuple[float, float], str]:
         """((z_min, z_max) metres of the grasps the model was trained on, where it comes from):
@@ -85,6 +93,10 @@ class ModelCard:
         d["geometry"] = self.geometry.to_dict()
         d["intrinsics"] = self.intrinsics.to_dict()
         d["normalization"] = self.normalization.to_dict()
+        if not self.placement_columns:  # cards of heads without placement read as they always have
+            del d["placement_columns"]
+        else:
+            d["placement_columns"] = list(self.placement_columns)
         d["format"] = CARD_FORMAT
         d["format_version"] = CARD_VERSION
         return d
@@ -106,6 +118,7 @@ class ModelCard:
             export=dict(d.get("export", {})),
             label_threshold=float(d.get("label_threshold", 0.002)),
             calibration=dict(d.get("calibration") or {}),
+            placement_columns=tuple(str(c) for c in d.get("placement_columns") or ()),
         )
 
     def save(self, model_dir: str | Path) -> None:

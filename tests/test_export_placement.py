@@ -1,0 +1,76 @@
+"""Export of a placement head (vgq.placement): the graphs read the placement row after the pose
+columns, the card names its columns, and the folder reads back into the same torch network."""
+
+import numpy as np
+import pytest
+import torch
+
+from export.from_onnx import fast_net_from_model_dir
+from export.onnx_export import ExportError, export_model
+from service.runtime import FastModel
+from training.networks import GraspQualityNet
+from vgq.camera import DEFAULT_INTRINSICS
+from vgq.crop import CropGeometry
+from vgq.model_card import ModelCard
+from vgq.placement import PLACEMENT_COLUMNS
+
+GEOM = CropGeometry(96, 32, 36.0)
+
+
+def rows(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    imgs = (0.6 + 0.01 * rng.standard_normal((n, 32, 32))).astype(np.float32)
+    poses = np.c_[rng.uniform(-10, 10, (n, 2)), rng.uniform(0.5, 0.8, n), np.tile([1.0, 0, 0, 0], (n, 1))]
+    place = np.c_[np.ones(n), rng.uniform(0, 0.08, (n, 2)), rng.uniform(-0.05, 0.05, n), rng.uniform(0, 0.1, (n, 2))]
+    return imgs, np.c_[poses, place].astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    torch.manual_seed(0)
+    net = GraspQualityNet("fast_vgqcnn", roi_head="jaw", placement=True).eval()
+    with torch.no_grad():
+        net.pc1.weight[:, -6:] = 3.0 * torch.randn(net.pc1.weight.shape[0], 6)  # the row matters
+        net.fc4_pose.weight.mul_(20.0)
+    imgs, poses = rows(16, np.random.default_rng(0))
+    out = tmp_path_factory.mktemp("place") / "m"
+    export_model(net, out, imgs, poses, GEOM, DEFAULT_INTRINSICS)
+    return net, out
+
+
+def test_the_card_names_the_placement_columns_and_the_head_reads_them(exported):
+    net, out = exported
+    card = ModelCard.load(out)
+    assert card.placement_columns == PLACEMENT_COLUMNS and card.head_pose_width == 13
+    imgs, poses = rows(8, np.random.default_rng(1))
+    model = FastModel(out, threads=1, head_precision="fp32", encoder_precision="fp32")
+    term = model.encode(imgs[:1])
+    with torch.no_grad():
+        ref = net.head(torch.from_numpy(term), torch.from_numpy(poses)).numpy()
+    got = model.score(term, poses)
+    np.testing.assert_allclose(got, ref, atol=1e-4)
+    moved = poses.copy()
+    moved[:, 8] += 0.05  # 5 cm further along the jaw axis from the object's centre
+    assert np.abs(model.score(term, moved) - got).max() > 1e-3
+
+
+def test_the_folder_reads_back_into_the_same_network(exported):
+    net, out = exported
+    back, _ = fast_net_from_model_dir(out)
+    imgs, poses = rows(8, np.random.default_rng(2))
+    x = torch.from_numpy(imgs[:, None])
+    with torch.no_grad():
+        a = torch.softmax(net(x, torch.from_numpy(poses)), 1)[:, 1]
+        b = torch.softmax(back(x, torch.from_numpy(poses)), 1)[:, 1]
+    assert back.n_place == 6 and torch.allclose(a, b, atol=1e-5)
+
+
+def test_export_refuses_verification_poses_without_the_placement_row(exported, tmp_path):
+    net, _ = exported
+    imgs, poses = rows(4, np.random.default_rng(3))
+    with pytest.raises(ExportError, match=r"\(4, 13\)"):
+        export_model(net, tmp_path / "bad", imgs, poses[:, :7], GEOM, DEFAULT_INTRINSICS)
+
+
+def test_a_card_without_placement_reads_and_writes_as_before():
+    card = ModelCard.load("models/fast-vgqcnn-default")
+    assert card.placement_columns == () and "placement_columns" not in card.to_dict()

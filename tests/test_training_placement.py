@@ -1,0 +1,72 @@
+"""Training with placement rows (training.config placement "image"): the head reads them, a
+fine-tune from a network without them starts as that network, crops without them are refused."""
+
+import numpy as np
+import pytest
+import torch
+
+from training.checkpoint import load_init_weights, load_trained
+from training.config import TrainConfig
+from training.data import DatasetError, open_crop_dataset
+from training.networks import GraspQualityNet
+from training.predict import predict_split
+from training.synthetic import make_synthetic_crop_dataset
+from training.train import _drop_placement, train
+
+FAST = dict(batch_size=16, base_lr=0.1, seed=0, log_every_steps=2)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    path = tmp_path_factory.mktemp("place") / "data"
+    make_synthetic_crop_dataset(path, 64, 32, 32, signal="placement", positive_rate=0.5, seed=1)
+    return path
+
+
+def test_a_placement_net_reads_pose_rows_with_the_placement_row_after_them():
+    net = GraspQualityNet("fast_vgqcnn", placement=True).eval()
+    enc = net.encode(torch.randn(1, 1, 32, 32))
+    assert net.head(enc, torch.zeros(2, 13)).shape == (2,)
+    with pytest.raises(ValueError, match="width 13"):
+        net.head(enc, torch.zeros(2, 7))
+
+
+def test_a_fine_tune_that_adds_placement_starts_as_its_init():
+    torch.manual_seed(0)
+    old = GraspQualityNet("fast_vgqcnn").eval()
+    net = GraspQualityNet("fast_vgqcnn", placement=True).eval()
+    assert load_init_weights(net, old.state_dict()) == []  # pc1 widened by zero columns, nothing fresh
+    x, poses = torch.randn(1, 1, 32, 32), torch.tensor([[2.0, -3.0, 0.6, 1, 0, 0, 0]])
+    place = torch.tensor([[1.0, 0.03, 0.01, -0.02, 0.05, 0.1]])
+    with torch.no_grad():
+        assert torch.equal(net.head(net.encode(x), torch.cat([poses, place], 1)), old.head(old.encode(x), poses))
+
+
+def test_training_with_placement_learns_a_label_only_the_placement_row_carries(data, tmp_path):
+    cfg = TrainConfig(samples=64 * 12, val_every_samples=256, placement="image", placement_dropout=0.0, **FAST)
+    train(cfg, data, tmp_path / "run", progress=False)
+    net, _ = load_trained(tmp_path / "run" / "checkpoints" / "last.pt")
+    sp = open_crop_dataset(data).split("train")
+    p, _ = predict_split(net, sp)
+    y = np.asarray(sp.labels).astype(bool)
+    assert net.n_place == 6 and ((p > 0.5) == y).mean() > 0.8  # images and poses are noise here
+
+
+def test_placement_training_refuses_crops_without_placement_rows(data, tmp_path):
+    import shutil
+
+    bare = tmp_path / "bare"
+    shutil.copytree(data, bare)
+    (bare / "val" / "placement.npy").unlink()
+    with pytest.raises(DatasetError, match="placement rows.*'val'"):
+        train(TrainConfig(samples=16, placement="image", **FAST), bare, tmp_path / "r", progress=False)
+
+
+def test_placement_dropout_makes_the_drawn_rows_unknown_and_leaves_the_rest():
+    cfg = TrainConfig(placement="image", placement_dropout=0.5, seed=3)
+    pose = torch.ones(64, 13)
+    _, out, _ = _drop_placement(cfg, (torch.zeros(64, 1, 2, 2), pose, torch.zeros(64)), step=5, rank=0)
+    dropped = (out[:, 7:] == 0).all(dim=1)
+    assert 10 < int(dropped.sum()) < 54 and (out[:, :7] == 1).all() and (out[~dropped, 7:] == 1).all()
+    _, again, _ = _drop_placement(cfg, (torch.zeros(64, 1, 2, 2), pose, torch.zeros(64)), step=5, rank=0)
+    assert torch.equal(out, again)  # the same rows on a resumed run
