@@ -263,3 +263,17 @@ def test_align_jaw_is_for_vgqcnn_crops_and_reads_back_only_when_set():
     g = vcrop.CropGeometry(96, 32, 0.0, align_jaw=True)
     assert vcrop.CropGeometry.from_dict(g.to_dict()) == g
     assert vcrop.CropGeometry.from_dict({"window": 96, "out": 32, "kappa_px": 0}).align_jaw is False
+
+
+def test_each_crop_carries_the_placement_row_the_service_computes_from_the_same_image(one_image_dataset, tmp_path):
+    from planning.placement import placement_rows
+    from vgq.camera import DEFAULT_INTRINSICS
+
+    make_crops(one_image_dataset, tmp_path, "fast_vgqcnn", log=lambda s: None, sensor="clean")
+    depth, g = _first(one_image_dataset)
+    a = storage.open_crops(tmp_path, "train")
+    uvz = np.stack([g["u"], g["v"], g["z"]], axis=1)
+    expected = placement_rows(depth, DEFAULT_INTRINSICS, uvz, g["q"])
+    np.testing.assert_array_equal(a["placement"], expected)
+    on_box = (g["u"] > 121) & (g["u"] < 178) & (g["v"] > 101) & (g["v"] < 198)  # the raised box on its table
+    assert on_box.any() and (a["placement"][on_box, 0] == 1).all()

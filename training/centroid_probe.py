@@ -134,6 +134,15 @@ def features(score: np.ndarray, geo: dict[str, np.ndarray] | None) -> np.ndarray
     return np.stack([lg, off, np.log1p(off), h, top, h / np.maximum(top, 1e-3), lg * np.log1p(off)], axis=1)
 
 
+def placement_features(score: np.ndarray, place: np.ndarray) -> np.ndarray:
+    """(n, d) rows: the score's logit, the placement rows (n, 6) (cm; ``known`` as is) and the
+    logit times each of them."""
+    s = np.clip(np.asarray(score, np.float64), 1e-6, 1 - 1e-6)
+    lg = np.log(s / (1 - s))
+    p = np.asarray(place, np.float64) * np.array([1, 100, 100, 100, 100, 100])
+    return np.c_[lg, p, lg[:, None] * p]
+
+
 def object_cv(
     X: dict[str, np.ndarray], y: np.ndarray, object_id: np.ndarray, family: np.ndarray, repeats: int = 5
 ) -> dict[str, dict[str, float]]:
@@ -217,6 +226,8 @@ def probe(sampled: str | Path, crops: str | Path, model_dir: str | Path, per_obj
                 )
         bins[str(f)] = rows
     X = {"score": features(score, None), "score_geometry": features(score, geo), "score_image": features(score, seen)}
+    if place is not None:  # the placement rows a placement head reads (vgq.placement), with the score
+        X["score_placement"] = placement_features(score, place)
     cv = object_cv(X, y, oid, family)
     raw = {"all": M.binary_metrics(y, score)["balanced_accuracy"]}
     raw.update({f: m["balanced_accuracy"] for f, m in M.metrics_by_group(y, score, family).items()})
@@ -233,13 +244,15 @@ def probe(sampled: str | Path, crops: str | Path, model_dir: str | Path, per_obj
 
 def table(rec: dict) -> str:
     """The probe's result as a Markdown table (object-wise CV balanced accuracy) and offset bins."""
-    lines = [
-        "| family | score > 0.5 | score recalibrated | + offset, heights (camera pose known) | + offset, heights (image alone) |",
-        "|---|---:|---:|---:|---:|",
-    ]
     cv = rec["cv"]
+    arms = [k for k in ("score", "score_geometry", "score_image", "score_placement") if k in cv]
+    lines = [
+        "| family | score > 0.5 | score recalibrated | + offset, heights (camera pose known) | + offset, heights (image alone)"
+        + (" | + placement rows |" if "score_placement" in cv else " |"),
+        "|---|---:" + "|---:" * len(arms) + "|",
+    ]
     for f, v in rec["raw"].items():
-        cells = " | ".join(f"{100 * cv[k][f]:.1f}%" for k in ("score", "score_geometry", "score_image"))
+        cells = " | ".join(f"{100 * cv[k][f]:.1f}%" for k in arms)
         lines.append(f"| {f} | {100 * v:.1f}% | {cells} |")
     lines.append(
         f"\n{rec['rows']} grasps ({rec['dropped']} dropped: no object or table found); the two offsets correlate "
