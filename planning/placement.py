@@ -51,11 +51,19 @@ class ImagePlacement:
         n = len(centres) - 1
         if n == 0:
             return cls(intr, table.normal, float(table.offset), None, None, None)
+        where = np.flatnonzero(objects)
         tops = np.zeros(n + 1)
-        tops[1:] = ndimage.maximum(h, labels, index=np.arange(1, n + 1))
-        # every pixel off the regions takes its nearest region pixel's label within reach
-        dist, (iy, ix) = ndimage.distance_transform_edt(labels == 0, return_indices=True)
-        region = np.where(dist <= MAX_REGION_DISTANCE_PX, labels[iy, ix], 0).astype(np.int32)
+        tops[1:] = ndimage.maximum(h.ravel()[where], labels.ravel()[where], index=np.arange(1, n + 1))
+        # every pixel off the regions takes its nearest region pixel's label within reach: the distance
+        # transform over the regions' bounding box grown by the reach (beyond it nothing is in reach)
+        rows, cols = np.flatnonzero(objects.any(axis=1)), np.flatnonzero(objects.any(axis=0))
+        r = MAX_REGION_DISTANCE_PX
+        r0, r1 = max(rows[0] - r, 0), min(rows[-1] + r + 1, objects.shape[0])
+        c0, c1 = max(cols[0] - r, 0), min(cols[-1] + r + 1, objects.shape[1])
+        box = labels[r0:r1, c0:c1]
+        dist, (iy, ix) = ndimage.distance_transform_edt(box == 0, return_indices=True)
+        region = np.zeros(labels.shape, np.int32)
+        region[r0:r1, c0:c1] = np.where(dist <= r, box[iy, ix], 0)
         return cls(intr, table.normal, float(table.offset), region, centres, tops)
 
     def rows(self, uvz: np.ndarray, q: np.ndarray) -> np.ndarray:
