@@ -13,10 +13,16 @@ import hashlib
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from vgq.camera import Intrinsics, footprint
+
+from .placement import nbytes as placement_nbytes
+
+if TYPE_CHECKING:
+    from planning.placement import ImagePlacement
 
 ENTRY_OVERHEAD_BYTES = 512  # key, object headers, intrinsics
 WINDOW_OVERHEAD_BYTES = 128  # dict slot, origin tuple, missing fraction
@@ -48,7 +54,9 @@ class CachedImage:
     ``up``: the world's up direction in the client's camera frame as sent (None: not sent);
     ``roll``: radians the image was turned about the optical axis to be level
     (``vgq.camera.level_roll``; ``resampled`` is then the level camera's canvas); ``up_from``:
-    "client" (sent) or "table" (read from the image's table plane, ``level=table``)."""
+    "client" (sent) or "table" (read from the image's table plane, ``level=table``).
+    ``placement``: for a model whose head reads placement rows, the analysis of the image as
+    uploaded (``service.placement``: client pixels and camera); None for any other model."""
 
     depth: np.ndarray
     camera: Intrinsics
@@ -59,6 +67,7 @@ class CachedImage:
     roll: float = 0.0
     up_from: str | None = None
     windows: dict[Origin, EncodedWindow] = field(default_factory=dict)
+    placement: ImagePlacement | None = None
     _outside: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     def outside(self) -> np.ndarray | None:
@@ -94,7 +103,12 @@ class CachedImage:
 
     @property
     def nbytes(self) -> int:
-        return int(self.depth.nbytes) + ENTRY_OVERHEAD_BYTES + sum(w.nbytes for w in self.windows.values())
+        return (
+            int(self.depth.nbytes)
+            + ENTRY_OVERHEAD_BYTES
+            + sum(w.nbytes for w in self.windows.values())
+            + placement_nbytes(self.placement)
+        )
 
 
 def image_id(body: bytes, params: str, model_version: str) -> str:

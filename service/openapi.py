@@ -150,6 +150,46 @@ _CAMERA = {
         },
     },
 }
+_PLACEMENT_FOUND = {
+    "table_found": {
+        "type": "boolean",
+        "description": "the image as uploaded shows a table plane (RANSAC, planning.placement)",
+    },
+}
+_UPLOAD_PLACEMENT = {
+    "type": "object",
+    "required": ["table_found", "objects"],
+    "description": "only for a model whose head reads placement rows (GET /v1/model: model_card.placement_columns): "
+    "what the image as uploaded says about where grasps sit on their objects (vgq.placement); without a table, "
+    "every grasp's placement row is unknown (all 0) and the model scores on its window and pose alone",
+    "properties": {
+        **_PLACEMENT_FOUND,
+        "objects": {"type": "integer", "minimum": 0, "description": "object regions found above the table"},
+    },
+}
+_SCORE_PLACEMENT = {
+    "type": "object",
+    "required": ["table_found", "known"],
+    "description": "only for a model whose head reads placement rows: each grasp's placement row (where it sits on "
+    "its object, from the image as uploaded, vgq.placement) was passed to the head after its pose",
+    "properties": {
+        **_PLACEMENT_FOUND,
+        "known": {
+            "type": "array",
+            "items": {"type": "boolean"},
+            "description": "per grasp: its placement row is known (a table and an object region at the grasp); "
+            "false: the row was all 0 (unknown)",
+        },
+    },
+}
+_PLAN_PLACEMENT = {
+    "type": "object",
+    "required": ["known"],
+    "description": "only for a model whose head reads placement rows: the planner scores its candidates with "
+    "unknown placement rows; score a planned grasp's row with POST /v1/images/{image_id}/scores for its score "
+    "with the placement row",
+    "properties": {"known": {"type": "boolean", "enum": [False]}, "note": {"type": "string"}},
+}
 _NOT_LEVELLED = {"up": None, "roll_deg": 0.0, "tilt_deg": None, "from": None}
 _CAMERA_EXAMPLE = {
     "intrinsics": {"fx": 615.0, "fy": 615.0, "cx": 319.5, "cy": 239.5},
@@ -194,6 +234,7 @@ UPLOAD_RESPONSE = {
                             "v": {"type": "array", "items": {"type": "number"}},
                         },
                     },
+                    "placement": _UPLOAD_PLACEMENT,
                 },
             },
             "examples": {
@@ -287,6 +328,7 @@ SCORE_RESPONSE = {
                         "description": "largest share of missing depth among those windows",
                     },
                     **_CAMERA,
+                    "placement": _SCORE_PLACEMENT,
                 },
             },
             "example": {
@@ -306,7 +348,8 @@ SCORE_RESPONSE = {
             "schema": _BINARY,
             "description": "little-endian float32 p_success (k,), with Accept: "
             "application/octet-stream; headers x-calibrated (true / false), x-ood-count (grasps with "
-            "a flag: ask for JSON to see which), x-windows-encoded, x-image-id",
+            "a flag: ask for JSON to see which), x-windows-encoded, x-image-id; for a model whose head reads "
+            "placement rows also x-placement-known (grasps whose placement row is known)",
         },
     },
 }
@@ -503,6 +546,7 @@ PLAN_RESPONSE = {
                         **_CAMERA["intrinsics_assumed"],
                         "description": "intrinsics not sent at upload (a JSON body only)",
                     },
+                    "placement": _PLAN_PLACEMENT,
                 },
             },
             "example": PLAN_EXAMPLE,

@@ -5,7 +5,8 @@ a content address of the bytes, crop parameters and model version), so a small i
 LRU (``MemoryCache``, bounded by ``max_entries`` / ``max_bytes``) sits in front of Redis
 with no invalidation needed. Redis holds one string per image, ``<prefix><id>`` ->
 ``pack_entry`` bytes (the depth image at the model's focal length, zlib-compressed, and its
-camera), and one string per encoded window, ``<prefix><id>:w:<ou>,<ov>`` -> ``pack_window``
+camera; for a placement model also the upload's placement analysis, its region map
+zlib-compressed after the depth), and one string per encoded window, ``<prefix><id>:w:<ou>,<ov>`` -> ``pack_window``
 bytes (about 4.1 kB), each written with a TTL that each hit renews (GETEX), so idle images
 expire; a window another replica encoded is read, not encoded again; give the Redis server a ``maxmemory`` and ``maxmemory-policy
 allkeys-lru`` (or volatile-lru) and it evicts the least recently used images under pressure.
@@ -29,6 +30,7 @@ from urllib.parse import urlsplit, urlunsplit
 import numpy as np
 import orjson
 
+from planning.placement import ImagePlacement
 from vgq.camera import Intrinsics
 
 from . import logs
@@ -46,9 +48,45 @@ def window_key(prefix: str, key: str, origin) -> str:
     return f"{prefix}{key}:w:{int(origin[0])},{int(origin[1])}"
 
 
+def _pack_placement(p: ImagePlacement) -> tuple[dict, bytes]:
+    """(JSON metadata, zlib-compressed region map or b"") of a placement analysis; its ``intr`` is
+    the entry's camera (not stored again)."""
+    meta = {
+        "normal": None if p.normal is None else [float(x) for x in p.normal],
+        "offset": float(p.offset),
+        "centres": None if p.centres is None else np.asarray(p.centres, np.float64).tolist(),
+        "tops": None if p.tops is None else np.asarray(p.tops, np.float64).tolist(),
+    }
+    if p.region is None:
+        return meta, b""
+    region = np.ascontiguousarray(p.region)
+    meta["region"] = {"shape": list(region.shape), "dtype": region.dtype.newbyteorder("<").str}
+    return meta, zlib.compress(region.astype(meta["region"]["dtype"], copy=False).tobytes(), 1)
+
+
+def _unpack_placement(meta: dict, camera: Intrinsics, blob: bytes) -> ImagePlacement:
+    r = meta.get("region")
+    region = None
+    if r is not None:
+        h, w = (int(x) for x in r["shape"])
+        dtype = np.dtype(r["dtype"])
+        if dtype.kind not in "iu":
+            raise ValueError(f"placement region map of type {dtype}")
+        raw = zlib.decompress(blob)
+        if len(raw) != dtype.itemsize * h * w:
+            raise ValueError("placement region map has a wrong length")
+        region = np.frombuffer(raw, dtype=dtype).astype(dtype.newbyteorder("="), copy=True).reshape(h, w)
+
+    def arr(name):
+        return None if meta[name] is None else np.asarray(meta[name], np.float64)
+
+    return ImagePlacement(camera, arr("normal"), float(meta["offset"]), region, arr("centres"), arr("tops"))
+
+
 def pack_entry(entry: CachedImage) -> bytes:
     """Bytes of an image entry (without its windows): JSON metadata (shape, intrinsics, window
-    mode) + the zlib-compressed little-endian float32 depth image at the model's focal length."""
+    mode, a placement model's placement analysis) + the zlib-compressed little-endian float32
+    depth image at the model's focal length (+ the analysis's zlib-compressed region map)."""
     meta = {
         "shape": list(entry.depth.shape),
         "camera": entry.camera.to_dict(),
@@ -59,9 +97,12 @@ def pack_entry(entry: CachedImage) -> bytes:
         "roll": entry.roll,
         "up_from": entry.up_from,
     }
+    region = b""
+    if entry.placement is not None:
+        meta["placement"], region = _pack_placement(entry.placement)
     m = orjson.dumps(meta)
     depth = zlib.compress(np.ascontiguousarray(entry.depth, dtype="<f4").tobytes(), 1)
-    return _HEADER.pack(MAGIC, len(m)) + m + depth
+    return _HEADER.pack(MAGIC, len(m)) + m + depth + region
 
 
 def unpack_entry(data: bytes) -> CachedImage:
@@ -74,20 +115,28 @@ def unpack_entry(data: bytes) -> CachedImage:
     try:
         meta = orjson.loads(data[_HEADER.size : _HEADER.size + n])
         h, w = (int(x) for x in meta["shape"])
-        raw = zlib.decompress(data[_HEADER.size + n :])
-        if len(raw) != 4 * h * w:
+        z = zlib.decompressobj()
+        raw = z.decompress(data[_HEADER.size + n :])
+        if len(raw) != 4 * h * w or not z.eof:
             raise ValueError("depth has a wrong length")
         depth = np.frombuffer(raw, dtype="<f4").astype(np.float32).reshape(h, w)
         fc = meta["fixed_center"]
+        camera = Intrinsics.from_dict(meta["camera"])
+        placement = None
+        if meta.get("placement") is not None:  # after the depth: the region map, when the image has one
+            placement = _unpack_placement(meta["placement"], camera, z.unused_data)
+        elif z.unused_data:
+            raise ValueError("bytes after the depth image")
         return CachedImage(
             depth,
-            Intrinsics.from_dict(meta["camera"]),
+            camera,
             Intrinsics.from_dict(meta["resampled"]),
             tuple(meta["assumed"]),
             None if fc is None else np.array(fc, dtype=np.float64),
             None if meta.get("up") is None else tuple(float(x) for x in meta["up"]),
             float(meta.get("roll", 0.0)),  # entries of replicas that predate the up direction: level
             meta.get("up_from", None if meta.get("up") is None else "client"),
+            placement=placement,
         )
     except (orjson.JSONDecodeError, zlib.error, KeyError, TypeError) as e:
         raise ValueError(f"cache entry is corrupt: {e}") from None

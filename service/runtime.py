@@ -11,6 +11,7 @@ import onnxruntime as ort
 from planning import calibration as planner_calibration
 from planning import ranker as planner_ranker
 from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT, ModelCard
+from vgq.placement import PLACEMENT_COLUMNS
 
 from .config import ENCODER_PRECISIONS, HEAD_PRECISIONS
 
@@ -63,6 +64,11 @@ class FastModel:
             raise ModelError(
                 f"{model_dir}: the model was trained on crops {self.card.geometry.turning()} (one per grasp); "
                 "the service scores grasps on shared windows and cannot serve it"
+            )
+        if self.card.placement_columns and tuple(self.card.placement_columns) != PLACEMENT_COLUMNS:
+            raise ModelError(
+                f"{model_dir}: the head reads placement columns {list(self.card.placement_columns)}; this service "
+                f"computes {list(PLACEMENT_COLUMNS)} (vgq.placement)"
             )
         try:  # planned grasps' p_hold (planning.calibration) and order (planning.ranker); None: none there
             self.planner_calibration = planner_calibration.load(model_dir)

@@ -26,6 +26,7 @@ from vgq.pose import roll_quaternions
 from vgq.turns import pose_jaw_angles, turn_index, turned_view
 
 from . import logs
+from . import placement as image_placement
 from .cache import CachedImage, EncodedWindow, MemoryCache
 from .camera import client_camera, client_level, to_model_camera
 from .config import Settings
@@ -50,6 +51,10 @@ class Scores:
     windows: int  # crop windows the grasps fell in
     windows_encoded: int  # of them, encoded by this request (the rest were cached)
     missing_fraction: float  # largest share of missing depth among those windows
+    #: a placement model's only: (k,) bool, the grasps whose placement row is known (table and object
+    #: region found at the grasp), and whether the image showed a table; None for any other model
+    placement_known: np.ndarray | None = None
+    table_found: bool | None = None
 
     def ood(self) -> list[list[str]]:
         return [list(FLAG_NAMES[m]) for m in self.ood_mask.tolist()]
@@ -68,6 +73,12 @@ def _client_rows(ix: np.ndarray):
         if e.details and "grasps" in e.details:
             e.details = {**e.details, "grasps": ix[np.asarray(e.details["grasps"], dtype=np.intp)].tolist()}
         raise
+
+
+def _with_placement(rows: np.ndarray, extra: np.ndarray) -> np.ndarray:
+    """A placement head's pose rows: the (k, 7) network pose rows, each followed by its grasp's
+    placement row (``extra`` (k, 6), ``vgq.placement``)."""
+    return np.ascontiguousarray(np.hstack([rows, extra]), dtype=np.float32)
 
 
 def window_groups(origins: np.ndarray) -> tuple[dict, np.ndarray]:
@@ -99,6 +110,10 @@ class Service:
         self.calibration = None
         self.z_range, self.z_range_source = (0.0, np.inf), ""
         self.tilt_range = DEFAULT_TILT_RANGE
+        #: the head reads a placement row after each grasp's pose columns (``service.placement``)
+        self.placement = False
+        #: the model as the planner runs it (for a placement head: with unknown placement rows)
+        self.plan_model = model
         # bounds the plans computed at once (service/plan_routes.py); a waiting plan holds no thread
         self.plan_slots = anyio.CapacityLimiter(settings.max_concurrent_plans)
 
@@ -115,6 +130,8 @@ class Service:
             self.calibration = self.model.card.calibrator()
             self.z_range, self.z_range_source = self.model.card.z_range()
             self.tilt_range = self.model.card.tilt_range()
+            self.placement = bool(self.model.card.placement_columns)
+            self.plan_model = image_placement.UnknownPlacementModel(self.model) if self.placement else self.model
             self.model.warm_up()
             gc.collect()
             gc.freeze()  # start-up objects out of the collector's way: no GC pauses on them later
@@ -167,6 +184,13 @@ class Service:
             o = window_origin(entry.fixed_center, self.model.geometry)
             new = self._encode({(int(o[0]), int(o[1])): None}, entry, {})
             entry.windows.update(new)
+
+    def analyse_placement(self, entry: CachedImage, depth: np.ndarray) -> None:
+        """For a model whose head reads placement rows: analyse ``depth``, the upload of ``entry`` as
+        decoded (metres, client pixels, before resampling or inpainting), with the upload's own
+        intrinsics, and keep the analysis with the entry. Nothing for any other model."""
+        if self.placement and entry.placement is None:
+            entry.placement = image_placement.analyse(depth, entry.camera)
 
     def put(self, key: str, entry: CachedImage) -> None:
         self.cache.put(key, entry)
@@ -264,8 +288,12 @@ class Service:
         looked = self._windows_and_flags(key, entry, placed)
         if strict:
             self._refuse_ood(looked[3])
-        raw, encoded = self._infer(key, entry, placed[0], looked)
-        return self._scores(raw, looked[3], len(looked[0]), encoded, max(looked[2].values()))
+        if not self.placement:
+            raw, encoded = self._infer(key, entry, placed[0], looked)
+            return self._scores(raw, looked[3], len(looked[0]), encoded, max(looked[2].values()))
+        extra = image_placement.rows(entry.placement, grasps)
+        raw, encoded = self._infer(key, entry, _with_placement(placed[0], extra), looked)
+        return self._scores(raw, looked[3], len(looked[0]), encoded, max(looked[2].values()), entry, extra)
 
     def _score_turned(self, key: str, entry: CachedImage, grasps: np.ndarray, strict: bool, placed: tuple) -> Scores:
         """:meth:`score` for a model of windows turned towards the jaw: each turn's grasps on its
@@ -277,18 +305,35 @@ class Service:
             mask[ix] = w[3]
         if strict:
             self._refuse_ood(mask)
+        # placement rows from the grasps as sent, in the upload's camera (frame-invariant geometry)
+        extra = image_placement.rows(entry.placement, grasps) if self.placement else None
         raw, encoded = np.empty(len(mask), np.float32), 0
         for (k, e, ix, p), w in zip(jobs, looked):
             with _client_rows(ix):
-                raw[ix], n = self._infer(k, e, p[0], w)
+                rows = p[0] if extra is None else _with_placement(p[0], extra[ix])
+                raw[ix], n = self._infer(k, e, rows, w)
             encoded += n
         windows = sum(len(w[0]) for w in looked)
-        return self._scores(raw, mask, windows, encoded, max(max(w[2].values()) for w in looked))
+        missing = max(max(w[2].values()) for w in looked)
+        return self._scores(raw, mask, windows, encoded, missing, entry if extra is not None else None, extra)
 
-    def _scores(self, raw: np.ndarray, mask: np.ndarray, windows: int, encoded: int, missing: float) -> Scores:
+    def _scores(
+        self,
+        raw: np.ndarray,
+        mask: np.ndarray,
+        windows: int,
+        encoded: int,
+        missing: float,
+        entry: CachedImage | None = None,
+        extra: np.ndarray | None = None,
+    ) -> Scores:
+        """``entry`` and ``extra`` (its grasps' placement rows): a placement model's only."""
         self.metrics.grasps.observe(len(raw))
         p = self.calibration.apply(raw) if self.calibration is not None else raw.astype(np.float64)
-        return Scores(p, raw, mask, windows, encoded, float(missing))
+        if extra is None:
+            return Scores(p, raw, mask, windows, encoded, float(missing))
+        table = image_placement.describe(entry.placement)["table_found"]
+        return Scores(p, raw, mask, windows, encoded, float(missing), extra[:, 0] > 0, table)
 
     @staticmethod
     def _refuse_ood(mask: np.ndarray) -> None:
@@ -331,7 +376,8 @@ class Service:
 
     def _infer(self, key: str, entry: CachedImage, rows: np.ndarray, looked: tuple) -> tuple[np.ndarray, int]:
         """Encode the new windows of ``looked`` (:meth:`_windows_and_flags`), then run the head on
-        the pose ``rows`` (k, 7): (raw scores (k,) float32, windows encoded)."""
+        the pose ``rows`` (k, 7; k, 13 for a placement head: :func:`_with_placement`): (raw scores
+        (k,) float32, windows encoded)."""
         where, new = looked[0], looked[1]
         encoded = self._encode(dict.fromkeys(new), entry, where) if new else {}
         if encoded:
@@ -414,6 +460,8 @@ class Service:
             "missing_fraction": entry.missing_fraction,
             **self.camera_info(entry),
         }
+        if self.placement:
+            out["placement"] = image_placement.describe(entry.placement)
         if entry.fixed_center is None:
             out["windows"] = "grid"
             return out
@@ -422,7 +470,7 @@ class Service:
         return out
 
     def scores_info(self, s: Scores) -> dict:
-        return {
+        out = {
             "p_success": s.p_success,
             "raw_score": s.raw_score,
             "calibrated": self.calibration is not None,
@@ -432,6 +480,9 @@ class Service:
             "windows_encoded": s.windows_encoded,
             "missing_fraction": s.missing_fraction,
         }
+        if s.placement_known is not None:
+            out["placement"] = {"table_found": s.table_found, "known": s.placement_known}
+        return out
 
 
 def make_cache(settings: Settings, log: logging.Logger):
