@@ -32,12 +32,14 @@ from vgq.crop import grid_window_centers, origin_range, pose_uv, window_center, 
 from vgq.inpaint import crop_filled
 from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT
 from vgq.ood import flag_names, ood_flags
+from vgq.placement import unknown_rows
 from vgq.pose import canonical_quaternion, quaternion_from_matrix, roll_quaternions
 from vgq.turns import pose_jaw_angles, turn_index, turned_poses, turned_view
 
 from .calibration import p_hold as hold_probability
 from .cloud import valid_mask
 from .features import plan_features
+from .placement import ImagePlacement
 from .sampler import Candidates, analyse_scene, collision_checker, feasible_approach, frames_about_axis, sample_grasps
 from .types import MAX_K, PlannedGrasp, PlanningError, PlanParams, PlanResult
 
@@ -203,11 +205,22 @@ class WindowScorer:
     later calls (the CEM refinement). ``store``: windows encoded before (taken from it, not
     encoded again; ``reused`` counts them) and kept after (those this scorer encodes)."""
 
-    def __init__(self, model, depth: np.ndarray, windows: str = "cover", store: WindowStore | None = None):
+    def __init__(
+        self,
+        model,
+        depth: np.ndarray,
+        windows: str = "cover",
+        store: WindowStore | None = None,
+        placement: ImagePlacement | None = None,
+    ):
         if windows not in ("cover", "grid"):
             raise ValueError(f"windows must be 'cover' or 'grid', got {windows!r}")
         self.windows = windows
         self.model = model
+        #: a placement head's (``vgq.placement``): the image's analysis, whose rows follow the pose
+        #: columns (None for a placement head: unknown rows; for any other head: nothing appended)
+        self.placement = placement
+        self.reads_placement = bool(getattr(getattr(model, "card", None), "placement_columns", ()))
         self.depth = depth
         self.geom = model.geometry
         self.store = store
@@ -267,8 +280,10 @@ class WindowScorer:
             out[left] = cover_windows(uv[left], self.geom)
         return out
 
-    def score(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(P(success) (n,), fraction of missing depth in each grasp's window (n,))."""
+    def score(self, rows: np.ndarray, placement_rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(P(success) (n,), fraction of missing depth in each grasp's window (n,)) of grasp rows (n, 7)
+        (u, v, z, qw, qx, qy, qz); a placement head's rows also get ``placement_rows`` (n, 6) (None:
+        the scorer's analysis's rows of the same grasps)."""
         if len(rows) == 0:
             return np.zeros(0), np.zeros(0)
         centres = self._centres(rows[:, :2])
@@ -279,6 +294,14 @@ class WindowScorer:
         poses = np.empty((len(rows), 7), np.float32)
         poses[:, :2] = pose_uv(rows[:, :2], actual, self.geom)
         poses[:, 2:] = rows[:, 2:]
+        if self.reads_placement:  # the head reads each grasp's place on its object after its pose
+            if placement_rows is None:
+                placement_rows = (
+                    self.placement.rows(rows[:, :3], rows[:, 3:7])
+                    if self.placement is not None
+                    else unknown_rows(len(rows))
+                )
+            poses = np.hstack([poses, placement_rows]).astype(np.float32)
         self.scored_poses.append(poses)
         terms = np.stack([self.terms[k] for k in keys]).astype(np.float32)
         p = self.model.head.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: terms, HEAD_INPUTS[1]: poses})[0]
@@ -294,9 +317,16 @@ class TurnedScorer:
     image's intrinsics; ``store`` serves the unturned windows (turn 0) only."""
 
     def __init__(
-        self, model, depth: np.ndarray, intr: Intrinsics, windows: str = "cover", store: WindowStore | None = None
+        self,
+        model,
+        depth: np.ndarray,
+        intr: Intrinsics,
+        windows: str = "cover",
+        store: WindowStore | None = None,
+        placement: ImagePlacement | None = None,
     ):
         self.model, self.depth, self.intr, self.windows, self.store = model, depth, intr, windows, store
+        self.placement = placement  # of the unturned image: placement rows do not turn
         self.turns = model.geometry.jaw_turns
         self.scorers: dict[int, tuple[WindowScorer, Intrinsics, float]] = {}
         self.scored_poses: list[np.ndarray] = []  # the head's pose rows of every score() call, in order
@@ -316,13 +346,16 @@ class TurnedScorer:
             return np.zeros(0), np.zeros(0)
         index = turn_index(pose_jaw_angles(rows[:, :2], rows[:, 2], rows[:, 3:7], self.intr), self.turns)
         p, missing = np.empty(len(rows)), np.empty(len(rows))
-        poses = np.empty((len(rows), 7), np.float32)
+        place = self.placement.rows(rows[:, :3], rows[:, 3:7]) if self.placement is not None else None
+        poses = None
         for t in np.unique(index).tolist():
             ix = np.flatnonzero(index == t)
             scorer, canvas, roll = self._scorer(t)
             turned = np.array(rows[ix], dtype=np.float64)
             turned[:, :2], turned[:, 3:7] = turned_poses(turned[:, :2], turned[:, 3:7], self.intr, canvas, roll)
-            p[ix], missing[ix] = scorer.score(turned)
+            p[ix], missing[ix] = scorer.score(turned, None if place is None else place[ix])
+            if poses is None:
+                poses = np.empty((len(rows), scorer.scored_poses[-1].shape[1]), np.float32)
             poses[ix] = scorer.scored_poses[-1]
         self.scored_poses.append(poses)
         return p, missing
@@ -349,10 +382,14 @@ def window_scorer(
     model, depth: np.ndarray, intr: Intrinsics, windows: str = "cover", store: WindowStore | None = None
 ) -> WindowScorer | TurnedScorer:
     """The scorer of grasp rows on one image (``intr``: its intrinsics) that suits ``model``'s
-    crop geometry: windows of the image as it is, or turned towards each grasp's jaw."""
+    crop geometry: windows of the image as it is, or turned towards each grasp's jaw. A placement
+    head (``card.placement_columns``) gets the image's analysis (:mod:`planning.placement`), each
+    candidate's placement row computed from its own (u, v, z, q) in this image."""
+    reads = bool(getattr(getattr(model, "card", None), "placement_columns", ()))
+    placement = ImagePlacement.analyse(depth, intr) if reads else None
     if model.geometry.jaw_turns:
-        return TurnedScorer(model, depth, intr, windows, store)
-    return WindowScorer(model, depth, windows, store)
+        return TurnedScorer(model, depth, intr, windows, store, placement)
+    return WindowScorer(model, depth, windows, store, placement)
 
 
 # ----------------------------------------------------------------------------- selection

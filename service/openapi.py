@@ -182,14 +182,6 @@ _SCORE_PLACEMENT = {
         },
     },
 }
-_PLAN_PLACEMENT = {
-    "type": "object",
-    "required": ["known"],
-    "description": "only for a model whose head reads placement rows: the planner scores its candidates with "
-    "unknown placement rows; score a planned grasp's row with POST /v1/images/{image_id}/scores for its score "
-    "with the placement row",
-    "properties": {"known": {"type": "boolean", "enum": [False]}, "note": {"type": "string"}},
-}
 _NOT_LEVELLED = {"up": None, "roll_deg": 0.0, "tilt_deg": None, "from": None}
 _CAMERA_EXAMPLE = {
     "intrinsics": {"fx": 615.0, "fy": 615.0, "cx": 319.5, "cy": 239.5},
@@ -546,7 +538,6 @@ PLAN_RESPONSE = {
                         **_CAMERA["intrinsics_assumed"],
                         "description": "intrinsics not sent at upload (a JSON body only)",
                     },
-                    "placement": _PLAN_PLACEMENT,
                 },
             },
             "example": PLAN_EXAMPLE,

@@ -8,9 +8,8 @@ the Redis backend stores it too) and each scored grasp's row comes from its (u, 
 client sent them, appended after the head's 7 pose columns. Models without placement never get
 here: no analysis, no extra column.
 
-The planner (``planning.policy``) builds its own head rows: for a placement model it runs through
-:class:`UnknownPlacementModel`, whose head appends *unknown* rows (all 0, ``known`` = 0: what an
-image without a table gives, and what placement dropout trained the head on).
+The planner (``planning.policy.window_scorer``) analyses the image it plans on and appends its
+candidates' rows itself.
 """
 
 from __future__ import annotations
@@ -21,15 +20,7 @@ import numpy as np
 
 from planning.placement import ImagePlacement
 from vgq.camera import Intrinsics
-from vgq.model_card import HEAD_INPUTS
-from vgq.placement import PLACEMENT_COLUMNS, unknown_rows
-
-#: how a plan answer says what its scores read (placement models only)
-PLAN_PLACEMENT = {
-    "known": False,
-    "note": "the planner scores its candidates with unknown placement rows (known = 0); score a planned grasp's "
-    "row with POST /v1/images/{image_id}/scores for its score with the placement row",
-}
+from vgq.placement import unknown_rows
 
 
 def analyse(depth: np.ndarray, camera: Intrinsics) -> ImagePlacement:
@@ -69,36 +60,3 @@ def describe(p: ImagePlacement | None) -> dict:
         "table_found": p is not None and p.normal is not None,
         "objects": 0 if p is None or p.centres is None else len(p.centres) - 1,
     }
-
-
-class _UnknownPlacementHead:
-    """A placement head as the planner calls it (``run`` with 7-column poses): each row followed by
-    an unknown placement row."""
-
-    def __init__(self, head, width: int):
-        self.head, self.width = head, width
-
-    def run(self, outputs, feed):
-        poses = np.asarray(feed[HEAD_INPUTS[1]], np.float32)
-        if poses.shape[1] < self.width:
-            poses = np.hstack([poses, np.zeros((len(poses), self.width - poses.shape[1]), np.float32)])
-            feed = {**feed, HEAD_INPUTS[1]: poses}
-        return self.head.run(outputs, feed)
-
-    def __getattr__(self, name):
-        return getattr(self.head, name)
-
-
-class UnknownPlacementModel:
-    """A :class:`service.runtime.FastModel` of a placement head as the planner runs it: everything
-    the model's own, except that the head's pose rows get unknown placement rows (the planner
-    builds rows of 7 columns; see the module's note)."""
-
-    def __init__(self, model):
-        if tuple(model.card.placement_columns) != PLACEMENT_COLUMNS:
-            raise ValueError(f"not a placement model: columns {model.card.placement_columns!r}")
-        self._model = model
-        self.head = _UnknownPlacementHead(model.head, model.n_pose)
-
-    def __getattr__(self, name):
-        return getattr(self._model, name)

@@ -15,9 +15,8 @@ Planning takes tens of milliseconds on a 300 x 300 image, about a second and 0.3
 service/limits.py). A :class:`planning.types.PlanningError` answers 422 naming its field; an image
 with nothing to grasp answers 200 with no grasps and a ``reason``.
 
-A model whose head reads placement rows (``service.placement``) plans through
-``Service.plan_model``: the planner builds 7-column head rows, so its candidates are scored with
-unknown placement rows, and the answer says so (``placement``).
+A model whose head reads placement rows (``vgq.placement``) scores each candidate with its row from
+the planner's image (``planning.policy.window_scorer``).
 """
 
 from __future__ import annotations
@@ -43,7 +42,6 @@ from .errors import ApiError
 from .limits import RETRY_AFTER_S
 from .media import JSON, media_type
 from .numbers import HEIGHT, LEVEL, UP, WIDTH, Number, parse_all
-from .placement import PLAN_PLACEMENT
 from .routes import Authorized, json_response
 from .scoring import Service
 
@@ -262,8 +260,6 @@ async def run_plan(svc: Service, request: Request, fn, *args):
 
 def plan_answer(svc: Service, result, k: int, seed: int, params: PlanParams, intrinsics: dict, **extra):
     svc.metrics.observe_plan(result.seconds.get("total", 0.0), len(result.grasps))
-    if svc.placement:  # a placement head: the planner's scores read unknown placement rows
-        extra["placement"] = PLAN_PLACEMENT
     return json_response(
         {**result.to_dict(), "k": k, "seed": seed, "cem": params.cem_iterations, "intrinsics": intrinsics, **extra}
     )
@@ -285,7 +281,7 @@ async def plan_cached(svc: Service, request: Request, image_id: str, n: dict, ro
             entry.depth,
             entry.resampled,
             entry.camera,
-            svc.plan_model,
+            svc.model,
             k,
             roi,
             seed,
@@ -341,7 +337,7 @@ async def plan_grasps(request: Request, svc: Authorized):
             check_resampled_side(intr, svc.model.card.intrinsics, s.max_image_side, roll)  # as for uploads
         except CameraMismatch:
             pass  # the planner names it (field intrinsics)
-        result = await run_plan(svc, request, plan, depth, intr, svc.plan_model, k, roi, seed, params, up)
+        result = await run_plan(svc, request, plan, depth, intr, svc.model, k, roi, seed, params, up)
     except PlanningError as e:
         raise ApiError(422, f"{e.field}: {e}", {"field": e.field}) from None
     return plan_answer(svc, result, k, seed, params, intr.to_dict(), level=describe_level(up, roll, up_from))

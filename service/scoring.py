@@ -112,8 +112,6 @@ class Service:
         self.tilt_range = DEFAULT_TILT_RANGE
         #: the head reads a placement row after each grasp's pose columns (``service.placement``)
         self.placement = False
-        #: the model as the planner runs it (for a placement head: with unknown placement rows)
-        self.plan_model = model
         # bounds the plans computed at once (service/plan_routes.py); a waiting plan holds no thread
         self.plan_slots = anyio.CapacityLimiter(settings.max_concurrent_plans)
 
@@ -131,7 +129,6 @@ class Service:
             self.z_range, self.z_range_source = self.model.card.z_range()
             self.tilt_range = self.model.card.tilt_range()
             self.placement = bool(self.model.card.placement_columns)
-            self.plan_model = image_placement.UnknownPlacementModel(self.model) if self.placement else self.model
             self.model.warm_up()
             gc.collect()
             gc.freeze()  # start-up objects out of the collector's way: no GC pauses on them later

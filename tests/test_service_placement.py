@@ -202,15 +202,18 @@ def test_an_image_without_a_table_scores_with_unknown_placement(client, referenc
     np.testing.assert_allclose(got["raw_score"], unknown, atol=1e-5)
 
 
-def test_a_placement_model_plans_with_unknown_placement_rows(client):
+def test_a_placement_model_plans_with_each_candidates_placement_row(client, monkeypatch):
     depth = box_scene()
     r = client.post("/v1/plan", params={"k": 3}, content=_npy(depth), headers={"content-type": NPY})
     assert r.status_code == 200, r.text
-    assert r.json()["grasps"] and r.json()["placement"]["known"] is False
+    assert r.json()["grasps"] and "placement" not in r.json()
     image_id = _upload(client, depth, DEFAULT_INTRINSICS)["image_id"]
     cached = client.post(f"/v1/images/{image_id}/plan", params={"k": 3})
     assert cached.status_code == 200, cached.text
     assert [x["row"] for x in cached.json()["grasps"]] == [x["row"] for x in r.json()["grasps"]]
+    monkeypatch.setattr(ImagePlacement, "rows", lambda self, uvz, q: np.zeros((len(uvz), 6), np.float32))
+    blind = client.post("/v1/plan", params={"k": 3}, content=_npy(depth), headers={"content-type": NPY})
+    assert [x["score"] for x in blind.json()["grasps"]] != [x["score"] for x in r.json()["grasps"]]
 
 
 def test_the_redis_entry_keeps_the_placement_analysis():
@@ -241,7 +244,6 @@ def test_a_model_without_placement_runs_no_analysis_and_answers_as_before(monkey
             headers={"content-type": OCTET, "accept": OCTET},
         )
         plan = c.post("/v1/plan", params={"k": 2}, content=_npy(depth), headers={"content-type": NPY})
-        assert c.app.state.service.plan_model is c.app.state.service.model
     assert once.status_code == binary.status_code == plan.status_code == 200
     assert not any("placement" in a for a in (up, scored, once.json(), plan.json()))
     assert "x-placement-known" not in binary.headers
