@@ -73,7 +73,7 @@ def raw_scores(
     model_dir: str | Path, images: np.ndarray, poses: np.ndarray, batch: int = 256, placement: np.ndarray | None = None
 ) -> np.ndarray:
     """(n,) raw scores of the folder's fp32 graphs for crops (n, 32, 32) and pose rows (n, 7); a
-    placement head (its card's ``placement_columns``) also reads ``placement`` (n, 6), the crops'
+    placement head (its card's ``placement_columns``) also reads ``placement`` (n, 7), the crops'
     placement rows (ValueError without them)."""
     from service.runtime import FastModel
 

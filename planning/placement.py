@@ -67,7 +67,7 @@ class ImagePlacement:
         return cls(intr, table.normal, float(table.offset), region, centres, tops)
 
     def rows(self, uvz: np.ndarray, q: np.ndarray) -> np.ndarray:
-        """Placement rows (k, 6) float32 of grasps at image pixels and depths ``uvz`` (k, 3) (px, px,
+        """Placement rows (k, 7) float32 of grasps at image pixels and depths ``uvz`` (k, 3) (px, px,
         metres) with orientations ``q`` (k, 4) (w, x, y, z, camera frame); ``known`` 0 rows where the
         image shows no table or no object region at the grasp."""
         uvz = np.asarray(uvz, np.float64).reshape(-1, 3)

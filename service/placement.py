@@ -46,7 +46,7 @@ def nbytes(p: ImagePlacement | None) -> int:
 
 
 def rows(p: ImagePlacement | None, grasps: np.ndarray) -> np.ndarray:
-    """(k, 6) float32 placement rows of (k, 7) client grasps (u, v in the uploaded image's pixels,
+    """(k, 7) float32 placement rows of (k, 7) client grasps (u, v in the uploaded image's pixels,
     z, qw, qx, qy, qz in its camera frame); unknown (all 0) without an analysis."""
     g = np.asarray(grasps, np.float64)
     if p is None:

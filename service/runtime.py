@@ -131,7 +131,7 @@ class FastModel:
         return term
 
     def score(self, image_term: np.ndarray, poses: np.ndarray) -> np.ndarray:
-        """(1, D) encoding, (k, 7) network pose rows (k, 13 for a placement head: each followed by its
+        """(1, D) encoding, (k, 7) network pose rows (k, 14 for a placement head: each followed by its
         placement row, ``vgq.placement``) -> (k,) float32 probabilities."""
         t = time.perf_counter()
         p = self.head.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: image_term, HEAD_INPUTS[1]: poses})[0]

@@ -77,7 +77,7 @@ def _client_rows(ix: np.ndarray):
 
 def _with_placement(rows: np.ndarray, extra: np.ndarray) -> np.ndarray:
     """A placement head's pose rows: the (k, 7) network pose rows, each followed by its grasp's
-    placement row (``extra`` (k, 6), ``vgq.placement``)."""
+    placement row (``extra`` (k, 7), ``vgq.placement``)."""
     return np.ascontiguousarray(np.hstack([rows, extra]), dtype=np.float32)
 
 
@@ -373,7 +373,7 @@ class Service:
 
     def _infer(self, key: str, entry: CachedImage, rows: np.ndarray, looked: tuple) -> tuple[np.ndarray, int]:
         """Encode the new windows of ``looked`` (:meth:`_windows_and_flags`), then run the head on
-        the pose ``rows`` (k, 7; k, 13 for a placement head: :func:`_with_placement`): (raw scores
+        the pose ``rows`` (k, 7; k, 14 for a placement head: :func:`_with_placement`): (raw scores
         (k,) float32, windows encoded)."""
         where, new = looked[0], looked[1]
         encoded = self._encode(dict.fromkeys(new), entry, where) if new else {}

@@ -20,7 +20,7 @@ GEOM = CropGeometry(96, 32, 36.0)
 def rows(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     imgs = (0.6 + 0.01 * rng.standard_normal((n, 32, 32))).astype(np.float32)
     poses = np.c_[rng.uniform(-10, 10, (n, 2)), rng.uniform(0.5, 0.8, n), np.tile([1.0, 0, 0, 0], (n, 1))]
-    place = np.c_[np.ones(n), rng.uniform(0, 0.08, (n, 2)), rng.uniform(-0.05, 0.05, n), rng.uniform(0, 0.1, (n, 2))]
+    place = np.c_[np.ones(n), rng.uniform(0, 0.08, (n, 3)), rng.uniform(-0.05, 0.05, n), rng.uniform(0, 0.1, (n, 2))]
     return imgs, np.c_[poses, place].astype(np.float32)
 
 
@@ -29,18 +29,18 @@ def exported(tmp_path_factory):
     torch.manual_seed(0)
     net = GraspQualityNet("fast_vgqcnn", roi_head="jaw", placement=True).eval()
     with torch.no_grad():
-        net.pc1.weight[:, -6:] = 3.0 * torch.randn(net.pc1.weight.shape[0], 6)  # the row matters
-        net.fc4_pose.weight.mul_(20.0)
+        net.pc1.weight[:, -7:] = 3.0 * torch.randn(net.pc1.weight.shape[0], 7)  # the row matters
+        net.fc4_pose.weight.mul_(2.0)
     imgs, poses = rows(16, np.random.default_rng(0))
     out = tmp_path_factory.mktemp("place") / "m"
-    export_model(net, out, imgs, poses, GEOM, DEFAULT_INTRINSICS)
+    export_model(net, out, imgs, poses, GEOM, DEFAULT_INTRINSICS, training={"config": {"roi_head": "jaw"}})
     return net, out
 
 
 def test_the_card_names_the_placement_columns_and_the_head_reads_them(exported):
     net, out = exported
     card = ModelCard.load(out)
-    assert card.placement_columns == PLACEMENT_COLUMNS and card.head_pose_width == 13
+    assert card.placement_columns == PLACEMENT_COLUMNS and card.head_pose_width == 14
     imgs, poses = rows(8, np.random.default_rng(1))
     model = FastModel(out, threads=1, head_precision="fp32", encoder_precision="fp32")
     term = model.encode(imgs[:1])
@@ -49,7 +49,7 @@ def test_the_card_names_the_placement_columns_and_the_head_reads_them(exported):
     got = model.score(term, poses)
     np.testing.assert_allclose(got, ref, atol=1e-4)
     moved = poses.copy()
-    moved[:, 8] += 0.05  # 5 cm further along the jaw axis from the object's centre
+    moved[:, 8:10] += 0.05  # 5 cm further from the object's centre, along the jaw axis
     assert np.abs(model.score(term, moved) - got).max() > 1e-3
 
 
@@ -61,13 +61,13 @@ def test_the_folder_reads_back_into_the_same_network(exported):
     with torch.no_grad():
         a = torch.softmax(net(x, torch.from_numpy(poses)), 1)[:, 1]
         b = torch.softmax(back(x, torch.from_numpy(poses)), 1)[:, 1]
-    assert back.n_place == 6 and torch.allclose(a, b, atol=1e-5)
+    assert back.n_place == 7 and torch.allclose(a, b, atol=1e-5)
 
 
 def test_export_refuses_verification_poses_without_the_placement_row(exported, tmp_path):
     net, _ = exported
     imgs, poses = rows(4, np.random.default_rng(3))
-    with pytest.raises(ExportError, match=r"\(4, 13\)"):
+    with pytest.raises(ExportError, match=r"\(4, 14\)"):
         export_model(net, tmp_path / "bad", imgs, poses[:, :7], GEOM, DEFAULT_INTRINSICS)
 
 

@@ -19,22 +19,24 @@ def box_scene() -> np.ndarray:
 
 def test_a_grasp_at_the_top_face_centre_is_at_the_object_centre_line():
     row = placement_rows(box_scene(), INTR, np.array([[149.5, 149.5, 0.65]]), IDENTITY)[0]
-    known, along, across, depth, height, top = row
+    known, offset, along, across, depth, height, top = row
     assert len(row) == len(PLACEMENT_COLUMNS) and known == 1
+    assert offset == pytest.approx(0, abs=1e-3)
     assert along == pytest.approx(0, abs=1e-3) and across == pytest.approx(0, abs=1e-3)
     assert depth == pytest.approx(0, abs=1e-3)  # the guess sits at half the top's height: 5 cm, the grasp's
     assert height == pytest.approx(0.05, abs=1e-3) and top == pytest.approx(0.1, abs=1e-3)
 
 
 def test_an_off_centre_grasp_reads_its_offset_along_the_jaw_axis_in_metres():
-    along = placement_rows(box_scene(), INTR, np.array([[169.5, 149.5, 0.65]]), IDENTITY)[0, 1]
-    assert along == pytest.approx(20 * 0.65 / INTR.fx, rel=0.02)  # 20 px off, the grasp 0.65 m away
+    row = placement_rows(box_scene(), INTR, np.array([[169.5, 149.5, 0.65]]), IDENTITY)[0]
+    assert row[2] == pytest.approx(20 * 0.65 / INTR.fx, rel=0.02)  # 20 px off, the grasp 0.65 m away
+    assert row[1] == pytest.approx(row[2], rel=1e-3)  # the offset is horizontal: all of it, in the table plane
 
 
 def test_a_jaw_axis_turned_a_quarter_reads_the_same_offset_across():
     q = np.array([[np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)]])  # a quarter turn about the approach
     row = placement_rows(box_scene(), INTR, np.array([[169.5, 149.5, 0.65]]), q)[0]
-    assert row[1] == pytest.approx(0, abs=1e-3) and row[2] == pytest.approx(20 * 0.65 / INTR.fx, rel=0.02)
+    assert row[2] == pytest.approx(0, abs=1e-3) and row[3] == pytest.approx(20 * 0.65 / INTR.fx, rel=0.02)
 
 
 def test_an_image_without_readings_gives_unknown_rows():
@@ -48,7 +50,7 @@ def test_a_grasp_far_from_every_object_is_unknown_and_a_near_one_takes_the_neare
     place = ImagePlacement.analyse(box_scene(), INTR)
     rows = place.rows(np.array([[20.0, 20.0, 0.7], [185.0, 150.0, 0.65]]), np.repeat(IDENTITY, 2, 0))
     assert rows[0, 0] == 0 and (rows[0] == 0).all()
-    assert rows[1, 0] == 1 and rows[1, 5] == pytest.approx(0.1, abs=1e-3)  # 5 px off the box: the box's
+    assert rows[1, 0] == 1 and rows[1, 6] == pytest.approx(0.1, abs=1e-3)  # 5 px off the box: the box's
 
 
 def test_the_analysis_is_the_same_for_the_same_image():

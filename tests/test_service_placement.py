@@ -72,8 +72,8 @@ def placement_net():
     torch.manual_seed(0)
     net = GraspQualityNet("fast_vgqcnn", placement=True).eval()
     with torch.no_grad():
-        net.pc1.weight[:, -6:] = 3.0 * torch.randn(net.pc1.weight.shape[0], 6)
-        net.fc4_pose.weight.mul_(20.0)
+        net.pc1.weight[:, -7:] = 3.0 * torch.randn(net.pc1.weight.shape[0], 7)
+        net.fc4_pose.weight.mul_(2.0)  # not so strong that the probabilities saturate
     return net
 
 
@@ -84,7 +84,7 @@ def _export(net, out, geom: CropGeometry):
     imgs = (0.6 + 0.01 * rng.standard_normal((16, 32, 32))).astype(np.float32)
     poses = np.c_[rng.uniform(-10, 10, (16, 2)), rng.uniform(0.5, 0.8, 16), np.tile([1.0, 0, 0, 0], (16, 1))]
     place = np.c_[
-        np.ones(16), rng.uniform(0, 0.08, (16, 2)), rng.uniform(-0.05, 0.05, 16), rng.uniform(0, 0.1, (16, 2))
+        np.ones(16), rng.uniform(0, 0.08, (16, 3)), rng.uniform(-0.05, 0.05, 16), rng.uniform(0, 0.1, (16, 2))
     ]
     export_model(net, out, imgs, np.c_[poses, place].astype(np.float32), geom, DEFAULT_INTRINSICS)
     return out
@@ -140,7 +140,7 @@ def _expected(client, model: FastModel, image_id: str, g: np.ndarray, place: np.
 
 def test_the_model_card_reads_placement_columns(placement_dir):
     card = FastModel(placement_dir, threads=1).card
-    assert card.placement_columns == PLACEMENT_COLUMNS and card.head_pose_width == 13
+    assert card.placement_columns == PLACEMENT_COLUMNS and card.head_pose_width == 14
 
 
 def test_served_scores_read_the_rows_datagen_computes(client, reference):
@@ -160,7 +160,7 @@ def test_the_placement_rows_change_the_served_scores(client, reference):
     g = grasps(depth, seed=1)
     image_id = _upload(client, depth)["image_id"]
     got = np.array(_score(client, image_id, g)["raw_score"])
-    unknown = _expected(client, reference, image_id, g, np.zeros((len(g), 6), np.float32))
+    unknown = _expected(client, reference, image_id, g, np.zeros((len(g), 7), np.float32))
     assert np.abs(got - unknown)[:8].max() > 1e-3
 
 
@@ -198,7 +198,7 @@ def test_an_image_without_a_table_scores_with_unknown_placement(client, referenc
     got = _score(client, up["image_id"], g)
     assert up["placement"] == {"table_found": False, "objects": 0}
     assert got["placement"] == {"table_found": False, "known": [False] * len(g)}
-    unknown = _expected(client, reference, up["image_id"], g, np.zeros((len(g), 6), np.float32))
+    unknown = _expected(client, reference, up["image_id"], g, np.zeros((len(g), 7), np.float32))
     np.testing.assert_allclose(got["raw_score"], unknown, atol=1e-5)
 
 
@@ -211,7 +211,7 @@ def test_a_placement_model_plans_with_each_candidates_placement_row(client, monk
     cached = client.post(f"/v1/images/{image_id}/plan", params={"k": 3})
     assert cached.status_code == 200, cached.text
     assert [x["row"] for x in cached.json()["grasps"]] == [x["row"] for x in r.json()["grasps"]]
-    monkeypatch.setattr(ImagePlacement, "rows", lambda self, uvz, q: np.zeros((len(uvz), 6), np.float32))
+    monkeypatch.setattr(ImagePlacement, "rows", lambda self, uvz, q: np.zeros((len(uvz), 7), np.float32))
     blind = client.post("/v1/plan", params={"k": 3}, content=_npy(depth), headers={"content-type": NPY})
     assert [x["score"] for x in blind.json()["grasps"]] != [x["score"] for x in r.json()["grasps"]]
 

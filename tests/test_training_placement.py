@@ -26,8 +26,8 @@ def data(tmp_path_factory):
 def test_a_placement_net_reads_pose_rows_with_the_placement_row_after_them():
     net = GraspQualityNet("fast_vgqcnn", placement=True).eval()
     enc = net.encode(torch.randn(1, 1, 32, 32))
-    assert net.head(enc, torch.zeros(2, 13)).shape == (2,)
-    with pytest.raises(ValueError, match="width 13"):
+    assert net.head(enc, torch.zeros(2, 14)).shape == (2,)
+    with pytest.raises(ValueError, match="width 14"):
         net.head(enc, torch.zeros(2, 7))
 
 
@@ -37,7 +37,7 @@ def test_a_fine_tune_that_adds_placement_starts_as_its_init():
     net = GraspQualityNet("fast_vgqcnn", placement=True).eval()
     assert load_init_weights(net, old.state_dict()) == []  # pc1 widened by zero columns, nothing fresh
     x, poses = torch.randn(1, 1, 32, 32), torch.tensor([[2.0, -3.0, 0.6, 1, 0, 0, 0]])
-    place = torch.tensor([[1.0, 0.03, 0.01, -0.02, 0.05, 0.1]])
+    place = torch.tensor([[1.0, 0.035, 0.03, 0.01, -0.02, 0.05, 0.1]])
     with torch.no_grad():
         assert torch.equal(net.head(net.encode(x), torch.cat([poses, place], 1)), old.head(old.encode(x), poses))
 
@@ -49,7 +49,7 @@ def test_training_with_placement_learns_a_label_only_the_placement_row_carries(d
     sp = open_crop_dataset(data).split("train")
     p, _ = predict_split(net, sp)
     y = np.asarray(sp.labels).astype(bool)
-    assert net.n_place == 6 and ((p > 0.5) == y).mean() > 0.8  # images and poses are noise here
+    assert net.n_place == 7 and ((p > 0.5) == y).mean() > 0.8  # images and poses are noise here
 
 
 def test_placement_training_refuses_crops_without_placement_rows(data, tmp_path):
@@ -64,7 +64,7 @@ def test_placement_training_refuses_crops_without_placement_rows(data, tmp_path)
 
 def test_placement_dropout_makes_the_drawn_rows_unknown_and_leaves_the_rest():
     cfg = TrainConfig(placement="image", placement_dropout=0.5, seed=3)
-    pose = torch.ones(64, 13)
+    pose = torch.ones(64, 14)
     _, out, _ = _drop_placement(cfg, (torch.zeros(64, 1, 2, 2), pose, torch.zeros(64)), step=5, rank=0)
     dropped = (out[:, 7:] == 0).all(dim=1)
     assert 10 < int(dropped.sum()) < 54 and (out[:, :7] == 1).all() and (out[~dropped, 7:] == 1).all()

@@ -135,12 +135,14 @@ def features(score: np.ndarray, geo: dict[str, np.ndarray] | None) -> np.ndarray
 
 
 def placement_features(score: np.ndarray, place: np.ndarray) -> np.ndarray:
-    """(n, d) rows: the score's logit, the placement rows (n, 6) (cm; ``known`` as is) and the
-    logit times each of them."""
+    """(n, d) rows: the score's logit, the placement rows (n, 7) (cm; ``known`` as is), the logit
+    times each of them, and the terms :func:`features` adds (log offset, height over top)."""
     s = np.clip(np.asarray(score, np.float64), 1e-6, 1 - 1e-6)
     lg = np.log(s / (1 - s))
-    p = np.asarray(place, np.float64) * np.array([1, 100, 100, 100, 100, 100])
-    return np.c_[lg, p, lg[:, None] * p]
+    p = np.asarray(place, np.float64) * np.array([1, 100, 100, 100, 100, 100, 100])
+    off, h, top = p[:, 1], p[:, 5], p[:, 6]
+    more = np.c_[np.log1p(np.maximum(off, 0)), h / np.maximum(top, 1e-1), lg * np.log1p(np.maximum(off, 0))]
+    return np.c_[lg, p, lg[:, None] * p, more]
 
 
 def object_cv(

@@ -66,7 +66,7 @@ class CropSplit:
         self, index: np.ndarray, arch: str, target: str = "label", placement: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Rows ``index`` as tensors: images (b, 1, S, S) metres, poses (b, n_pose) (``placement``:
-        (b, n_pose + 6), each row's placement row after its pose columns), and labels (b,)
+        (b, n_pose + 7), each row's placement row after its pose columns), and labels (b,)
         int64 (``target`` "label"), the physics label's success rates (b,) float32 in [0, 1]
         (``target`` "success_rate": the crops' ``quality``) or (b, 2) float32 of the label and the
         teacher's score, NaN where it has none (``target`` "teacher": ``arrays["teacher"]``)."""

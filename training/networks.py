@@ -285,7 +285,7 @@ class GraspQualityNet(nn.Module):
 
     def head_logits(self, encoding: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
         """``encode``'s output (1 or k, ``encoding_width``) and raw poses (k, n_pose) -> logits (k, 2)
-        (with ``placement``: (k, n_pose + 6), the placement row after the pose columns)."""
+        (with ``placement``: (k, n_pose + 7), the placement row after the pose columns)."""
         if encoding.shape[1] != self.encoding_width:
             raise ValueError(f"the head reads encodings of width {self.encoding_width}, got {encoding.shape[1]}")
         if poses.shape[1] != self.n_pose + self.n_place:

@@ -76,7 +76,7 @@ def synthetic_split(
     * ``"image"``: positives show a 10 x 10 px block 10 cm nearer the camera at the crop
       centre, negatives do not. Poses carry no signal.
     * ``"pose"``: label = 1 where the quaternion's w > its (data) threshold; images noise.
-    * ``"placement"``: label = 1 where the placement row's ``along`` is below its (data) threshold.
+    * ``"placement"``: label = 1 where the placement row's ``offset`` is below its (data) threshold.
     * ``"none"``: random labels (nothing to learn).
 
     Every row has a placement row (``vgq.placement``, drawn from its own stream, so the other fields
@@ -98,6 +98,7 @@ def synthetic_split(
     place = np.stack(
         [
             np.ones(n),
+            prng.uniform(0.0, 0.08, n),
             prng.uniform(0.0, 0.08, n),
             prng.uniform(0.0, 0.04, n),
             prng.uniform(-0.05, 0.05, n),

@@ -9,6 +9,8 @@ both call, so training and serving read the same numbers):
 
 * ``known``: 1 where the image shows a table and an object region at the grasp, else 0 (and
   every other column 0): the network then scores on the window and the pose alone;
+* ``offset``: the horizontal distance (in the table plane) from the grasp centre to the object's
+  centre-of-mass guess, metres (what ``training.centroid_probe`` measured success falling with);
 * ``along``, ``across``, ``depth``: the object's centre-of-mass guess (its seen points dropped to
   half their height above the table) relative to the grasp centre, in the gripper frame (x along
   the jaw axis, z along the approach), metres; ``along`` and ``across`` as magnitudes, since
@@ -23,9 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 
-PLACEMENT_COLUMNS: tuple[str, ...] = ("known", "along", "across", "depth", "height", "top")
+PLACEMENT_COLUMNS: tuple[str, ...] = ("known", "offset", "along", "across", "depth", "height", "top")
 #: what the network divides each column by (metres; ``known`` is 0 or 1)
-PLACEMENT_SCALE_M: tuple[float, ...] = (1.0, 0.05, 0.05, 0.05, 0.1, 0.1)
+PLACEMENT_SCALE_M: tuple[float, ...] = (1.0, 0.05, 0.05, 0.05, 0.05, 0.1, 0.1)
 #: a grasp whose pixel is off every object region takes the nearest one this close (image px)
 MAX_REGION_DISTANCE_PX = 24
 
@@ -43,16 +45,19 @@ def rows_from_geometry(
     normal: np.ndarray,
     offset: float,
 ) -> np.ndarray:
-    """Placement rows (k, 6) float32, ``known`` 1, for grasp centres (k, 3) with rotations (k, 3, 3)
+    """Placement rows (k, 7) float32, ``known`` 1, for grasp centres (k, 3) with rotations (k, 3, 3)
     (gripper to camera frame), their objects' centre-of-mass guesses (k, 3) and tops (k,) (metres
     above the table), and the table plane ``normal . x + offset = 0`` (unit normal towards the
     camera); all camera frame, metres."""
-    rel = np.einsum("kji,kj->ki", rotations, np.asarray(centre_of_mass, np.float64) - centres)  # R^T (c - g)
+    d = np.asarray(centre_of_mass, np.float64) - centres
+    n = np.asarray(normal, np.float64)
+    rel = np.einsum("kji,kj->ki", rotations, d)  # R^T (c - g): the gripper frame
     out = np.empty((len(centres), len(PLACEMENT_COLUMNS)), np.float32)
     out[:, 0] = 1.0
-    out[:, 1] = np.abs(rel[:, 0])
-    out[:, 2] = np.abs(rel[:, 1])
-    out[:, 3] = rel[:, 2]
-    out[:, 4] = centres @ np.asarray(normal, np.float64) + offset
-    out[:, 5] = top
+    out[:, 1] = np.linalg.norm(d - (d @ n)[:, None] * n, axis=1)
+    out[:, 2] = np.abs(rel[:, 0])
+    out[:, 3] = np.abs(rel[:, 1])
+    out[:, 4] = rel[:, 2]
+    out[:, 5] = centres @ n + offset
+    out[:, 6] = top
     return out
