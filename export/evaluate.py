@@ -26,6 +26,7 @@ import numpy as np
 
 from datagen import storage
 from training import metrics as M
+from vgq.model_card import ModelCard
 from vgq.schema import SPLITS
 
 
@@ -164,6 +165,12 @@ def main(argv=None) -> dict:
         help="also score each crop's left-right mirror image, alone and averaged with the original (test-time mirroring)",
     )
     p.add_argument(
+        "--blank-placement",
+        action="store_true",
+        help="also score each placement model (card placement_columns) with every placement row made unknown "
+        "(all 0): what the rows add",
+    )
+    p.add_argument(
         "--other-crops",
         action="store_true",
         help="score a model on crops cut for another geometry (e.g. an unturned model on windows turned "
@@ -190,8 +197,6 @@ def main(argv=None) -> dict:
         if not a.other_crops:
             check_geometry(a.model_dir, a.data)
         rows = crop_rows(a.data, a.split, a.max_n, a.seed)
-        from vgq.model_card import ModelCard
-
         for d in a.model_dir:
             if ModelCard.load(d).placement_columns and rows["placement"] is None:
                 raise ValueError(f"{d} reads placement rows; {a.data} has none (crop it again with this datagen)")
@@ -206,6 +211,9 @@ def main(argv=None) -> dict:
             m_scores = raw_scores(d, *mirrored(rows["images"], rows["poses"]), placement=rows["placement"])
             variants[f"{d} (mirrored)"] = m_scores
             variants[f"{d} (mean of it and its mirror)"] = 0.5 * (scores + m_scores)
+        if a.blank_placement and rows["placement"] is not None and ModelCard.load(d).placement_columns:
+            blank = np.zeros_like(rows["placement"])
+            variants[f"{d} (placement rows unknown)"] = raw_scores(d, rows["images"], rows["poses"], placement=blank)
         for name, sc in variants.items():
             results[name] = _report(name, sc, rows, a)
         if a.card_key:

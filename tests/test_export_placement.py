@@ -74,3 +74,19 @@ def test_export_refuses_verification_poses_without_the_placement_row(exported, t
 def test_a_card_without_placement_reads_and_writes_as_before():
     card = ModelCard.load("models/fast-vgqcnn-default")
     assert card.placement_columns == () and "placement_columns" not in card.to_dict()
+
+
+def test_evaluate_scores_a_placement_model_also_with_its_rows_blanked(exported, tmp_path):
+    import json
+
+    from export.evaluate import main
+    from training.synthetic import make_synthetic_crop_dataset
+
+    _, out = exported
+    make_synthetic_crop_dataset(tmp_path / "crops", 8, 8, 64, signal="placement", seed=4)
+    main(["--model-dir", str(out), "--data", str(tmp_path / "crops"), "--max-n", "64", "--blank-placement",
+          "--json", str(tmp_path / "r.json")])  # fmt: skip
+    r = json.loads((tmp_path / "r.json").read_text())["results"]
+    blank = f"{out} (placement rows unknown)"
+    assert set(r) == {str(out), blank}
+    assert r[str(out)]["all"]["auc"] != r[blank]["all"]["auc"]
