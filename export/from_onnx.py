@@ -75,10 +75,23 @@ def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, Mod
     mean, std = np.asarray(norm.pose_mean, np.float64)[:n], np.asarray(norm.pose_std, np.float64)[:n]
     w = wf.copy()
     w[:, :n] = wf[:, :n] * std[None, :]
-    if net.n_place:  # the placement row's columns: its scale folded in too
-        w[:, -net.n_place :] = wf[:, -net.n_place :] * net.place_scale.numpy().astype(np.float64)[None, :]
+    scale = net.place_scale.numpy().astype(np.float64)[None, :]
+    if net.n_place and not net.placement_units:  # the placement row's columns: its scale folded in too
+        w[:, -net.n_place :] = wf[:, -net.n_place :] * scale
     _set(net.pc1.weight, w, "pc1")
     _set(net.pc1.bias, bf + wf[:, :n] @ mean, "pc1")
+    if net.placement_units:  # the placement stream: place_fc1 folded as pc1, place_fc2 (no bias) a MatMul
+        wf = _get(head, "head.place_fc1.weight", head_path).astype(np.float64)
+        bf = _get(head, "head.place_fc1.bias", head_path).astype(np.float64)
+        w = wf.copy()
+        w[:, :n] = wf[:, :n] * std[None, :]
+        w[:, -net.n_place :] = wf[:, -net.n_place :] * scale
+        _set(net.place_fc1.weight, w, "place_fc1")
+        _set(net.place_fc1.bias, bf + wf[:, :n] @ mean, "place_fc1")
+        mm = head_nodes.get("/head/place_fc2/MatMul")
+        if mm is None or len(mm) != 2:
+            raise ValueError(f"{head_path}: node '/head/place_fc2/MatMul' not found; the card says placement_units")
+        _set(net.place_fc2.weight, _get(head, mm[1], head_path).T, "place_fc2")
     for layer in ("fc4_pose", "fc5"):
         for what in ("weight", "bias"):
             _set(getattr(getattr(net, layer), what), _get(head, f"head.{layer}.{what}", head_path), layer)

@@ -58,7 +58,8 @@ def with_export_lrn(net: GraspQualityNet) -> GraspQualityNet:
 
 
 class _FoldedHead(nn.Module):
-    """pc1 (with pose normalisation folded in) -> fc4 merge -> [fc5] -> P(success)."""
+    """pc1 (with pose normalisation folded in) -> fc4 merge -> [fc5] -> P(success); a placement
+    stream (``placement_units``) with the same folding in its first layer, its term added to fc4's."""
 
     def __init__(self, net: GraspQualityNet):
         super().__init__()
@@ -69,12 +70,21 @@ class _FoldedHead(nn.Module):
             n = net.n_other
             w = net.pc1.weight.clone()
             w[:, :n] = w[:, :n] / net.pose_std[None, :n]
-            if net.n_place:  # pc1's last inputs: the placement row over its scale
+            self.stream = bool(net.placement_units)  # the placement row read by a stream of its own
+            if net.n_place and not self.stream:  # pc1's last inputs: the placement row over its scale
                 w[:, -net.n_place :] = w[:, -net.n_place :] / net.place_scale[None, :]
             b = net.pc1.bias - w[:, :n] @ net.pose_mean[:n]
             self.pc1 = nn.Linear(w.shape[1], w.shape[0])
             self.pc1.weight.copy_(w)
             self.pc1.bias.copy_(b)
+            if self.stream:  # place_fc1 reads pc1's features and the row: both folded the same way
+                w = net.place_fc1.weight.clone()
+                w[:, :n] = w[:, :n] / net.pose_std[None, :n]
+                w[:, -net.n_place :] = w[:, -net.n_place :] / net.place_scale[None, :]
+                self.place_fc1 = nn.Linear(w.shape[1], w.shape[0])
+                self.place_fc1.weight.copy_(w)
+                self.place_fc1.bias.copy_(net.place_fc1.bias - w[:, :n] @ net.pose_mean[:n])
+                self.place_fc2 = net.place_fc2
             self.fc4_pose = net.fc4_pose
             self.fc5 = net.fc5
             self.roi = net if net.roi_head != "none" else None  # its jaw-grid layers (roi_term)
@@ -93,7 +103,9 @@ class _FoldedHead(nn.Module):
             c = image_term[:, :1024] + self.fc4_pose.bias + self.roi.roi_term(cells, poses, crop)
         if self.rotation:
             poses = torch.cat([poses[:, : self.n_other], rotation_entries(poses[:, self.n_other :])], dim=1)
-        if place is not None:
+        if place is not None and self.stream:
+            c = c + self.place_fc2(F.relu(self.place_fc1(torch.cat([poses, place], dim=1))))
+        elif place is not None:
             poses = torch.cat([poses, place], dim=1)
         # Gemm(p, W, C = image term + bias): the merge Add and Relu fuse into the Gemm
         x = F.relu(torch.addmm(c, F.relu(self.pc1(poses)), self.fc4_pose.weight.t()))

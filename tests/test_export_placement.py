@@ -90,3 +90,27 @@ def test_evaluate_scores_a_placement_model_also_with_its_rows_blanked(exported, 
     blank = f"{out} (placement rows unknown)"
     assert set(r) == {str(out), blank}
     assert r[str(out)]["all"]["auc"] != r[blank]["all"]["auc"]
+
+
+def test_a_placement_stream_serves_and_reads_back_as_trained(tmp_path):
+    torch.manual_seed(1)
+    net = GraspQualityNet("fast_vgqcnn", placement=True, placement_units=16).eval()
+    with torch.no_grad():
+        net.place_fc2.weight.normal_(0.0, 0.5)  # the stream matters
+    imgs, poses = rows(16, np.random.default_rng(3))
+    out = tmp_path / "m"
+    export_model(net, out, imgs, poses, GEOM, DEFAULT_INTRINSICS, training={"config": {"placement_units": 16}})
+    model = FastModel(out, threads=1, head_precision="fp32", encoder_precision="fp32")
+    term = model.encode(imgs[:1])
+    with torch.no_grad():
+        ref = net.head(torch.from_numpy(term), torch.from_numpy(poses)).numpy()
+    np.testing.assert_allclose(model.score(term, poses), ref, atol=1e-4)
+    moved = poses.copy()
+    moved[:, 8:10] += 0.05
+    assert np.abs(model.score(term, moved) - model.score(term, poses)).max() > 1e-3
+    back, _ = fast_net_from_model_dir(out)
+    x = torch.from_numpy(imgs[:, None])
+    with torch.no_grad():
+        a = torch.softmax(net(x, torch.from_numpy(poses)), 1)[:, 1]
+        b = torch.softmax(back(x, torch.from_numpy(poses)), 1)[:, 1]
+    assert back.placement_units == 16 and torch.allclose(a, b, atol=1e-5)

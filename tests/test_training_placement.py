@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from training.checkpoint import load_init_weights, load_trained
+from training.checkpoint import load_checkpoint, load_init_weights, load_trained
 from training.config import TrainConfig
 from training.data import DatasetError, open_crop_dataset
 from training.networks import GraspQualityNet
@@ -40,6 +40,49 @@ def test_a_fine_tune_that_adds_placement_starts_as_its_init():
     place = torch.tensor([[1.0, 0.035, 0.03, 0.01, -0.02, 0.05, 0.1]])
     with torch.no_grad():
         assert torch.equal(net.head(net.encode(x), torch.cat([poses, place], 1)), old.head(old.encode(x), poses))
+
+
+def test_a_fine_tune_that_adds_a_placement_stream_starts_as_its_init_with_pc1_kept():
+    torch.manual_seed(0)
+    old = GraspQualityNet("fast_vgqcnn").eval()
+    net = GraspQualityNet("fast_vgqcnn", placement=True, placement_units=8).eval()
+    assert load_init_weights(net, old.state_dict()) == ["place_fc1.bias", "place_fc1.weight", "place_fc2.weight"]
+    assert torch.equal(net.pc1.weight, old.pc1.weight)  # pc1 reads the pose features only
+    x, poses = torch.randn(1, 1, 32, 32), torch.tensor([[2.0, -3.0, 0.6, 1, 0, 0, 0]])
+    place = torch.tensor([[1.0, 0.035, 0.03, 0.01, -0.02, 0.05, 0.1]])
+    with torch.no_grad():
+        assert torch.equal(net.head(net.encode(x), torch.cat([poses, place], 1)), old.head(old.encode(x), poses))
+
+
+def test_a_placement_stream_needs_placement():
+    with pytest.raises(ValueError, match="placement_units"):
+        GraspQualityNet("fast_vgqcnn", placement_units=8)
+    with pytest.raises(ValueError, match="placement_units"):
+        TrainConfig(placement_units=8)
+
+
+def test_the_placement_streams_learning_rate_is_scaled(data, tmp_path):
+    cfg = TrainConfig(
+        samples=64, val_every_samples=64, placement="image", placement_units=8, placement_lr_scale=10.0, **FAST
+    )
+    train(cfg, data, tmp_path / "run", progress=False)
+    ckpt = load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")
+    groups = ckpt["optimizer"]["param_groups"]
+    assert [g["lr_scale"] for g in groups] == [1.0, 10.0]
+    assert groups[1]["lr"] == pytest.approx(10.0 * groups[0]["lr"])
+    assert len(groups[1]["params"]) == 3  # place_fc1 weight and bias, place_fc2 weight
+
+
+def test_training_with_a_placement_stream_learns_a_label_only_the_placement_row_carries(data, tmp_path):
+    cfg = TrainConfig(
+        samples=64 * 12, val_every_samples=256, placement="image", placement_units=16, placement_dropout=0.0, **FAST
+    )
+    train(cfg, data, tmp_path / "run", progress=False)
+    net, _ = load_trained(tmp_path / "run" / "checkpoints" / "last.pt")
+    sp = open_crop_dataset(data).split("train")
+    p, _ = predict_split(net, sp)
+    y = np.asarray(sp.labels).astype(bool)
+    assert net.placement_units == 16 and ((p > 0.5) == y).mean() > 0.8
 
 
 def test_training_with_placement_learns_a_label_only_the_placement_row_carries(data, tmp_path):

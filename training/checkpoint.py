@@ -108,13 +108,15 @@ def net_options(ckpt: dict) -> dict:
         "roi_head": str(cfg.get("roi_head", "none")),
         "roi_units": int(cfg.get("roi_units", 128)),
         "placement": str(cfg.get("placement", "none")) == "image",
+        "placement_units": int(cfg.get("placement_units", 0)),
     }
 
 
 # a fine-tune may change these: its pose stream, or the jaw-grid head it adds, starts fresh
-POSE_STREAM_OPTIONS = ("pose_features", "pose_units", "roi_head", "roi_units", "placement")
+POSE_STREAM_OPTIONS = ("pose_features", "pose_units", "roi_head", "roi_units", "placement", "placement_units")
 POSE_STREAM_WEIGHTS = ("pc1.weight", "pc1.bias", "fc4_pose.weight")
 ROI_WEIGHTS = ("roi_fc1.weight", "roi_fc1.bias", "roi_fc2.weight", "roi_focal_px")
+PLACEMENT_WEIGHTS = ("place_fc1.weight", "place_fc1.bias", "place_fc2.weight")
 
 
 def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
@@ -123,14 +125,15 @@ def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
     Every tensor whose name and shape match is copied. Only the pose stream may differ (a run
     that changes ``pose_features`` or ``pose_units``), or a jaw-grid head be added (``roi_head``;
     its last layer starts at zero, so the fine-tune starts from the initial network) or widened
-    (``roi_head`` jaw_depth, ``roi_units``: :func:`_widen_roi`): pc1 keeps its fresh initialisation and
+    (``roi_head`` jaw_depth, ``roi_units``: :func:`_widen_roi`), or a placement stream be added
+    (``placement_units``: its last layer starts at zero too): pc1 keeps its fresh initialisation and
     fc4's pose weights start at zero, so the first step's network is the initial one's image
     path with fc4's bias and no pose term, and the pose stream learns from there. CheckpointError
     for any other missing or mismatched tensor."""
     own = net.state_dict()
     state = _widen_pc1(net, state)
     fresh = sorted(k for k in own if k not in state or tuple(state[k].shape) != tuple(own[k].shape))
-    other = [k for k in fresh if k not in POSE_STREAM_WEIGHTS + ROI_WEIGHTS]
+    other = [k for k in fresh if k not in POSE_STREAM_WEIGHTS + ROI_WEIGHTS + PLACEMENT_WEIGHTS]
     if other:
         have = tuple(state[other[0]].shape) if other[0] in state else "none"
         raise CheckpointError(
@@ -142,6 +145,8 @@ def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
             net.fc4_pose.weight.zero_()
         if "roi_fc2.weight" in fresh:  # a new jaw-grid head adds nothing until it learns
             net.roi_fc2.weight.zero_()
+        if "place_fc2.weight" in fresh:  # so does a new placement stream
+            net.place_fc2.weight.zero_()
         w, mine = state.get("roi_fc1.weight"), own.get("roi_fc1.weight")
         if w is not None and mine is not None and tuple(w.shape) != tuple(mine.shape):
             _widen_roi(net, state, fresh)
@@ -152,7 +157,12 @@ def _widen_pc1(net: GraspQualityNet, state: dict) -> dict:
     """``state`` with pc1 widened by zero columns for placement inputs a fine-tune adds (``net.n_place``
     more inputs than the init's pc1, same width otherwise): the first step's network is the init's."""
     w, mine = state.get("pc1.weight"), net.pc1.weight
-    if w is None or not net.n_place or tuple(w.shape) != (mine.shape[0], mine.shape[1] - net.n_place):
+    if (
+        w is None
+        or not net.n_place
+        or net.placement_units
+        or tuple(w.shape) != (mine.shape[0], mine.shape[1] - net.n_place)
+    ):
         return state
     return {**state, "pc1.weight": torch.cat([w, torch.zeros(w.shape[0], net.n_place, dtype=w.dtype)], dim=1)}
 

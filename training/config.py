@@ -67,6 +67,17 @@ class TrainConfig:
             "placement on its whole object (vgq.placement; crops cut since placement rows), pc1's last inputs",
         },
     )
+    placement_units: int = field(
+        default=0,
+        metadata={
+            "help": "placement 'image': 0 = pc1 reads the row after the pose features | N > 0 = a stream of its "
+            "own (pose features and row -> N units -> a term added to fc4, starting at zero in a fine-tune)"
+        },
+    )
+    placement_lr_scale: float = field(
+        default=1.0,
+        metadata={"help": "learning-rate multiplier for the placement stream's layers (placement_units > 0)"},
+    )
     placement_dropout: float = field(
         default=0.1,
         metadata={
@@ -183,6 +194,10 @@ class TrainConfig:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if not 0.0 <= self.mirror <= 1.0:
             raise ValueError(f"mirror must be in [0, 1], got {self.mirror}")
+        if self.placement_units < 0 or (self.placement_units and self.placement != "image"):
+            raise ValueError(f"placement_units must be 0, or > 0 with placement 'image', got {self.placement_units}")
+        if not self.placement_lr_scale > 0:
+            raise ValueError(f"placement_lr_scale must be > 0, got {self.placement_lr_scale}")
         if not 0.0 <= self.placement_dropout <= 1.0:
             raise ValueError(f"placement_dropout must be in [0, 1], got {self.placement_dropout}")
         if self.val_max_samples < 0 or self.num_threads < 0:

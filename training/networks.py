@@ -19,7 +19,9 @@ the head and the encoder / head split are unchanged. ``pose_features`` "rotation
 stream reads the grasp's rotation matrix (9 entries, from the quaternion) in place of the 4
 quaternion components, ``pose_units`` wide (the paper's pc1: 16). ``placement``: the head's pose
 rows carry, after the pose columns, the grasp's placement row (``vgq.placement``: where it sits on
-its whole object), which pc1 reads divided by ``PLACEMENT_SCALE_M`` after the pose features.
+its whole object), which pc1 reads divided by ``PLACEMENT_SCALE_M`` after the pose features; with
+``placement_units`` > 0 a stream of its own reads it instead (the pose features and the scaled row
+-> ``placement_units`` -> a term added to fc4, as the jaw grid's is), and pc1 stays the paper's.
 """
 
 from __future__ import annotations
@@ -89,6 +91,7 @@ class GraspQualityNet(nn.Module):
         roi_focal_px: float = 175.0,
         roi_units: int = ROI_UNITS,
         placement: bool = False,
+        placement_units: int = 0,
     ):
         super().__init__()
         if roi_head not in ROI_HEADS:
@@ -103,6 +106,8 @@ class GraspQualityNet(nn.Module):
             raise ValueError(f"pose_units must be >= 1, got {pose_units}")
         if roi_units < 1:
             raise ValueError(f"roi_units must be >= 1, got {roi_units}")
+        if placement_units < 0 or (placement_units and not placement):
+            raise ValueError(f"placement_units must be 0, or > 0 with placement, got {placement_units}")
         if depth_reference not in IMAGE_REFERENCES:
             raise ValueError(f"depth_reference must be one of {IMAGE_REFERENCES}, got {depth_reference!r}")
         self.depth_reference = depth_reference
@@ -129,8 +134,12 @@ class GraspQualityNet(nn.Module):
             raise ValueError(f"pose_features 'rotation' needs quaternion columns; {arch} has {self.pose_columns}")
         self.pose_features, self.pose_units = pose_features, int(pose_units)
         self.n_other = n_pose - 4 if pose_features == "rotation" else n_pose  # columns read as they are
-        n_in = (n_pose if pose_features == "raw" else self.n_other + 9) + self.n_place
-        self.pc1 = nn.Linear(n_in, self.pose_units)
+        n_feat = n_pose if pose_features == "raw" else self.n_other + 9  # pc1's pose features
+        self.placement_units = int(placement_units)
+        self.pc1 = nn.Linear(n_feat + (0 if self.placement_units else self.n_place), self.pose_units)
+        if self.placement_units:  # the placement stream: fc4's term from the pose features and the row
+            self.place_fc1 = nn.Linear(n_feat + self.n_place, self.placement_units)
+            self.place_fc2 = nn.Linear(self.placement_units, 1024, bias=False)
         self.register_buffer("place_scale", torch.tensor(PLACEMENT_SCALE_M[: self.n_place]), persistent=False)
         self.fc4_image = nn.Linear(1024, 1024, bias=False)
         self.fc4_ref = nn.Linear(1, 1024, bias=False) if depth_reference != "none" else None
@@ -294,10 +303,13 @@ class GraspQualityNet(nn.Module):
         p = (poses - self.pose_mean) / self.pose_std
         if self.pose_features == "rotation":
             p = torch.cat([p[:, : self.n_other], rotation_entries(poses[:, self.n_other :])], dim=1)
-        if self.n_place:
+        x = encoding[:, :1024]
+        if self.placement_units:
+            q = torch.cat([p, place / self.place_scale], dim=1)
+            x = x + self.place_fc2(F.relu(self.place_fc1(q)))
+        elif self.n_place:
             p = torch.cat([p, place / self.place_scale], dim=1)
-        p = F.relu(self.pc1(p))
-        x = encoding[:, :1024] + self.fc4_pose(p)
+        x = x + self.fc4_pose(F.relu(self.pc1(p)))
         if self.roi_head != "none":
             x = x + self.roi_term(self.encoding_cells(encoding), poses, self.encoding_crop(encoding))
         x = F.relu(x)

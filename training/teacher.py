@@ -112,8 +112,9 @@ def score_teacher(
     bar = tqdm(total=len(order), unit="row", unit_scale=True, desc=f"teacher {split}", disable=not progress)
     for c in range(0, len(order), chunk_rows):
         rows = np.sort(order[c : c + chunk_rows])
-        if np.isnan(scores[rows]).any():
-            scores[rows], _ = predict_split(net, sp, rows, batch_size=batch_size, bf16=bf16)
+        todo = rows[np.isnan(scores[rows])]  # a chunk cut short by max_rows is finished, not redone
+        if len(todo):
+            scores[todo], _ = predict_split(net, sp, todo, batch_size=batch_size, bf16=bf16)
             atomic.save_npy(path, scores)  # the scores first: the manifest never counts rows not on disk
             m["splits"][split] = {"n": n, "digest": digest, "seed": seed, "scored": int(np.isfinite(scores).sum())}
             atomic.write_json(out / "manifest.json", m)
