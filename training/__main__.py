@@ -1,4 +1,4 @@
-"""Command line: ``python -m training {train,evaluate,baseline,ablation,label-noise,centroid-probe,bench} ...``.
+"""Command line: ``python -m training {train,evaluate,baseline,ablation,label-noise,centroid-probe,placement-drift,bench} ...``.
 
 Training options are generated from ``TrainConfig`` (``--batch-size``, ``--base-lr``, ...)
 by the shared bridge ``vgq.cli_config``, so the dataclass stays the one place where they
@@ -103,6 +103,17 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--per-object", type=int, default=1500, help="grasps drawn per object (default 1500)")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--json", help="also write the result here")
+
+    d = sub.add_parser(
+        "placement-drift", help="how far the sensor model moves the placement rows (clean vs sensor crops)"
+    )
+    d.add_argument(
+        "--clean", required=True, help="crop dataset cut on clean renders (e.g. the recipe's crops_clean_test)"
+    )
+    d.add_argument("--sensor", required=True, help="crop dataset of the same sampled grasps with the sensor model")
+    d.add_argument("--split", default="test", choices=("train", "val", "test"))
+    d.add_argument("--max-n", type=int, default=200_000, help="rows drawn at random (0: all; default 200000)")
+    d.add_argument("--seed", type=int, default=0)
 
     s = sub.add_parser("bench", help="training throughput (samples/s) of full SGD steps on this CPU")
     s.add_argument("--arch", default="fast_vgqcnn", choices=("fast_vgqcnn", "vgqcnn", "gqcnn"))
@@ -221,6 +232,13 @@ def main(argv: list[str] | None = None) -> int:
                 from vgq import atomic
 
                 atomic.write_json(args.json, rec)
+        elif args.command == "placement-drift":
+            from .placement_drift import compare
+            from .placement_drift import table as drift_table
+
+            if args.max_n < 0:
+                raise ValueError(f"--max-n must be >= 0, got {args.max_n}")
+            print(drift_table(compare(args.clean, args.sensor, args.split, args.max_n, args.seed)))
         elif args.command == "bench":
             from .bench import measure_predict_throughput, measure_train_throughput
 
