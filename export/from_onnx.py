@@ -41,6 +41,21 @@ def _set(param: torch.Tensor, a: np.ndarray, what: str) -> None:
         param.copy_(torch.from_numpy(np.array(a, dtype=np.float32)))
 
 
+def _unfold(net: GraspQualityNet, layer: torch.nn.Linear, head: dict, head_path: Path, name: str, place: bool) -> None:
+    """Set ``layer`` from the graph's folded ``head.<name>``: W = W' std, b = b' + W' mean on the pose
+    columns (the card's statistics, already on ``net``), and with ``place`` W = W' scale on the row's."""
+    wf = _get(head, f"head.{name}.weight", head_path).astype(np.float64)
+    bf = _get(head, f"head.{name}.bias", head_path).astype(np.float64)
+    n = net.n_other
+    mean, std = net.pose_mean.numpy().astype(np.float64)[:n], net.pose_std.numpy().astype(np.float64)[:n]
+    w = wf.copy()
+    w[:, :n] = wf[:, :n] * std[None, :]
+    if place:
+        w[:, -net.n_place :] = wf[:, -net.n_place :] * net.place_scale.numpy().astype(np.float64)[None, :]
+    _set(layer.weight, w, name)
+    _set(layer.bias, bf + wf[:, :n] @ mean, name)
+
+
 def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, ModelCard]:
     """The Fast-VGQ-CNN of an exported folder (encoder.onnx + head.onnx + model card), in eval mode.
     Weights are found by their torch names (``net.conv1_1.weight``, ``head.fc5.bias``, ...)."""
@@ -69,25 +84,9 @@ def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, Mod
             raise ValueError(f"{enc_path}: node '/fc4_ref/MatMul' not found; the card says depth_reference centre")
         _set(net.fc4_ref.weight, _get(enc, ref[1], enc_path).T, "fc4_ref")
     # pc1 with the pose normalisation folded into its first n_other columns: W' = W / std, b' = b - W' mean
-    wf = _get(head, "head.pc1.weight", head_path).astype(np.float64)
-    bf = _get(head, "head.pc1.bias", head_path).astype(np.float64)
-    n = net.n_other
-    mean, std = np.asarray(norm.pose_mean, np.float64)[:n], np.asarray(norm.pose_std, np.float64)[:n]
-    w = wf.copy()
-    w[:, :n] = wf[:, :n] * std[None, :]
-    scale = net.place_scale.numpy().astype(np.float64)[None, :]
-    if net.n_place and not net.placement_units:  # the placement row's columns: its scale folded in too
-        w[:, -net.n_place :] = wf[:, -net.n_place :] * scale
-    _set(net.pc1.weight, w, "pc1")
-    _set(net.pc1.bias, bf + wf[:, :n] @ mean, "pc1")
+    _unfold(net, net.pc1, head, head_path, "pc1", place=bool(net.n_place) and not net.placement_units)
     if net.placement_units:  # the placement stream: place_fc1 folded as pc1, place_fc2 (no bias) a MatMul
-        wf = _get(head, "head.place_fc1.weight", head_path).astype(np.float64)
-        bf = _get(head, "head.place_fc1.bias", head_path).astype(np.float64)
-        w = wf.copy()
-        w[:, :n] = wf[:, :n] * std[None, :]
-        w[:, -net.n_place :] = wf[:, -net.n_place :] * scale
-        _set(net.place_fc1.weight, w, "place_fc1")
-        _set(net.place_fc1.bias, bf + wf[:, :n] @ mean, "place_fc1")
+        _unfold(net, net.place_fc1, head, head_path, "place_fc1", place=True)
         mm = head_nodes.get("/head/place_fc2/MatMul")
         if mm is None or len(mm) != 2:
             raise ValueError(f"{head_path}: node '/head/place_fc2/MatMul' not found; the card says placement_units")

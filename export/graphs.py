@@ -57,6 +57,20 @@ def with_export_lrn(net: GraspQualityNet) -> GraspQualityNet:
     return net
 
 
+def _folded(net: GraspQualityNet, layer: nn.Linear, place: bool) -> nn.Linear:
+    """``layer`` (reading the normalised pose features, then with ``place`` the row over its scale)
+    as a layer of the raw columns: W' = W / std, b' = b - W' mean (and W' = W / scale for the row)."""
+    n = net.n_other
+    w = layer.weight.clone()
+    w[:, :n] = w[:, :n] / net.pose_std[None, :n]
+    if place:
+        w[:, -net.n_place :] = w[:, -net.n_place :] / net.place_scale[None, :]
+    out = nn.Linear(w.shape[1], w.shape[0])
+    out.weight.copy_(w)
+    out.bias.copy_(layer.bias - w[:, :n] @ net.pose_mean[:n])
+    return out
+
+
 class _FoldedHead(nn.Module):
     """pc1 (with pose normalisation folded in) -> fc4 merge -> [fc5] -> P(success); a placement
     stream (``placement_units``) with the same folding in its first layer, its term added to fc4's."""
@@ -67,23 +81,10 @@ class _FoldedHead(nn.Module):
         self.n_pose, self.n_place = net.n_pose, net.n_place  # placement: its row follows the pose columns
         self.rotation = net.pose_features == "rotation"
         with torch.no_grad():
-            n = net.n_other
-            w = net.pc1.weight.clone()
-            w[:, :n] = w[:, :n] / net.pose_std[None, :n]
             self.stream = bool(net.placement_units)  # the placement row read by a stream of its own
-            if net.n_place and not self.stream:  # pc1's last inputs: the placement row over its scale
-                w[:, -net.n_place :] = w[:, -net.n_place :] / net.place_scale[None, :]
-            b = net.pc1.bias - w[:, :n] @ net.pose_mean[:n]
-            self.pc1 = nn.Linear(w.shape[1], w.shape[0])
-            self.pc1.weight.copy_(w)
-            self.pc1.bias.copy_(b)
-            if self.stream:  # place_fc1 reads pc1's features and the row: both folded the same way
-                w = net.place_fc1.weight.clone()
-                w[:, :n] = w[:, :n] / net.pose_std[None, :n]
-                w[:, -net.n_place :] = w[:, -net.n_place :] / net.place_scale[None, :]
-                self.place_fc1 = nn.Linear(w.shape[1], w.shape[0])
-                self.place_fc1.weight.copy_(w)
-                self.place_fc1.bias.copy_(net.place_fc1.bias - w[:, :n] @ net.pose_mean[:n])
+            self.pc1 = _folded(net, net.pc1, place=bool(net.n_place) and not self.stream)
+            if self.stream:  # place_fc1 reads pc1's features and the row: folded the same way
+                self.place_fc1 = _folded(net, net.place_fc1, place=True)
                 self.place_fc2 = net.place_fc2
             self.fc4_pose = net.fc4_pose
             self.fc5 = net.fc5

@@ -16,6 +16,7 @@ import numpy as np
 from vgq.placement import PLACEMENT_COLUMNS
 
 from .data import DatasetError, open_crop_dataset
+from .metrics import sample_rows
 from .teacher import rows_digest
 
 
@@ -43,7 +44,7 @@ def compare(clean: str | Path, sensor: str | Path, split: str = "test", max_n: i
         if "placement" not in sp.arrays:
             raise DatasetError(f"{ds}: split {split!r} has no placement rows (crop it again with this datagen)")
     n = len(c)
-    rows = np.sort(np.random.default_rng(seed).choice(n, max_n, replace=False)) if 0 < max_n < n else np.arange(n)
+    rows = sample_rows(n, max_n, seed)  # the rows evaluate --max-n draws
     pc = np.asarray(c.arrays["placement"][rows], np.float64)
     ps = np.asarray(s.arrays["placement"][rows], np.float64)
     kc, ks = pc[:, 0] > 0.5, ps[:, 0] > 0.5
