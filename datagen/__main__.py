@@ -219,6 +219,7 @@ def cmd_crops(args) -> int:
         window=args.window,
         align_jaw=args.align_jaw,
         jaw_turns=args.jaw_turns,
+        context_scale=args.context_scale,
     )
     return 0
 
@@ -609,6 +610,15 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="K",
         help="fast_vgqcnn: cut each grasp's window from the image turned by the multiple of 180/K deg nearest "
         "its jaw axis (the axis within 90/K deg of horizontal; vgq.turns); 0 (default) windows not turned",
+    )
+    c.add_argument(
+        "--context-scale",
+        type=int,
+        choices=(0, 2, 3, 4),
+        default=0,
+        metavar="S",
+        help="fast_vgqcnn: also cut each window's context view, S windows wide around the same centre, resized "
+        "to 32 x 32 (field context, float16; what --context trains on); 0 (default) none",
     )
     c.add_argument(
         "--seed", type=_count("--seed"), default=0, help="window offsets and the sensor model's noise (default 0)"

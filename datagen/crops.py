@@ -34,7 +34,7 @@ from vgq import crop as vcrop
 from vgq import turns as vturns
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
 from vgq.pose import canonical_quaternion, roll_quaternions
-from vgq.schema import SPLITS, WRITTEN_CROP_FIELDS, crop_counts, write_crop_manifest
+from vgq.schema import CROP_EXTRA_FIELDS, SPLITS, WRITTEN_CROP_FIELDS, crop_counts, write_crop_manifest
 
 from . import sensor as sensor_model
 from . import storage
@@ -164,17 +164,28 @@ _OPEN: dict[str, storage.GraspDataset] = {}  # per process: folder -> opened dat
 
 
 def crop_object(
-    src: str, entry: dict, arch: str, geom: vcrop.CropGeometry, sensor, seed: int, intr: Intrinsics, thr: float
+    src: str,
+    entry: dict,
+    arch: str,
+    geom: vcrop.CropGeometry,
+    sensor,
+    seed: int,
+    intr: Intrinsics,
+    thr: float,
+    context_scale: int = 0,
 ) -> dict:
-    """The WRITTEN_CROP_FIELDS rows (in image order) of one shard ``entry`` of the grasp dataset ``src``,
-    plus ``missing`` (the summed missing fraction of its windows). Seeded by (seed, object id) and
-    the sensor model's per-image seeds, so it is the same in any process and any order."""
+    """The WRITTEN_CROP_FIELDS rows (in image order) of one shard ``entry`` of the grasp dataset ``src``
+    (and with ``context_scale`` each window's context view, field ``context``), plus ``missing`` (the
+    summed missing fraction of its windows). Seeded by (seed, object id) and the sensor model's
+    per-image seeds, so it is the same in any process and any order."""
     if src not in _OPEN:  # one manifest read per process, not per object
         _OPEN[src] = storage.open_dataset(src)
     sh = _OPEN[src].load(entry)
     g, im = sh.grasps, sh.images
     n = len(g["u"])
-    out = {k: np.empty((n, *shape), dtype) for k, (dtype, shape, _) in WRITTEN_CROP_FIELDS.items()}
+    fields = {**WRITTEN_CROP_FIELDS, **({"context": CROP_EXTRA_FIELDS["context"]} if context_scale else {})}
+    out = {k: np.empty((n, *shape), dtype) for k, (dtype, shape, _) in fields.items()}
+    ctx = vcrop.context_geometry(geom, context_scale) if context_scale else None
     rng = np.random.default_rng([seed, sh.object_id])
     order = np.argsort(g["image_index"], kind="stable")
     bounds = np.flatnonzero(np.diff(g["image_index"][order])) + 1
@@ -194,6 +205,9 @@ def crop_object(
             q = canonical_quaternion(roll_quaternions(q, g["jaw_angle"][rows]))
         missing += float(miss.sum())
         dst = slice(fill, fill + len(rows))
+        if ctx is not None:  # each window's context view, from the image filled once
+            origins = vcrop.window_origin(uv - puv * geom.scale, geom)  # from the windows' centres
+            out["context"][dst] = vcrop.context_crops(inpaint.fill_nearest(depth), origins, geom, ctx)
         out["images"][dst] = crops
         out["poses"][dst] = np.concatenate([puv, g["z"][rows, None], q], axis=1)
         out["labels"][dst] = g["quality"][rows] > thr
@@ -223,6 +237,7 @@ def make_crops(
     window: int = 96,
     align_jaw: bool = False,
     jaw_turns: int = 0,
+    context_scale: int = 0,
 ) -> dict:
     """Crop every grasp of the grasp dataset ``src`` into the ``vgq-crops`` dataset ``out``.
 
@@ -235,8 +250,14 @@ def make_crops(
     it). ``window``: source px a side of each crop window (resized to 32 x 32). ``align_jaw``
     (vgqcnn): crops turned so each grasp's jaw axis is horizontal, poses with them
     (``vgq.crop.CropGeometry.align_jaw``). ``jaw_turns`` (fast_vgqcnn): windows cut from the image
-    turned in that many steps towards each jaw axis (``vgq.turns``). Returns the written manifest."""
+    turned in that many steps towards each jaw axis (``vgq.turns``). ``context_scale`` (fast_vgqcnn,
+    unturned): also each window's context view, ``context_scale`` windows wide (field ``context``,
+    :func:`vgq.crop.context_crop`). Returns the written manifest."""
     geom = geometry_for(arch, kappa_px, window=window, align_jaw=align_jaw, jaw_turns=jaw_turns)
+    if context_scale:
+        vcrop.context_geometry(geom, context_scale)  # the scale checked
+        if arch != "fast_vgqcnn" or geom.jaw_turns:
+            raise ValueError(f"context views are cut for unturned fast_vgqcnn windows, not {arch} ({geom.turning()})")
     bad = sorted(set(splits) - set(SPLITS))
     if bad or not splits:
         raise ValueError(f"splits must be a non-empty subset of {SPLITS}, got {tuple(splits)}")
@@ -275,13 +296,15 @@ def make_crops(
         "rows": n,
         "label_threshold": thr,
         "intrinsics": intr.to_dict(),
+        **({"context_scale": int(context_scale)} if context_scale else {}),
     }
     job = json.loads(json.dumps(job))  # as it reads back from the job file
     done = _resume_state(out, job, n, log)
     if not done:
         _clear_leftovers(out)
         atomic.write_json(out / JOB_FILE, job)
-    writers = {s: storage.crop_writers(out, s, n[s], partial=True, resume=bool(done)) for s in SPLITS}
+    extra = ("context",) if context_scale else ()
+    writers = {s: storage.crop_writers(out, s, n[s], partial=True, resume=bool(done), extra=extra) for s in SPLITS}
     pos = {s: 0 for s in SPLITS}
     written = {s: 0 for s in SPLITS}
     missing_sum = {s: 0.0 for s in SPLITS}
@@ -337,7 +360,7 @@ def make_crops(
 
     _OPEN[str(ds.root)] = ds  # this run's manifest, not one cached from an earlier run on the same folder
     todo = [e for e in entries if e["object_id"] not in done]
-    tasks = [(str(ds.root), e, arch, geom, sensor, seed, intr, thr) for e in todo]
+    tasks = [(str(ds.root), e, arch, geom, sensor, seed, intr, thr, context_scale) for e in todo]
     try:
         run_tasks(crop_object, tasks, workers=workers, on_result=write, progress=progress, desc=f"crops {arch}")
     finally:  # an interrupted run keeps what it cropped: rerunning the same command resumes
@@ -381,6 +404,7 @@ def make_crops(
         seed=int(seed),
         sensor={"name": sensor_name, "params": sensor.to_dict()},
         inpaint={"method": "nearest valid pixel (OpenCV distance transform, 5x5 mask)", "margin_px": inpaint.MARGIN_PX},
+        **({"context": {"scale": int(context_scale), "window": geom.window * context_scale}} if context_scale else {}),
         versions=storage.library_versions(),
     )
     for f in (DONE_FILE, JOB_FILE):  # complete: nothing left to resume

@@ -377,13 +377,15 @@ class NpyWriter:
 
 
 def crop_writers(
-    root: str | Path, split: str, n: int, partial: bool = False, resume: bool = False
+    root: str | Path, split: str, n: int, partial: bool = False, resume: bool = False, extra: tuple[str, ...] = ()
 ) -> dict[str, NpyWriter]:
-    """One :class:`NpyWriter` per WRITTEN_CROP_FIELDS field for ``n`` rows of ``root/split``
-    (``partial``/``resume``: see :class:`NpyWriter`)."""
+    """One :class:`NpyWriter` per WRITTEN_CROP_FIELDS field, and per ``extra`` CROP_EXTRA_FIELDS
+    field (e.g. ``context``), for ``n`` rows of ``root/split`` (``partial``/``resume``: see
+    :class:`NpyWriter`)."""
+    fields = {**WRITTEN_CROP_FIELDS, **{k: CROP_EXTRA_FIELDS[k] for k in extra}}
     return {
         k: NpyWriter(Path(root) / split / f"{k}.npy", dtype, (n, *shape), partial=partial, resume=resume)
-        for k, (dtype, shape, _) in WRITTEN_CROP_FIELDS.items()
+        for k, (dtype, shape, _) in fields.items()
     }
 
 

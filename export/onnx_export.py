@@ -181,6 +181,11 @@ def export_model(
     ``calibration`` (``export.calibrate.calibration_report``): recorded in the card's
     ``calibration``, its reliability diagram written beside the graphs."""
     net = net.eval()
+    if getattr(net, "context_scale", 0):
+        raise ExportError(
+            f"a network with a context view (context_scale {net.context_scale}) is a training probe: the service "
+            "cuts no context views yet, so it is not exported"
+        )
     crops, poses = _check_inputs(net, crops, poses)
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)

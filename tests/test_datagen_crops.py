@@ -277,3 +277,28 @@ def test_each_crop_carries_the_placement_row_the_service_computes_from_the_same_
     np.testing.assert_array_equal(a["placement"], expected)
     on_box = (g["u"] > 121) & (g["u"] < 178) & (g["v"] > 101) & (g["v"] < 198)  # the raised box on its table
     assert on_box.any() and (a["placement"][on_box, 0] == 1).all()
+
+
+def test_context_views_are_wider_windows_of_the_same_centre(one_image_dataset, tmp_path):
+    m = make_crops(one_image_dataset, tmp_path, "fast_vgqcnn", log=lambda s: None, sensor="clean", context_scale=3)
+    depth, g = _first(one_image_dataset)
+    a = storage.open_crops(tmp_path, "train")
+    assert m["context"] == {"scale": 3, "window": 288}
+    assert a["context"].dtype == np.float16 and a["context"].shape == (len(g["u"]), 32, 32)
+    wide = vcrop.CropGeometry(288, 32, 0.0)
+    centres = np.stack([g["u"], g["v"]], 1).astype(np.float64) - a["poses"][:, :2].astype(np.float64) * 3
+    for i in range(0, len(centres), 7):  # the clean render has no hole to fill
+        o = vcrop.window_origin(centres[i : i + 1], wide)[0]
+        np.testing.assert_allclose(vcrop.window_center(o, wide), centres[i], atol=1e-3)
+        block = vcrop.crop_window(depth, o, wide).reshape(32, 9, 32, 9).mean(axis=(1, 3))  # 9 x 9 block means
+        np.testing.assert_allclose(a["context"][i], block, rtol=1e-3)
+    plain = make_crops(one_image_dataset, tmp_path / "plain", "fast_vgqcnn", log=lambda s: None, sensor="clean")
+    assert "context" not in plain and "context" not in storage.open_crops(tmp_path / "plain", "train")
+    np.testing.assert_array_equal(storage.open_crops(tmp_path / "plain", "train")["images"], a["images"])
+
+
+def test_context_views_are_for_unturned_fast_windows(one_image_dataset, tmp_path):
+    with pytest.raises(ValueError, match="context"):
+        make_crops(one_image_dataset, tmp_path, "vgqcnn", log=lambda s: None, sensor="clean", context_scale=3)
+    with pytest.raises(ValueError, match="context scale"):
+        make_crops(one_image_dataset, tmp_path / "b", "fast_vgqcnn", log=lambda s: None, context_scale=5)

@@ -109,14 +109,26 @@ def net_options(ckpt: dict) -> dict:
         "roi_units": int(cfg.get("roi_units", 128)),
         "placement": str(cfg.get("placement", "none")) == "image",
         "placement_units": int(cfg.get("placement_units", 0)),
+        "context_scale": int(cfg.get("context_scale", 0)),
     }
 
 
 # a fine-tune may change these: its pose stream, or the jaw-grid head it adds, starts fresh
-POSE_STREAM_OPTIONS = ("pose_features", "pose_units", "roi_head", "roi_units", "placement", "placement_units")
+POSE_STREAM_OPTIONS = (
+    "pose_features",
+    "pose_units",
+    "roi_head",
+    "roi_units",
+    "placement",
+    "placement_units",
+    "context_scale",
+)
 POSE_STREAM_WEIGHTS = ("pc1.weight", "pc1.bias", "fc4_pose.weight")
 ROI_WEIGHTS = ("roi_fc1.weight", "roi_fc1.bias", "roi_fc2.weight", "roi_focal_px")
 PLACEMENT_WEIGHTS = ("place_fc1.weight", "place_fc1.bias", "place_fc2.weight")
+CONTEXT_WEIGHTS = tuple(f"ctx_{n}.{w}" for n in ("conv1", "conv2", "fc1") for w in ("weight", "bias")) + (
+    "ctx_fc2.weight",
+)
 
 
 def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
@@ -126,14 +138,15 @@ def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
     that changes ``pose_features`` or ``pose_units``), or a jaw-grid head be added (``roi_head``;
     its last layer starts at zero, so the fine-tune starts from the initial network) or widened
     (``roi_head`` jaw_depth, ``roi_units``: :func:`_widen_roi`), or a placement stream be added
-    (``placement_units``: its last layer starts at zero too): pc1 keeps its fresh initialisation and
+    (``placement_units``: its last layer starts at zero too), or a context view (``context_scale``: so
+    does its): pc1 keeps its fresh initialisation and
     fc4's pose weights start at zero, so the first step's network is the initial one's image
     path with fc4's bias and no pose term, and the pose stream learns from there. CheckpointError
     for any other missing or mismatched tensor."""
     own = net.state_dict()
     state = _widen_pc1(net, state)
     fresh = sorted(k for k in own if k not in state or tuple(state[k].shape) != tuple(own[k].shape))
-    other = [k for k in fresh if k not in POSE_STREAM_WEIGHTS + ROI_WEIGHTS + PLACEMENT_WEIGHTS]
+    other = [k for k in fresh if k not in POSE_STREAM_WEIGHTS + ROI_WEIGHTS + PLACEMENT_WEIGHTS + CONTEXT_WEIGHTS]
     if other:
         have = tuple(state[other[0]].shape) if other[0] in state else "none"
         raise CheckpointError(
@@ -147,6 +160,8 @@ def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
             net.roi_fc2.weight.zero_()
         if "place_fc2.weight" in fresh:  # so does a new placement stream
             net.place_fc2.weight.zero_()
+        if "ctx_fc2.weight" in fresh:  # and a new context view
+            net.ctx_fc2.weight.zero_()
         w, mine = state.get("roi_fc1.weight"), own.get("roi_fc1.weight")
         if w is not None and mine is not None and tuple(w.shape) != tuple(mine.shape):
             _widen_roi(net, state, fresh)

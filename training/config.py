@@ -78,6 +78,18 @@ class TrainConfig:
         default=1.0,
         metadata={"help": "learning-rate multiplier for the placement stream's layers (placement_units > 0)"},
     )
+    context_scale: int = field(
+        default=0,
+        metadata={
+            "help": "0: the window alone (the paper's) | S in 2, 3, 4: also the window's context view, S windows wide (crops "
+            "cut with datagen crops --context-scale S), read by a small encoder of its own on a wider grid "
+            "about the grasp (needs roi_head; its term starts at zero in a fine-tune)",
+        },
+    )
+    context_lr_scale: float = field(
+        default=1.0,
+        metadata={"help": "learning-rate multiplier for the context view's layers (context_scale > 0)"},
+    )
     placement_dropout: float = field(
         default=0.1,
         metadata={
@@ -198,6 +210,10 @@ class TrainConfig:
             raise ValueError(f"placement_units must be 0, or > 0 with placement 'image', got {self.placement_units}")
         if not self.placement_lr_scale > 0:
             raise ValueError(f"placement_lr_scale must be > 0, got {self.placement_lr_scale}")
+        if not self.context_lr_scale > 0:
+            raise ValueError(f"context_lr_scale must be > 0, got {self.context_lr_scale}")
+        if self.context_scale not in (0, 2, 3, 4) or (self.context_scale and self.roi_head == "none"):
+            raise ValueError(f"context_scale must be 0, 2, 3 or 4 (> 0 with a roi_head), got {self.context_scale}")
         if not 0.0 <= self.placement_dropout <= 1.0:
             raise ValueError(f"placement_dropout must be in [0, 1], got {self.placement_dropout}")
         if self.val_max_samples < 0 or self.num_threads < 0:

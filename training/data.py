@@ -63,9 +63,10 @@ class CropSplit:
         return np.ascontiguousarray(self.arrays["poses"][:, pose_column_indices(arch)], dtype=np.float32)
 
     def batch(
-        self, index: np.ndarray, arch: str, target: str = "label", placement: bool = False
+        self, index: np.ndarray, arch: str, target: str = "label", placement: bool = False, context: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Rows ``index`` as tensors: images (b, 1, S, S) metres, poses (b, n_pose) (``placement``:
+        """Rows ``index`` as tensors: images (b, 1, S, S) metres (``context``: (b, 2, S, S), each
+        window's context view the second channel), poses (b, n_pose) (``placement``:
         (b, n_pose + 7), each row's placement row after its pose columns), and labels (b,)
         int64 (``target`` "label"), the physics label's success rates (b,) float32 in [0, 1]
         (``target`` "success_rate": the crops' ``quality``) or (b, 2) float32 of the label and the
@@ -77,7 +78,13 @@ class CropSplit:
         srt = index[order]
         inv = np.empty_like(order)
         inv[order] = np.arange(len(order))
-        img = np.asarray(self.arrays["images"][srt], dtype=np.float32)[inv]
+        img = np.asarray(self.arrays["images"][srt], dtype=np.float32)[inv][:, None]
+        if context:
+            if "context" not in self.arrays:
+                raise DatasetError(
+                    f"split {self.name!r} has no context views (context.npy): cut it with datagen crops --context-scale"
+                )
+            img = np.concatenate([img, np.asarray(self.arrays["context"][srt], dtype=np.float32)[inv][:, None]], 1)
         pose = np.asarray(self.arrays["poses"][srt], dtype=np.float32)[inv][:, pose_column_indices(arch)]
         if placement:
             if "placement" not in self.arrays:
@@ -95,7 +102,7 @@ class CropSplit:
             )[inv]
         else:
             lab = np.asarray(self.arrays["labels"][srt], dtype=np.int64)[inv]
-        return torch.from_numpy(img[:, None]), torch.from_numpy(np.ascontiguousarray(pose)), torch.from_numpy(lab)
+        return torch.from_numpy(img), torch.from_numpy(np.ascontiguousarray(pose)), torch.from_numpy(lab)
 
 
 @dataclass

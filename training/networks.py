@@ -22,6 +22,12 @@ rows carry, after the pose columns, the grasp's placement row (``vgq.placement``
 its whole object), which pc1 reads divided by ``PLACEMENT_SCALE_M`` after the pose features; with
 ``placement_units`` > 0 a stream of its own reads it instead (the pose features and the scaled row
 -> ``placement_units`` -> a term added to fc4, as the jaw grid's is), and pc1 stays the paper's.
+``context_scale`` S > 0 (with the jaw grid): the input holds a second channel, the window's context
+view (``vgq.crop.context_crops``: the same centre seen S times wider); a small encoder of its own
+(two convolutions) maps it to a 16 x 16 feature map that the head reads on a wider grid around the
+grasp, turned to its jaw as the jaw grid is (``CONTEXT_GRID``, metres), into a term added to fc4 (its
+last layer zero at the start of a fine-tune): what the window cannot show, where the grasp sits on
+an object larger than it.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from training.config import ROI_HEADS, ROI_UNITS
+from vgq.crop import CONTEXT_SCALES
 from vgq.normalization import IMAGE_REFERENCES, REFERENCE_PIXELS, Normalization
 from vgq.placement import PLACEMENT_COLUMNS, PLACEMENT_SCALE_M
 from vgq.pose import POSE_COLUMNS, POSE_FEATURES
@@ -39,6 +46,8 @@ ARCHITECTURES = tuple(POSE_COLUMNS)
 # the jaw grid (metres in the gripper's frame, at the grasp's depth): along the jaw axis, across it
 JAW_GRID_ALONG = (-0.04, 0.04, 8)
 JAW_GRID_ACROSS = (-0.012, 0.012, 3)
+CONTEXT_GRID = (-0.12, 0.12, 5)  # the context grid, along and across the jaw (metres at the grasp's depth)
+CONTEXT_CHANNELS = (32, 64)  # the context encoder's two convolutions
 JAW_DEPTH_SCALE = 0.01  # metres: "jaw_depth" reads the depth at each grid point relative to the grasp's, in cm
 
 
@@ -92,6 +101,7 @@ class GraspQualityNet(nn.Module):
         roi_units: int = ROI_UNITS,
         placement: bool = False,
         placement_units: int = 0,
+        context_scale: int = 0,
     ):
         super().__init__()
         if roi_head not in ROI_HEADS:
@@ -108,6 +118,10 @@ class GraspQualityNet(nn.Module):
             raise ValueError(f"roi_units must be >= 1, got {roi_units}")
         if placement_units < 0 or (placement_units and not placement):
             raise ValueError(f"placement_units must be 0, or > 0 with placement, got {placement_units}")
+        if context_scale not in CONTEXT_SCALES or (context_scale and roi_head == "none"):
+            raise ValueError(
+                f"context_scale must be one of {CONTEXT_SCALES} (> 0 with a jaw grid), got {context_scale}"
+            )
         if depth_reference not in IMAGE_REFERENCES:
             raise ValueError(f"depth_reference must be one of {IMAGE_REFERENCES}, got {depth_reference!r}")
         self.depth_reference = depth_reference
@@ -155,6 +169,15 @@ class GraspQualityNet(nn.Module):
             points = grid.shape[0] * grid.shape[1]  # "jaw_depth": then one relative depth per point
             self.roi_fc1 = nn.Linear((c2 + (roi_head == "jaw_depth")) * points, int(roi_units))
             self.roi_fc2 = nn.Linear(int(roi_units), 1024, bias=False)
+        self.context_scale = int(context_scale)
+        if self.context_scale:
+            c1, c3 = CONTEXT_CHANNELS
+            self.ctx_conv1 = nn.Conv2d(1, c1, 5, padding=2)
+            self.ctx_conv2 = nn.Conv2d(c1, c3, 3, padding=1)
+            g = torch.linspace(*CONTEXT_GRID)
+            self.register_buffer("ctx_grid", torch.stack(torch.meshgrid(g, g, indexing="ij"), -1), persistent=False)
+            self.ctx_fc1 = nn.Linear(c3 * len(g) ** 2, int(roi_units))
+            self.ctx_fc2 = nn.Linear(int(roi_units), 1024, bias=False)
         self.register_buffer("image_mean", torch.zeros(()))
         self.register_buffer("image_std", torch.ones(()))
         self.register_buffer("pose_mean", torch.zeros(n_pose))
@@ -193,7 +216,8 @@ class GraspQualityNet(nn.Module):
         """Width of ``encode``'s output: fc4's image term (1024), then with ``roi_head`` the conv2
         feature map (S/2 x S/2 x C: a row of C channels per map cell) that the head's jaw grid reads."""
         cells = self._cells_width if self.roi_head != "none" else 0
-        return 1024 + cells + (self.image_size**2 if self.roi_head == "jaw_depth" else 0)
+        ctx = CONTEXT_CHANNELS[1] * (self.image_size // 2) ** 2 if self.context_scale else 0
+        return 1024 + cells + (self.image_size**2 if self.roi_head == "jaw_depth" else 0) + ctx
 
     @property
     def _cells_width(self) -> int:
@@ -203,8 +227,12 @@ class GraspQualityNet(nn.Module):
     def encode(self, depth: torch.Tensor) -> torch.Tensor:
         """Raw depth crops (n, 1, S, S) in metres -> (n, ``encoding_width``): the image term of fc4,
         followed with ``roi_head`` by the flattened conv2 feature map (and for "jaw_depth" the raw
-        crop). One array per window, so
+        crop; with ``context_scale`` the input is (n, 2, S, S), the window and its context view, and
+        the context's feature map comes last). One array per window, so
         the encoder / head split (export, the service's cache) is the same for both heads."""
+        if depth.shape[1] != 1 + bool(self.context_scale):
+            raise ValueError(f"the encoder reads {1 + bool(self.context_scale)} channel(s), got {depth.shape[1]}")
+        context, depth = depth[:, 1:], depth[:, :1]
         ref, raw = None, depth
         if self.fc4_ref is not None:
             lo = (depth.shape[-1] - REFERENCE_PIXELS) // 2
@@ -226,6 +254,11 @@ class GraspQualityNet(nn.Module):
         parts = [term, fmap.permute(0, 2, 3, 1).reshape(fmap.shape[0], -1)]  # rows of channels
         if self.roi_head == "jaw_depth":  # and the crop itself (metres), read at the grid points
             parts.append(raw.reshape(raw.shape[0], -1))
+        if self.context_scale:  # the context view's own feature map, as rows of channels
+            c = (context - self.image_mean) / self.image_std
+            c = F.max_pool2d(F.relu(self.ctx_conv1(c)), 2)
+            c = F.relu(self.ctx_conv2(c))
+            parts.append(c.permute(0, 2, 3, 1).reshape(c.shape[0], -1))
         return torch.cat(parts, dim=1)
 
     def encoding_cells(self, encoding: torch.Tensor) -> torch.Tensor:
@@ -235,24 +268,36 @@ class GraspQualityNet(nn.Module):
         return cells.reshape(encoding.shape[0], -1, self.conv2_channels)
 
     def encoding_crop(self, encoding: torch.Tensor) -> torch.Tensor | None:
-        """The raw crop (n, S * S, 1) in metres a "jaw_depth" encoding carries last (else None)."""
+        """The raw crop (n, S * S, 1) in metres a "jaw_depth" encoding carries (else None)."""
         if self.roi_head != "jaw_depth":
             return None
-        return encoding[:, -(self.image_size**2) :].reshape(encoding.shape[0], -1, 1)
+        lo = 1024 + self._cells_width
+        return encoding[:, lo : lo + self.image_size**2].reshape(encoding.shape[0], -1, 1)
 
-    def jaw_grid_points(self, poses: torch.Tensor) -> torch.Tensor:
+    def encoding_context(self, encoding: torch.Tensor) -> torch.Tensor | None:
+        """The context feature map (n, S/2 * S/2, C) an encoding carries last (None without context)."""
+        if not self.context_scale:
+            return None
+        w = CONTEXT_CHANNELS[1] * (self.image_size // 2) ** 2
+        return encoding[:, -w:].reshape(encoding.shape[0], -1, CONTEXT_CHANNELS[1])
+
+    def jaw_grid_points(self, poses: torch.Tensor, grid: torch.Tensor | None = None, scale: int = 1) -> torch.Tensor:
         """(k, Ga, Gb, 2) grid_sample coordinates (-1..1 across the crop, u then v) of each grasp's
-        jaw grid: raw poses (u, v offsets in crop px, z metres, q w x y z). The in-image jaw
+        jaw grid (``grid`` (Ga, Gb, 2) metres along and across the jaw; default the jaw grid's), in a
+        view ``scale`` times wider than the window (the context view): raw poses (u, v offsets in crop
+        px, z metres, q w x y z). The in-image jaw
         direction is the projection of the rotation's x column, ignoring the perspective term of
         the grasp's distance from the optical axis; its sign is chosen with u >= 0."""
+        grid = self.jaw_grid if grid is None else grid
         u, v, z = poses[:, 0], poses[:, 1], poses[:, 2]
         r = rotation_entries(poses[:, 3:7])  # row-major: the x column is entries 0, 3, 6
         du, dv = r[:, 0], r[:, 3]
         sign = torch.where(du < 0, -1.0, 1.0)
         n = torch.sqrt(du * du + dv * dv).clamp_min(1e-6)
         du, dv = du * sign / n, dv * sign / n
-        s = self.roi_focal_px / z.clamp_min(0.05)  # crop px per metre
-        a, b = self.jaw_grid[..., 0], self.jaw_grid[..., 1]  # (Ga, Gb)
+        u, v = u / scale, v / scale
+        s = self.roi_focal_px / z.clamp_min(0.05) / scale  # crop px per metre
+        a, b = grid[..., 0], grid[..., 1]  # (Ga, Gb)
         pu = u[:, None, None] + s[:, None, None] * (a * du[:, None, None] - b * dv[:, None, None])
         pv = v[:, None, None] + s[:, None, None] * (a * dv[:, None, None] + b * du[:, None, None])
         half = self.image_size / 2
@@ -292,6 +337,14 @@ class GraspQualityNet(nn.Module):
             f = torch.cat([f, (d - poses[:, 2:3]) / JAW_DEPTH_SCALE], dim=1)
         return self.roi_fc2(F.relu(self.roi_fc1(f)))
 
+    def context_term(self, cells: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+        """fc4's context term (k, 1024): the context feature map as rows of channels (1 or k, S/2 *
+        S/2, C) read on ``CONTEXT_GRID`` about each grasp (raw poses (k, n_pose)), turned to its jaw."""
+        grid = self.jaw_grid_points(poses, self.ctx_grid, self.context_scale)
+        f = self._bilinear_rows(cells, self.image_size // 2, grid)
+        f = f.permute(0, 3, 1, 2).reshape(grid.shape[0], -1)
+        return self.ctx_fc2(F.relu(self.ctx_fc1(f)))
+
     def head_logits(self, encoding: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
         """``encode``'s output (1 or k, ``encoding_width``) and raw poses (k, n_pose) -> logits (k, 2)
         (with ``placement``: (k, n_pose + 7), the placement row after the pose columns)."""
@@ -312,6 +365,8 @@ class GraspQualityNet(nn.Module):
         x = x + self.fc4_pose(F.relu(self.pc1(p)))
         if self.roi_head != "none":
             x = x + self.roi_term(self.encoding_cells(encoding), poses, self.encoding_crop(encoding))
+        if self.context_scale:
+            x = x + self.context_term(self.encoding_context(encoding), poses)
         x = F.relu(x)
         if self.fc5 is not None:
             x = F.relu(self.fc5(x))
@@ -322,7 +377,7 @@ class GraspQualityNet(nn.Module):
         return torch.softmax(self.head_logits(encoding, poses), dim=1)[:, 1]
 
     def forward(self, depth: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
-        """One crop per grasp: (k, 1, S, S) metres and (k, n_pose) raw poses -> logits (k, 2)."""
+        """One crop per grasp: (k, 1, S, S) metres (with ``context_scale`` (k, 2, S, S)) and (k, n_pose) raw poses -> logits (k, 2)."""
         return self.head_logits(self.encode(depth), poses)
 
 

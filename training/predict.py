@@ -34,7 +34,9 @@ def predict_split(
     loss_sum = 0.0
     try:
         for i in tqdm(range(0, len(idx), batch_size), desc=desc, unit="batch", disable=not progress, leave=False):
-            img, pose, lab = split.batch(idx[i : i + batch_size], net.arch, placement=bool(net.n_place))
+            img, pose, lab = split.batch(
+                idx[i : i + batch_size], net.arch, placement=bool(net.n_place), context=bool(net.context_scale)
+            )
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
                 logits = net(img, pose)
             logits = logits.float()

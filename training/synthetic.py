@@ -23,7 +23,8 @@ from vgq.schema import (
     write_crop_manifest,
 )
 
-SIGNALS = ("image", "pose", "placement", "none")
+SIGNALS = ("image", "pose", "placement", "context", "none")
+SYNTHETIC_CONTEXT_SCALE = 3  # the "context" signal's views are 3 windows wide
 
 
 def write_crop_dataset(
@@ -35,11 +36,14 @@ def write_crop_dataset(
     label_threshold: float = 0.002,
     source: dict | None = None,
     recipe: dict | None = None,
+    context_scale: int = 0,
 ) -> dict:
     """Write ``splits`` (split name -> CROP_FIELDS arrays, and the CROP_EXTRA_FIELDS they have) as a
     crop dataset at ``path``.
 
-    Arrays are checked against ``vgq.schema.CROP_FIELDS`` first. Returns the manifest.
+    Arrays are checked against ``vgq.schema.CROP_FIELDS`` first. ``context_scale``: the splits'
+    ``context`` views are that many windows wide (recorded as ``datagen crops`` records it).
+    Returns the manifest.
     """
     path = Path(path)
     counts = {}
@@ -59,6 +63,7 @@ def write_crop_dataset(
         source or {},
         intrinsics=intrinsics.to_dict(),
         recipe=recipe or {},
+        **({"context": {"scale": context_scale, "window": geometry.window * context_scale}} if context_scale else {}),
     )
 
 
@@ -77,6 +82,8 @@ def synthetic_split(
       centre, negatives do not. Poses carry no signal.
     * ``"pose"``: label = 1 where the quaternion's w > its (data) threshold; images noise.
     * ``"placement"``: label = 1 where the placement row's ``offset`` is below its (data) threshold.
+    * ``"context"``: rows also get a context view (field ``context``, float16), in positives 10 cm
+      nearer the camera than the window; the window itself carries no signal.
     * ``"none"``: random labels (nothing to learn).
 
     Every row has a placement row (``vgq.placement``, drawn from its own stream, so the other fields
@@ -118,6 +125,11 @@ def synthetic_split(
         labels = place[:, 1] < (np.quantile(place[:, 1], positive_rate) if n else 0.0)
     else:
         labels = rng.random(n) < positive_rate
+    extra = {}
+    if signal == "context":
+        ctx = (z[:, None, None] + 0.03 + rng.normal(0.0, 0.002, (n, s, s))).astype(np.float32)
+        ctx[labels] -= 0.1
+        extra["context"] = ctx.astype(np.float16)
     quality = np.where(labels, rng.uniform(0.0025, 0.01, n), rng.uniform(0.0, 0.0019, n)).astype(np.float32)
     return {
         "images": images,
@@ -130,6 +142,7 @@ def synthetic_split(
         "beta": rng.uniform(0.0, np.pi / 2, n).astype(np.float32),
         "psi": rng.uniform(0.0, np.pi / 2, n).astype(np.float32),
         "placement": place,
+        **extra,
     }
 
 
@@ -153,4 +166,5 @@ def make_synthetic_crop_dataset(
         "test": synthetic_split(n_test, rng, geom, signal, positive_rate, first_object=20),
     }
     recipe = {"synthetic": True, "signal": signal, "positive_rate": positive_rate, "seed": seed}
-    return write_crop_dataset(path, splits, geom, arch, recipe=recipe, source={"kind": "synthetic"})
+    ctx = SYNTHETIC_CONTEXT_SCALE if signal == "context" else 0
+    return write_crop_dataset(path, splits, geom, arch, recipe=recipe, source={"kind": "synthetic"}, context_scale=ctx)

@@ -310,6 +310,13 @@ def _check_target(cfg: TrainConfig, data: CropDataset) -> None:
             f"target 'success_rate' needs every grasp's full trials; {data.path} was labelled with "
             "label.early_stop (its rates are over the trials run until the label was decided)"
         )
+    if cfg.context_scale:
+        have = (data.manifest.get("context") or {}).get("scale", 0)
+        if have != cfg.context_scale:
+            raise DatasetError(
+                f"context_scale {cfg.context_scale} needs crops cut with datagen crops --context-scale "
+                f"{cfg.context_scale}; {data.path} has {'context views of scale ' + str(have) if have else 'none'}"
+            )
     if cfg.placement == "image":
         lacking = [s for s, sp in data.splits.items() if sp is not None and len(sp) and "placement" not in sp.arrays]
         if lacking:
@@ -415,12 +422,14 @@ def _optimizer(cfg: TrainConfig, net: GraspQualityNet) -> torch.optim.Optimizer:
     """The run's optimizer; AdamW's fused CPU kernel (one pass over each parameter: the step 1.07x
     faster end to end on a Zen 4; the same update up to floating-point order). Each parameter group's
     ``lr_scale`` multiplies the schedule's rate (:func:`_sgd_step`): the placement stream's is
-    ``cfg.placement_lr_scale``."""
+    ``cfg.placement_lr_scale``, the context view's ``cfg.context_lr_scale``."""
     named = list(net.named_parameters())
-    place = [p for n, p in named if n.startswith("place_")]
-    groups = [{"params": [p for n, p in named if not n.startswith("place_")], "lr_scale": 1.0}]
-    if place:
-        groups.append({"params": place, "lr_scale": cfg.placement_lr_scale})
+    scaled = {"place_": cfg.placement_lr_scale, "ctx_": cfg.context_lr_scale}
+    groups = [{"params": [p for n, p in named if not n.startswith(tuple(scaled))], "lr_scale": 1.0}]
+    for prefix, scale in scaled.items():
+        own = [p for n, p in named if n.startswith(prefix)]
+        if own:
+            groups.append({"params": own, "lr_scale": scale})
     if cfg.optimizer == "adamw":
         return torch.optim.AdamW(groups, lr=cfg.base_lr, weight_decay=cfg.weight_decay, fused=True)
     return torch.optim.SGD(groups, lr=cfg.base_lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
@@ -441,6 +450,7 @@ def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit
         roi_units=cfg.roi_units,
         placement=cfg.placement == "image",
         placement_units=cfg.placement_units,
+        context_scale=cfg.context_scale,
         roi_focal_px=data.intrinsics.fx * data.geometry.out / data.geometry.window,  # crop px per unit depth
     ).to(memory_format=torch.channels_last)  # oneDNN's convolutions ~1.1x faster (training.bench)
     opt = _optimizer(cfg, net)
@@ -630,11 +640,11 @@ def train(
 
     def load(order: np.ndarray, bi: int, step: int):
         """Batch ``bi`` of an epoch's ``order``, read for optimizer step ``step``."""
-        place = cfg.placement == "image"
-        batch = train_split.batch(order[bi * local_main : (bi + 1) * local_main], cfg.arch, cfg.target, place)
+        place, ctx = cfg.placement == "image", bool(cfg.context_scale)
+        batch = train_split.batch(order[bi * local_main : (bi + 1) * local_main], cfg.arch, cfg.target, place, ctx)
         if local_mix:
             extra = mix_train.batch(
-                _mix_index(cfg, step, d.rank, len(mix_train), local_mix), cfg.arch, cfg.target, place
+                _mix_index(cfg, step, d.rank, len(mix_train), local_mix), cfg.arch, cfg.target, place, ctx
             )
             batch = tuple(torch.cat(pair) for pair in zip(batch, extra))
         if place and cfg.placement_dropout:

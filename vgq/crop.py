@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 
+import cv2
 import numpy as np
 from PIL import Image
 
@@ -137,6 +138,40 @@ def crop(depth: np.ndarray, center_uv, geom: CropGeometry) -> tuple[np.ndarray, 
     """
     origin = window_origin(center_uv, geom)
     return resize(crop_window(depth, origin, geom), geom.out), window_center(origin, geom)
+
+
+CONTEXT_SCALES = (0, 2, 3, 4)  # a context view's window in windows (0: none)
+
+
+def context_geometry(geom: CropGeometry, scale: int) -> CropGeometry:
+    """The context view of ``geom``'s windows: ``scale`` times as wide (source px), resized to the
+    same ``out`` px, centred on the same point (so a grasp's offset in it is the pose's (u, v) /
+    ``scale`` crop px)."""
+    if scale not in CONTEXT_SCALES[1:]:
+        raise ValueError(f"context scale must be one of {CONTEXT_SCALES[1:]}, got {scale}")
+    return CropGeometry(window=geom.window * scale, out=geom.out, kappa_px=0)
+
+
+def context_crops(filled: np.ndarray, origins_uv, geom: CropGeometry, ctx: CropGeometry) -> np.ndarray:
+    """The context views (k, out, out) float32 metres of ``geom``'s windows at integer top-left
+    ``origins_uv`` (k, 2) in one image: for each, the ``ctx`` window (:func:`context_geometry`) with
+    the same centre, cut from the whole image with its missing pixels already filled (``filled``
+    (H, W), :func:`vgq.inpaint.fill_nearest`), edge-replicated outside it, each output pixel the mean
+    of a ``ctx.scale`` x ``ctx.scale`` block (OpenCV's area resize)."""
+    o = np.asarray(origins_uv, dtype=np.int64).reshape(-1, 2) - (ctx.window - geom.window) // 2
+    h, w = filled.shape
+    out = np.empty((len(o), ctx.out, ctx.out), dtype=np.float32)
+    if not len(o):
+        return out
+    pad = int(max(0, -o.min(), (o[:, 0] + ctx.window - w).max(), (o[:, 1] + ctx.window - h).max()))
+    src = np.ascontiguousarray(filled, dtype=np.float32)
+    if pad:
+        src = cv2.copyMakeBorder(src, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    for i, (ou, ov) in enumerate(o + pad):
+        out[i] = cv2.resize(
+            src[ov : ov + ctx.window, ou : ou + ctx.window], (ctx.out, ctx.out), interpolation=cv2.INTER_AREA
+        )
+    return out
 
 
 def pose_uv(grasp_uv, window_centre_uv, geom: CropGeometry) -> np.ndarray:

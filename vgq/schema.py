@@ -112,9 +112,14 @@ CROP_EXTRA_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
         (len(PLACEMENT_COLUMNS),),
         f"placement row {PLACEMENT_COLUMNS} from the (sensor-corrupted) depth image, metres",
     ),
+    "context": (
+        "float16",
+        (32, 32),
+        "context view: the window's centre seen `context_scale` times wider (vgq.crop.context_crop), metres",
+    ),
 }
-#: every field a crop run writes
-WRITTEN_CROP_FIELDS = {**CROP_FIELDS, **CROP_EXTRA_FIELDS}
+#: every field a crop run writes (``context`` only where asked for: ``datagen crops --context-scale``)
+WRITTEN_CROP_FIELDS = {**CROP_FIELDS, "placement": CROP_EXTRA_FIELDS["placement"]}
 
 
 def check_extra_fields(arrays: dict[str, np.ndarray], n: int, where: str) -> None:
