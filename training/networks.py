@@ -230,7 +230,7 @@ class GraspQualityNet(nn.Module):
         crop; with ``context_scale`` the input is (n, 2, S, S), the window and its context view, and
         the context's feature map comes last). One array per window, so
         the encoder / head split (export, the service's cache) is the same for both heads."""
-        if depth.shape[1] != 1 + bool(self.context_scale):
+        if not torch.jit.is_tracing() and depth.shape[1] != 1 + bool(self.context_scale):  # (export traces this)
             raise ValueError(f"the encoder reads {1 + bool(self.context_scale)} channel(s), got {depth.shape[1]}")
         context, depth = depth[:, 1:], depth[:, :1]
         ref, raw = None, depth
