@@ -252,7 +252,7 @@ def make_crops(
     (``vgq.crop.CropGeometry.align_jaw``). ``jaw_turns`` (fast_vgqcnn): windows cut from the image
     turned in that many steps towards each jaw axis (``vgq.turns``). ``context_scale`` (fast_vgqcnn,
     unturned): also each window's context view, ``context_scale`` windows wide (field ``context``,
-    :func:`vgq.crop.context_crop`). Returns the written manifest."""
+    :func:`vgq.crop.context_crops`). Returns the written manifest."""
     geom = geometry_for(arch, kappa_px, window=window, align_jaw=align_jaw, jaw_turns=jaw_turns)
     if context_scale:
         vcrop.context_geometry(geom, context_scale)  # the scale checked

@@ -214,7 +214,8 @@ class GraspQualityNet(nn.Module):
     @property
     def encoding_width(self) -> int:
         """Width of ``encode``'s output: fc4's image term (1024), then with ``roi_head`` the conv2
-        feature map (S/2 x S/2 x C: a row of C channels per map cell) that the head's jaw grid reads."""
+        feature map (S/2 x S/2 x C: a row of C channels per map cell) that the head's jaw grid reads,
+        and with ``context_scale`` the context view's feature map last."""
         cells = self._cells_width if self.roi_head != "none" else 0
         ctx = CONTEXT_CHANNELS[1] * (self.image_size // 2) ** 2 if self.context_scale else 0
         return 1024 + cells + (self.image_size**2 if self.roi_head == "jaw_depth" else 0) + ctx
