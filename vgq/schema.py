@@ -115,7 +115,7 @@ CROP_EXTRA_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
     "context": (
         "float16",
         (32, 32),
-        "context view: the window's centre seen `context_scale` times wider (vgq.crop.context_crop), metres",
+        "context view: the window's centre seen `context_scale` times wider (vgq.crop.context_crops), metres",
     ),
 }
 #: every field a crop run writes (``context`` only where asked for: ``datagen crops --context-scale``)
