@@ -11,6 +11,8 @@ import json
 import sys
 from pathlib import Path
 
+from vgq.crop import CONTEXT_SCALES
+
 # The datasets of the bundled models (``datagen recipe --version V``): generate -> sample -> crops.
 RECIPES = {
     # v1: the model bundled until 2026-11-30 (fast_vgqcnn-60b272a5a797): random_urdfs only, the paper's label, clean renders
@@ -614,7 +616,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument(
         "--context-scale",
         type=int,
-        choices=(0, 2, 3, 4),
+        choices=CONTEXT_SCALES,
         default=0,
         metavar="S",
         help="fast_vgqcnn: also cut each window's context view, S windows wide around the same centre, resized "

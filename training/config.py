@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
 
+from vgq.crop import CONTEXT_SCALES
 from vgq.normalization import IMAGE_REFERENCES
 from vgq.pose import POSE_COLUMNS, POSE_FEATURES
 
@@ -212,8 +213,10 @@ class TrainConfig:
             raise ValueError(f"placement_lr_scale must be > 0, got {self.placement_lr_scale}")
         if not self.context_lr_scale > 0:
             raise ValueError(f"context_lr_scale must be > 0, got {self.context_lr_scale}")
-        if self.context_scale not in (0, 2, 3, 4) or (self.context_scale and self.roi_head == "none"):
-            raise ValueError(f"context_scale must be 0, 2, 3 or 4 (> 0 with a roi_head), got {self.context_scale}")
+        if self.context_scale not in CONTEXT_SCALES or (self.context_scale and self.roi_head == "none"):
+            raise ValueError(
+                f"context_scale must be one of {CONTEXT_SCALES} (> 0 with a roi_head), got {self.context_scale}"
+            )
         if not 0.0 <= self.placement_dropout <= 1.0:
             raise ValueError(f"placement_dropout must be in [0, 1], got {self.placement_dropout}")
         if self.val_max_samples < 0 or self.num_threads < 0:
