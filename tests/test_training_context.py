@@ -84,3 +84,21 @@ def test_context_training_refuses_crops_without_context_views(tmp_path):
         train(TrainConfig(samples=32, context_scale=3, **FAST), plain, tmp_path / "run", progress=False)
     with pytest.raises(DatasetError, match="context views"):
         open_crop_dataset(plain).split("train").batch(np.arange(4), "fast_vgqcnn", context=True)
+
+
+def test_freeze_init_trains_only_the_context_layers_and_resumes_so(data, tmp_path):
+    init_cfg = TrainConfig(samples=64, val_every_samples=64, **FAST)
+    train(init_cfg, data, tmp_path / "init", progress=False)
+    init, _ = load_trained(tmp_path / "init")
+    cfg = TrainConfig(
+        samples=64, val_every_samples=64, context_scale=3, init=str(tmp_path / "init"), freeze_init=True, **FAST
+    )
+    train(cfg, data, tmp_path / "ft", progress=False)
+    train(TrainConfig(**{**cfg.to_dict(), "samples": 128}), data, tmp_path / "ft", resume=True, progress=False)
+    net, _ = load_trained(tmp_path / "ft")
+    own, before = net.state_dict(), init.state_dict()
+    for name in before:
+        torch.testing.assert_close(own[name], before[name], msg=name)  # the init's layers never moved
+    assert not torch.all(own["ctx_fc2.weight"] == 0)  # the context view's did, from zero
+    with pytest.raises(ValueError, match="freeze_init needs init"):
+        TrainConfig(freeze_init=True)

@@ -145,7 +145,7 @@ def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
     for any other missing or mismatched tensor."""
     own = net.state_dict()
     state = _widen_pc1(net, state)
-    fresh = sorted(k for k in own if k not in state or tuple(state[k].shape) != tuple(own[k].shape))
+    fresh = init_fresh_names(net, state)
     other = [k for k in fresh if k not in POSE_STREAM_WEIGHTS + ROI_WEIGHTS + PLACEMENT_WEIGHTS + CONTEXT_WEIGHTS]
     if other:
         have = tuple(state[other[0]].shape) if other[0] in state else "none"
@@ -166,6 +166,26 @@ def load_init_weights(net: GraspQualityNet, state: dict) -> list[str]:
         if w is not None and mine is not None and tuple(w.shape) != tuple(mine.shape):
             _widen_roi(net, state, fresh)
     return fresh
+
+
+def init_fresh_names(net: GraspQualityNet, state: dict) -> list[str]:
+    """The names of ``net``'s tensors that an init ``state`` does not hold (by name and shape): the
+    layers a fine-tune adds, which start fresh."""
+    own = net.state_dict()
+    return sorted(k for k in own if k not in state or tuple(state[k].shape) != tuple(own[k].shape))
+
+
+def freeze_init_layers(net: GraspQualityNet, state: dict) -> list[str]:
+    """Stop the gradient of every parameter of ``net`` that the init ``state`` holds (pc1 widened as
+    :func:`load_init_weights` widens it): a fine-tune that trains only the layers it adds. Returns the
+    names still trained; CheckpointError when none is."""
+    fresh = set(init_fresh_names(net, _widen_pc1(net, state)))
+    trained = [n for n, p in net.named_parameters() if n in fresh]
+    if not trained:
+        raise CheckpointError("freeze_init: the network adds no layer to its init, so nothing would train")
+    for n, p in net.named_parameters():
+        p.requires_grad_(n in fresh)
+    return trained
 
 
 def _widen_pc1(net: GraspQualityNet, state: dict) -> dict:

@@ -91,6 +91,13 @@ class TrainConfig:
         default=1.0,
         metadata={"help": "learning-rate multiplier for the context view's layers (context_scale > 0)"},
     )
+    freeze_init: bool = field(
+        default=False,
+        metadata={
+            "help": "fine-tune: train only the layers the init lacks (a new jaw grid, placement stream or context "
+            "view); the init's own layers keep its weights, so what the run gains is what the new input adds"
+        },
+    )
     placement_dropout: float = field(
         default=0.1,
         metadata={
@@ -217,6 +224,8 @@ class TrainConfig:
             raise ValueError(
                 f"context_scale must be one of {CONTEXT_SCALES} (> 0 with a roi_head), got {self.context_scale}"
             )
+        if self.freeze_init and not self.init:
+            raise ValueError("freeze_init needs init (the checkpoint whose layers stay as they are)")
         if not 0.0 <= self.placement_dropout <= 1.0:
             raise ValueError(f"placement_dropout must be in [0, 1], got {self.placement_dropout}")
         if self.val_max_samples < 0 or self.num_threads < 0:

@@ -46,6 +46,7 @@ from .checkpoint import (
     CheckpointError,
     RunPaths,
     conv2_channels,
+    freeze_init_layers,
     load_checkpoint,
     load_init_weights,
     net_options,
@@ -423,7 +424,7 @@ def _optimizer(cfg: TrainConfig, net: GraspQualityNet) -> torch.optim.Optimizer:
     faster end to end on a Zen 4; the same update up to floating-point order). Each parameter group's
     ``lr_scale`` multiplies the schedule's rate (:func:`_sgd_step`): the placement stream's is
     ``cfg.placement_lr_scale``, the context view's ``cfg.context_lr_scale``."""
-    named = list(net.named_parameters())
+    named = [(n, p) for n, p in net.named_parameters() if p.requires_grad]  # not the layers freeze_init holds
     scaled = {"place_": cfg.placement_lr_scale, "ctx_": cfg.context_lr_scale}
     groups = [{"params": [p for n, p in named if not n.startswith(tuple(scaled))], "lr_scale": 1.0}]
     for prefix, scale in scaled.items():
@@ -453,14 +454,18 @@ def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit
         context_scale=cfg.context_scale,
         roi_focal_px=data.intrinsics.fx * data.geometry.out / data.geometry.window,  # crop px per unit depth
     ).to(memory_format=torch.channels_last)  # oneDNN's convolutions ~1.1x faster (training.bench)
+    init = _init_checkpoint(cfg, data) if cfg.init and (ckpt is None or cfg.freeze_init) else None
+    if cfg.freeze_init:
+        trained = freeze_init_layers(net, init["model"])
+        print(f"freeze_init: training {len(trained)} tensors the init lacks, the rest stay", file=sys.stderr)
     opt = _optimizer(cfg, net)
     best_val: dict = {}
     if ckpt is None and cfg.init:  # fine-tuning: the init's weights and its input normalisation, a fresh optimizer
-        init = _init_checkpoint(cfg, data)
         fresh = load_init_weights(net, init["model"])
         if fresh:
             print(
-                f"fine-tune from {cfg.init}: {', '.join(fresh)} start fresh (the pose stream changed)", file=sys.stderr
+                f"fine-tune from {cfg.init}: {', '.join(fresh)} start fresh (layers the init lacks or holds in another shape)",
+                file=sys.stderr,
             )
         norm = Normalization.from_dict(init["normalization"])
         state, last_val = TrainState(), {}
