@@ -27,7 +27,8 @@ view (``vgq.crop.context_crops``: the same centre seen S times wider); a small e
 (two convolutions) maps it to a 16 x 16 feature map that the head reads on a wider grid around the
 grasp, turned to its jaw as the jaw grid is (``CONTEXT_GRID``, metres), into a term added to fc4 (its
 last layer zero at the start of a fine-tune): what the window cannot show, where the grasp sits on
-an object larger than it.
+an object larger than it. The view is read as depth about its own mean (its shape, not the camera's
+distance).
 """
 
 from __future__ import annotations
@@ -256,7 +257,9 @@ class GraspQualityNet(nn.Module):
         if self.roi_head == "jaw_depth":  # and the crop itself (metres), read at the grid points
             parts.append(raw.reshape(raw.shape[0], -1))
         if self.context_scale:  # the context view's own feature map, as rows of channels
-            c = (context - self.image_mean) / self.image_std
+            # depth about the view's own mean: the shape around the grasp, not how far the camera stood
+            # (a global offset that varies by view would swing every unit on or off together)
+            c = (context - context.mean(dim=(2, 3), keepdim=True)) / self.image_std
             c = F.max_pool2d(F.relu(self.ctx_conv1(c)), 2)
             c = F.relu(self.ctx_conv2(c))
             parts.append(c.permute(0, 2, 3, 1).reshape(c.shape[0], -1))
