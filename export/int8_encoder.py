@@ -71,6 +71,12 @@ def variant_parser(prog: str, doc: str, model_help: str, calibration_help: str, 
     p.add_argument(
         "--calibration-n", type=int, default=calibration_n, help=f"calibration crops (default {calibration_n})"
     )
+    p.add_argument(
+        "--check-n",
+        type=int,
+        default=0,
+        help="check crops of a dataset: that many random val + test rows (seed 0); 0 = all (default)",
+    )
     return p
 
 
@@ -80,6 +86,8 @@ def parse_variant_args(p: argparse.ArgumentParser, argv, log_name: str) -> argpa
     logging.basicConfig(level=logging.INFO, format=f"[{log_name}] %(message)s")
     if a.calibration_n < 16:
         p.error("--calibration-n must be >= 16")
+    if a.check_n < 0:
+        p.error("--check-n must be >= 0")
     if not (Path(a.model_dir) / "model_card.json").is_file():
         p.error(f"--model-dir {a.model_dir!r} holds no model_card.json")
     if Path(a.check).resolve() == Path(a.calibration).resolve() and Path(a.check).suffix == ".npz":
@@ -87,11 +95,15 @@ def parse_variant_args(p: argparse.ArgumentParser, argv, log_name: str) -> argpa
     return a
 
 
-def check_crops(path: str, model_dir: str | Path) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], str]:
-    """The labelled check crops of ``path`` (a dataset's val + test splits, or a .npz) and their label,
-    with placement rows where ``model_dir``'s head reads them."""
+def check_crops(path: str, model_dir: str | Path, n: int = 0) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], str]:
+    """The labelled check crops of ``path`` (a dataset's val + test splits, ``n`` > 0: that many random
+    rows of them, seed 0; or a .npz) and their label, with placement rows where ``model_dir``'s head
+    reads them."""
     place = bool(ModelCard.load(model_dir).placement_columns)
-    return crop_split(path, ("val", "test"), placement=place), f"{path} (val + test)" if Path(path).is_dir() else path
+    if not Path(path).is_dir():
+        return crop_split(path, ("val", "test"), placement=place), path
+    rows = f"{n} random val + test rows, seed 0" if n else "val + test"
+    return crop_split(path, ("val", "test"), n or None, placement=place), f"{path} ({rows})"
 
 
 def add_int8_encoder(
@@ -174,7 +186,7 @@ def main(argv=None) -> EncoderCheck:
     try:
         prune_crops = None if a.no_prune else crop_split(a.calibration, ("train",), a.prune_n, a.seed)[0]
         calib = crop_split(a.calibration, ("train",), a.calibration_n, a.seed)[0]
-        check, check_data = check_crops(a.check, a.model_dir)
+        check, check_data = check_crops(a.check, a.model_dir, a.check_n)
         logging.info(
             "calibrating on %d crops of %s, checking on %d crops of %s",
             len(calib),

@@ -242,10 +242,6 @@ def export_model(
                 raise ExportError(f"an int8 head exists for fast_vgqcnn only, not {net.arch}")
             log.info("quantising the head to int8 and checking it on %d labelled crops", len(int8_check[0]))
             files["head_int8"] = "head_int8.onnx"
-            extra_term = net.roi_head != "none" or net.placement_units  # a term added to fc4 pruning does not read
-            if extra_term and prune_calibration is not None:  # pruning reads fc4's plain merge
-                log.info("a head with a jaw grid or a placement stream is quantised unpruned")
-                prune_calibration = None
             try:
                 extra["int8_head"] = build_int8_head(
                     tmp / files["encoder"],

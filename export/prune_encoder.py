@@ -299,7 +299,7 @@ def main(argv=None) -> dict:
     a = parse_variant_args(p, argv, "prune-encoder")
     try:
         crops = crop_split(a.calibration, ("train",), a.calibration_n)[0]
-        check, check_data = check_crops(a.check, a.model_dir)
+        check, check_data = check_crops(a.check, a.model_dir, a.check_n)
         record = prune_folder_encoder(
             a.model_dir, crops, check, check_data, calibration_data=f"{a.calibration} ({len(crops)} crops)"
         )

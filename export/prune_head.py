@@ -175,6 +175,102 @@ def prune_head_graph(head_path: str | Path, out_path: str | Path, units: DeadUni
     onnx.save(g, str(out_path))
 
 
+def is_plain_head(head_path: str | Path) -> bool:
+    """True for the paper's head graph, whose only reader of the image term is fc4's Add (what
+    :func:`dead_units` and :func:`prune_head_graph` work on); False for a head that adds other terms
+    to fc4 (a jaw grid, a placement stream), pruned by :func:`measured_dead_units` instead."""
+    users = [n for n in onnx.load(str(head_path)).graph.node if HEAD_INPUTS[0] in n.input]
+    return len(users) == 1 and users[0].op_type == "Add"
+
+
+def _fc5_wiring(g: onnx.GraphProto) -> tuple[onnx.NodeProto, str, str]:
+    """(fc5's Gemm, the tensor it reads: fc4's ReLU output, fc5's own ReLU output) of a head graph;
+    PruningError when the graph has no fc4 ReLU -> fc5 Gemm -> ReLU -> out Gemm chain."""
+    fc5 = [n for n in g.node if n.op_type == "Gemm" and len(n.input) > 1 and n.input[1] == WEIGHTS["fc5_w"]]
+    relu5 = [n for n in g.node if fc5 and n.op_type == "Relu" and n.input[0] == fc5[0].output[0]]
+    out = [n for n in g.node if n.op_type == "Gemm" and len(n.input) > 1 and n.input[1] == WEIGHTS["out_w"]]
+    producer = {o: n for n in g.node for o in n.output}
+    trans_b = {a.name: a.i for a in fc5[0].attribute} if fc5 else {}
+    if (
+        len(fc5) != 1
+        or len(relu5) != 1
+        or len(out) != 1
+        or out[0].input[0] != relu5[0].output[0]
+        or getattr(producer.get(fc5[0].input[0]), "op_type", None) != "Relu"
+        or trans_b.get("transB") != 1
+    ):
+        raise PruningError("not a Fast-VGQ-CNN head graph: no fc4 ReLU -> fc5 Gemm -> ReLU -> out Gemm chain")
+    return fc5[0], fc5[0].input[0], relu5[0].output[0]
+
+
+def measured_dead_units(
+    head_path: str | Path,
+    encoder_path: str | Path,
+    crops: np.ndarray,
+    poses: np.ndarray,
+    cross_pairs: int = CROSS_PAIRS,
+    seed: int = 0,
+    chunk: int = 2048,
+) -> DeadUnits:
+    """The units of fc5 that fire for some calibration pair, measured by running the head graph
+    itself with fc5's ReLU output exposed: any head, whatever terms it adds to fc4 (the jaw grid
+    reads the window's feature map at each grasp, so no closed form bounds fc4 or fc5). Pairs: each
+    of the (n, S, S) crops with its own pose row, and ``cross_pairs`` (term i, pose j) pairs drawn
+    within chunks of ``chunk`` crops (encoded a chunk at a time: a jaw-grid encoding is 17x the
+    paper's). Every fc4 unit is kept: dropping fc4's few dead units from fc5's input needs a Gather
+    over its (k, 1024) output, which onnxruntime runs slower (1.0 ms for 128 grasps on a Zen 3) than
+    the columns it saves."""
+    crops, poses = np.asarray(crops, np.float32), np.ascontiguousarray(poses, np.float32)
+    if len(crops) == 0 or len(crops) != len(poses):
+        raise PruningError(f"calibration needs n crops and n pose rows, got {np.shape(crops)} and {np.shape(poses)}")
+    g = onnx.load(str(head_path))
+    _, _, fc5_out = _fc5_wiring(g.graph)
+    g.graph.output.append(helper.make_tensor_value_info(fc5_out, onnx.TensorProto.FLOAT, None))
+    with tempfile.TemporaryDirectory(prefix=".prune-") as tmp:
+        onnx.save(g, str(Path(tmp) / "exposed.onnx"))
+        head = session(Path(tmp) / "exposed.onnx")
+    rng = np.random.default_rng(seed)
+    top5 = np.full(len(numpy_helper.to_array(_initializer(g.graph, WEIGHTS["fc5_b"]))), -np.inf, np.float32)
+    n = len(crops)
+    for start in range(0, n, chunk):
+        terms = image_terms(encoder_path, crops[start : start + chunk])
+        m = len(terms)
+        extra = int(round(cross_pairs * m / n))
+        i = np.concatenate([np.arange(m), rng.integers(0, m, extra)])
+        j = np.concatenate([np.arange(m), rng.integers(0, m, extra)])
+        for b in range(0, len(i), 128):
+            feed = {HEAD_INPUTS[0]: terms[i[b : b + 128]], HEAD_INPUTS[1]: poses[start + j[b : b + 128]]}
+            top5 = np.maximum(top5, head.run([fc5_out], feed)[0].max(0))
+    return DeadUnits(np.arange(len(top5)), np.flatnonzero(top5 > 0), len(top5), n, int(cross_pairs))
+
+
+def _initializer(g: onnx.GraphProto, name: str) -> onnx.TensorProto:
+    return next(t for t in g.initializer if t.name == name)
+
+
+def prune_fc5_graph(head_path: str | Path, out_path: str | Path, units: DeadUnits) -> None:
+    """Write ``out_path``: the head graph with only fc5's kept units (its rows of fc5, their
+    columns of ``out``). fc4 and the terms added to it are left whole (``units.fc4_kept`` must be
+    all of them): fc5 is most of the head's work. Same inputs and output."""
+    g = onnx.load(str(head_path))
+    _fc5_wiring(g.graph)
+    w = {t.name: numpy_helper.to_array(t) for t in g.graph.initializer}
+    if len(units.fc4_kept) != w[WEIGHTS["fc5_w"]].shape[1]:
+        raise PruningError("prune_fc5_graph keeps every fc4 unit; use prune_head_graph for the paper's head")
+    k5 = units.fc5_kept
+    new = {
+        WEIGHTS["fc5_w"]: w[WEIGHTS["fc5_w"]][k5],
+        WEIGHTS["fc5_b"]: w[WEIGHTS["fc5_b"]][k5],
+        WEIGHTS["out_w"]: w[WEIGHTS["out_w"]][:, k5],
+    }
+    for t in g.graph.initializer:
+        if t.name in new:
+            t.CopyFrom(numpy_helper.from_array(np.ascontiguousarray(new[t.name], np.float32), t.name))
+    del g.graph.value_info[:]  # intermediate shapes, if any were recorded: stale after pruning
+    onnx.checker.check_model(g)
+    onnx.save(g, str(out_path))
+
+
 @dataclass(frozen=True)
 class PruneCheck:
     """The pruned fp32 head against the unpruned one on check crops (own and crossed pairs)."""
@@ -245,9 +341,16 @@ def build_int8_head(
     source = Path(head_path)
     with tempfile.TemporaryDirectory(prefix=".prune-", dir=Path(out_path).parent) as tmp:
         if prune:
-            units = dead_units(
-                HeadWeights.from_onnx(head_path), image_terms(encoder_path, calibration[0]), calibration[1], cross_pairs
-            )
+            plain = is_plain_head(head_path)
+            if plain:
+                units = dead_units(
+                    HeadWeights.from_onnx(head_path),
+                    image_terms(encoder_path, calibration[0]),
+                    calibration[1],
+                    cross_pairs,
+                )
+            else:  # a jaw grid or a placement stream adds to fc4: measured through the graph
+                units = measured_dead_units(head_path, encoder_path, *calibration, cross_pairs)
             logging.info(
                 "dead units: fc4 keeps %d, fc5 keeps %d of %d (%d calibration crops)",
                 len(units.fc4_kept),
@@ -256,7 +359,7 @@ def build_int8_head(
                 units.n_calibration,
             )
             source = Path(tmp) / "head_pruned.onnx"
-            prune_head_graph(head_path, source, units)
+            (prune_head_graph if plain else prune_fc5_graph)(head_path, source, units)
             record["pruning"] = check_pruned_head(
                 head_path, source, image_terms(encoder_path, check[0]), check[1], units, check_data
             ).to_dict()
@@ -316,7 +419,7 @@ def main(argv=None) -> dict:
     try:
         place = bool(ModelCard.load(a.model_dir).placement_columns)
         crops, poses, _ = crop_split(a.calibration, ("train",), a.calibration_n, placement=place)
-        check, check_data = check_crops(a.check, a.model_dir)
+        check, check_data = check_crops(a.check, a.model_dir, a.check_n)
         record = rebuild_int8_head(
             a.model_dir,
             (crops, poses),

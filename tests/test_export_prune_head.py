@@ -20,7 +20,10 @@ from export.prune_head import (
     check_pruned_head,
     dead_units,
     image_terms,
+    is_plain_head,
     main,
+    measured_dead_units,
+    prune_fc5_graph,
     prune_head_graph,
     rebuild_int8_head,
 )
@@ -136,6 +139,7 @@ def test_refused_pruning_leaves_the_folder_unchanged(dead_model, tmp_path, monke
     [
         (["--calibration-n", "3"], "--calibration-n must be >= 16"),
         (["--cross-pairs", "-1"], "--cross-pairs must be >= 0"),
+        (["--check-n", "-5"], "--check-n must be >= 0"),
     ],
 )
 def test_cli_refuses_bad_numbers(dead_model, tmp_path, capsys, args, message):
@@ -183,3 +187,49 @@ def test_head_ab_times_two_folders_and_reports_their_agreement(dead_model, tmp_p
     with pytest.raises(SystemExit) as e:
         head_ab([str(dead_model), str(tmp_path / "none")])
     assert e.value.code == 2
+
+
+@pytest.fixture(scope="module")
+def jaw_model(tmp_path_factory):
+    """An exported jaw-grid model (its head adds the grid's term to fc4) with every 3rd fc5 unit
+    dead (a very negative bias), exported without an int8 head."""
+    import torch
+
+    from export.onnx_export import export_model
+    from training.networks import GraspQualityNet
+    from vgq.camera import DEFAULT_INTRINSICS
+    from vgq.crop import CropGeometry
+    from vgq.normalization import Normalization
+
+    torch.manual_seed(0)
+    net = GraspQualityNet("fast_vgqcnn", roi_head="jaw").eval()
+    torch.nn.init.normal_(net.roi_fc2.weight, std=0.05)  # a head that uses the grid
+    crops, poses, _ = synthetic_crops(64, np.random.default_rng(8))
+    net.set_normalization(Normalization.from_data(crops, poses, net.pose_columns))
+    with torch.no_grad():
+        net.fc5.bias[DEAD5] = -100.0
+    out = tmp_path_factory.mktemp("prune-jaw") / "m"
+    export_model(net, out, crops[:16], poses[:16], CropGeometry(96, 32, 36.0), DEFAULT_INTRINSICS)
+    return out
+
+
+def test_a_jaw_grid_head_is_pruned_by_measuring_its_graph(jaw_model, model_dir, tmp_path):
+    head, enc = jaw_model / "head.onnx", jaw_model / "encoder.onnx"
+    assert is_plain_head(model_dir / "head.onnx") and not is_plain_head(
+        head
+    )  # the grid's reads also take the encoding: no closed-form fc4 maximum
+    crops, poses, _ = synthetic_crops(96, np.random.default_rng(34))
+    units = measured_dead_units(head, enc, crops, poses, cross_pairs=300, chunk=40)
+    assert not set(DEAD5) & set(units.fc5_kept) and len(units.fc4_kept) == 1024  # fc4 kept whole
+    assert len(units.fc5_kept) > 0.5 * (1024 - len(DEAD5)) and units.n_calibration == 96
+    prune_fc5_graph(head, tmp_path / "p.onnx", units)
+    w = {t.name: t.dims for t in onnx.load(str(tmp_path / "p.onnx")).graph.initializer}
+    assert list(w[WEIGHTS["fc5_w"]]) == [len(units.fc5_kept), 1024]
+    terms = image_terms(enc, crops[:40])
+    for t in (terms[:1], terms):  # one window's encoding for k grasps, and one per grasp
+        full, pruned = _score(head, t, poses[:40]), _score(tmp_path / "p.onnx", t, poses[:40])
+        assert np.abs(pruned - full).max() < 1e-5
+    check = check_pruned_head(head, tmp_path / "p.onnx", terms, poses[:40], units)
+    assert check.decisions_changed == 0
+    with pytest.raises(PruningError, match="keeps every fc4 unit"):
+        prune_fc5_graph(head, tmp_path / "x.onnx", DeadUnits(units.fc4_kept[:10], units.fc5_kept, 1024, 0, 0))
