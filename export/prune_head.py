@@ -18,6 +18,11 @@ than ``max_flip_fraction`` of the decisions change. The int8 head is quantised f
 graph and checked against the exact fp32 head as before (export.quantize). ``head.onnx``, the
 fp32 reference, is never pruned.
 
+A head that adds other terms to fc4 (the jaw grid's reads of the window's feature map, a placement
+stream) has no closed-form maximum: its fc5 units are measured by running the head graph itself on
+the same own and crossed pairs (:func:`measured_dead_units`), and only fc5's dead units go
+(:func:`prune_fc5_graph`; fc4 is kept whole), checked the same way.
+
     python -m export.prune_head --model-dir models/fast-vgqcnn-default \\
         --calibration data/calib/crops --check examples/heldout_test_crops.npz
 
