@@ -181,11 +181,15 @@ def prune_head_graph(head_path: str | Path, out_path: str | Path, units: DeadUni
 
 
 def is_plain_head(head_path: str | Path) -> bool:
-    """True for the paper's head graph, whose only reader of the image term is fc4's Add (what
-    :func:`dead_units` and :func:`prune_head_graph` work on); False for a head that adds other terms
-    to fc4 (a jaw grid, a placement stream), pruned by :func:`measured_dead_units` instead."""
-    users = [n for n in onnx.load(str(head_path)).graph.node if HEAD_INPUTS[0] in n.input]
-    return len(users) == 1 and users[0].op_type == "Add"
+    """True for the paper's head graph (what :func:`dead_units` and :func:`prune_head_graph` work
+    on): its only reader of the image term is fc4's Add and its only matrix products are pc1, fc4,
+    fc5 and out. False for a head that adds other terms to fc4 (a jaw grid, a placement stream: each
+    brings products of its own), pruned by :func:`measured_dead_units` instead, which holds for any
+    head."""
+    nodes = onnx.load(str(head_path)).graph.node
+    users = [n for n in nodes if HEAD_INPUTS[0] in n.input]
+    products = [n for n in nodes if n.op_type in ("Gemm", "MatMul")]
+    return len(users) == 1 and users[0].op_type == "Add" and len(products) == 4
 
 
 def _fc5_wiring(g: onnx.GraphProto) -> tuple[onnx.NodeProto, str, str]:

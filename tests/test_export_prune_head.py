@@ -233,3 +233,20 @@ def test_a_jaw_grid_head_is_pruned_by_measuring_its_graph(jaw_model, model_dir, 
     assert check.decisions_changed == 0
     with pytest.raises(PruningError, match="keeps every fc4 unit"):
         prune_fc5_graph(head, tmp_path / "x.onnx", DeadUnits(units.fc4_kept[:10], units.fc5_kept, 1024, 0, 0))
+
+
+def test_a_placement_stream_head_is_not_taken_for_the_papers_head(tmp_path):
+    """Its stream adds a term to fc4 that the closed-form maxima would miss: measured instead."""
+    import torch
+
+    from export.onnx_export import export_model
+    from training.networks import GraspQualityNet
+    from vgq.camera import DEFAULT_INTRINSICS
+    from vgq.crop import CropGeometry
+
+    torch.manual_seed(1)
+    net = GraspQualityNet("fast_vgqcnn", placement=True, placement_units=16).eval()
+    crops, poses, _ = synthetic_crops(16, np.random.default_rng(3))
+    rows = np.concatenate([poses, np.zeros((16, net.n_place), np.float32)], axis=1)
+    export_model(net, tmp_path / "m", crops, rows, CropGeometry(96, 32, 36.0), DEFAULT_INTRINSICS)
+    assert not is_plain_head(tmp_path / "m" / "head.onnx")
