@@ -82,8 +82,9 @@ def synthetic_split(
       centre, negatives do not. Poses carry no signal.
     * ``"pose"``: label = 1 where the quaternion's w > its (data) threshold; images noise.
     * ``"placement"``: label = 1 where the placement row's ``offset`` is below its (data) threshold.
-    * ``"context"``: rows also get a context view (field ``context``, float16), in positives 10 cm
-      nearer the camera than the window; the window itself carries no signal.
+    * ``"context"``: rows also get a context view (field ``context``, float16); in positives a disc of
+      radius s / 3 px about its centre (an object wider than the window) stands 10 cm nearer the camera
+      than the rest of the view; the window itself carries no signal.
     * ``"none"``: random labels (nothing to learn).
 
     Every row has a placement row (``vgq.placement``, drawn from its own stream, so the other fields
@@ -128,7 +129,9 @@ def synthetic_split(
     extra = {}
     if signal == "context":
         ctx = (z[:, None, None] + 0.03 + rng.normal(0.0, 0.002, (n, s, s))).astype(np.float32)
-        ctx[labels] -= 0.1
+        yy, xx = np.mgrid[:s, :s] - (s - 1) / 2
+        disc = yy**2 + xx**2 < (s / 3) ** 2
+        ctx[labels] -= np.float32(0.1) * disc
         extra["context"] = ctx.astype(np.float16)
     quality = np.where(labels, rng.uniform(0.0025, 0.01, n), rng.uniform(0.0, 0.0019, n)).astype(np.float32)
     return {
