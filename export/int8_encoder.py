@@ -95,6 +95,11 @@ def parse_variant_args(p: argparse.ArgumentParser, argv, log_name: str) -> argpa
     return a
 
 
+#: the most check rows a whole dataset may hand these tools without --check-n (their crops and
+#: encodings are held in memory: a jaw-grid encoding is 17,408 floats)
+MAX_CHECK_ROWS = 50_000
+
+
 def check_crops(path: str, model_dir: str | Path, n: int = 0) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], str]:
     """The labelled check crops of ``path`` (a dataset's val + test splits, ``n`` > 0: that many random
     rows of them, seed 0; or a .npz) and their label, with placement rows where ``model_dir``'s head
@@ -102,6 +107,15 @@ def check_crops(path: str, model_dir: str | Path, n: int = 0) -> tuple[tuple[np.
     place = bool(ModelCard.load(model_dir).placement_columns)
     if not Path(path).is_dir():
         return crop_split(path, ("val", "test"), placement=place), path
+    if not n:
+        from training.data import open_crop_dataset
+
+        total = sum(len(sp) for name, sp in open_crop_dataset(path).splits.items() if name in ("val", "test") and sp)
+        if total > MAX_CHECK_ROWS:
+            raise ValueError(
+                f"--check {path} holds {total:,} val + test rows, more than {MAX_CHECK_ROWS:,} to score at once; "
+                "pass --check-n (e.g. 4096) to check on a random sample of them"
+            )
     rows = f"{n} random val + test rows, seed 0" if n else "val + test"
     return crop_split(path, ("val", "test"), n or None, placement=place), f"{path} ({rows})"
 

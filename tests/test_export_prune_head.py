@@ -250,3 +250,23 @@ def test_a_placement_stream_head_is_not_taken_for_the_papers_head(tmp_path):
     rows = np.concatenate([poses, np.zeros((16, net.n_place), np.float32)], axis=1)
     export_model(net, tmp_path / "m", crops, rows, CropGeometry(96, 32, 36.0), DEFAULT_INTRINSICS)
     assert not is_plain_head(tmp_path / "m" / "head.onnx")
+
+
+def test_cli_asks_for_check_n_when_a_dataset_holds_too_many_check_rows(dead_model, tmp_path, capsys, monkeypatch):
+    from export import int8_encoder
+    from training.synthetic import make_synthetic_crop_dataset
+
+    make_synthetic_crop_dataset(tmp_path / "crops", 16, 16, 16, seed=2)
+    monkeypatch.setattr(int8_encoder, "MAX_CHECK_ROWS", 20)  # 32 val + test rows here
+    with pytest.raises(SystemExit) as e:
+        main(
+            [
+                "--model-dir",
+                str(dead_model),
+                "--calibration",
+                str(tmp_path / "crops"),
+                "--check",
+                str(tmp_path / "crops"),
+            ]
+        )
+    assert e.value.code == 2 and "pass --check-n" in capsys.readouterr().err
