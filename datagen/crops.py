@@ -404,7 +404,7 @@ def make_crops(
         seed=int(seed),
         sensor={"name": sensor_name, "params": sensor.to_dict()},
         inpaint={"method": "nearest valid pixel (OpenCV distance transform, 5x5 mask)", "margin_px": inpaint.MARGIN_PX},
-        **({"context": {"scale": int(context_scale), "window": geom.window * context_scale}} if context_scale else {}),
+        context_scale=context_scale,
         versions=storage.library_versions(),
     )
     for f in (DONE_FILE, JOB_FILE):  # complete: nothing left to resume

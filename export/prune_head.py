@@ -238,23 +238,20 @@ def measured_dead_units(
     with tempfile.TemporaryDirectory(prefix=".prune-") as tmp:
         onnx.save(g, str(Path(tmp) / "exposed.onnx"))
         head = session(Path(tmp) / "exposed.onnx")
-    rng = np.random.default_rng(seed)
-    top5 = np.full(len(numpy_helper.to_array(_initializer(g.graph, WEIGHTS["fc5_b"]))), -np.inf, np.float32)
+    encoder, rng = session(encoder_path), np.random.default_rng(seed)
+    top5 = None
     n = len(crops)
     for start in range(0, n, chunk):
-        terms = image_terms(encoder_path, crops[start : start + chunk])
+        terms = image_terms(encoder, crops[start : start + chunk])
         m = len(terms)
         extra = int(round(cross_pairs * m / n))
         i = np.concatenate([np.arange(m), rng.integers(0, m, extra)])
         j = np.concatenate([np.arange(m), rng.integers(0, m, extra)])
         for b in range(0, len(i), 128):
             feed = {HEAD_INPUTS[0]: terms[i[b : b + 128]], HEAD_INPUTS[1]: poses[start + j[b : b + 128]]}
-            top5 = np.maximum(top5, head.run([fc5_out], feed)[0].max(0))
+            batch_top = head.run([fc5_out], feed)[0].max(0)
+            top5 = batch_top if top5 is None else np.maximum(top5, batch_top)
     return DeadUnits(np.arange(len(top5)), np.flatnonzero(top5 > 0), len(top5), n, int(cross_pairs))
-
-
-def _initializer(g: onnx.GraphProto, name: str) -> onnx.TensorProto:
-    return next(t for t in g.initializer if t.name == name)
 
 
 def prune_fc5_graph(head_path: str | Path, out_path: str | Path, units: DeadUnits) -> None:

@@ -98,9 +98,10 @@ def session(path) -> ort.InferenceSession:
     return ort.InferenceSession(str(path), session_options(1), providers=["CPUExecutionProvider"])
 
 
-def image_terms(encoder_path: str | Path, crops: np.ndarray) -> np.ndarray:
-    """(n, 1024) image terms of (n, S, S) or (n, 1, S, S) crops (metres) through the encoder graph."""
-    enc = session(encoder_path)
+def image_terms(encoder: str | Path | ort.InferenceSession, crops: np.ndarray) -> np.ndarray:
+    """(n, 1024) image terms of (n, S, S) or (n, 1, S, S) crops (metres) through the encoder graph
+    (a path, or a session already open on it)."""
+    enc = encoder if isinstance(encoder, ort.InferenceSession) else session(encoder)
     x = np.ascontiguousarray(crops, np.float32).reshape(len(crops), 1, *np.shape(crops)[-2:])
     return np.concatenate(
         [enc.run([ENCODER_OUTPUT], {ENCODER_INPUT: x[i : i + 256]})[0] for i in range(0, len(x), 256)]

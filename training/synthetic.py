@@ -63,7 +63,7 @@ def write_crop_dataset(
         source or {},
         intrinsics=intrinsics.to_dict(),
         recipe=recipe or {},
-        **({"context": {"scale": context_scale, "window": geometry.window * context_scale}} if context_scale else {}),
+        context_scale=context_scale,
     )
 
 

@@ -37,6 +37,7 @@ from vgq import atomic
 from vgq.crop import CropGeometry
 from vgq.normalization import Normalization
 from vgq.pose import POSE_COLUMNS, mirror_poses
+from vgq.schema import context_scale_of
 
 from . import metrics as M
 from .checkpoint import (
@@ -312,7 +313,7 @@ def _check_target(cfg: TrainConfig, data: CropDataset) -> None:
             "label.early_stop (its rates are over the trials run until the label was decided)"
         )
     if cfg.context_scale:
-        have = (data.manifest.get("context") or {}).get("scale", 0)
+        have = context_scale_of(data.manifest)
         if have != cfg.context_scale:
             raise DatasetError(
                 f"context_scale {cfg.context_scale} needs crops cut with datagen crops --context-scale "

@@ -196,6 +196,7 @@ def write_crop_manifest(
     source: dict,
     intrinsics: dict | None = None,
     native_counts: dict | None = None,
+    context_scale: int = 0,
     **extra,
 ) -> dict:
     """Write ``root/manifest.json`` of a ``vgq-crops`` dataset atomically (after its split
@@ -207,6 +208,8 @@ def write_crop_manifest(
     of the grasps before any resampling (``datagen sample``'s psi filter, positivity
     equalisation and uniform undersampling), the positivity a deployed model meets;
     default: the crops themselves (all splits), i.e. a dataset that was not resampled.
+    ``context_scale`` > 0: the splits also hold context views that many windows wide (recorded as
+    ``context``: scale and source window px; :func:`context_scale_of` reads it back).
     ``extra``: further top-level keys (``recipe``, ``seed``, ``versions``, ...).
     """
     for name, c in counts.items():
@@ -228,7 +231,17 @@ def write_crop_manifest(
         "native_counts": native_counts,
         "source": source,
         **({"intrinsics": dict(intrinsics)} if intrinsics else {}),
+        **(
+            {"context": {"scale": int(context_scale), "window": geometry.window * int(context_scale)}}
+            if context_scale
+            else {}
+        ),
         **extra,
     }
     atomic.write_json(Path(root) / MANIFEST, m)
     return m
+
+
+def context_scale_of(manifest: dict) -> int:
+    """The context views' scale a crop manifest records (:func:`write_crop_manifest`); 0: none."""
+    return int((manifest.get("context") or {}).get("scale", 0))
