@@ -218,13 +218,18 @@ class GraspQualityNet(nn.Module):
         feature map (S/2 x S/2 x C: a row of C channels per map cell) that the head's jaw grid reads,
         and with ``context_scale`` the context view's feature map last."""
         cells = self._cells_width if self.roi_head != "none" else 0
-        ctx = CONTEXT_CHANNELS[1] * (self.image_size // 2) ** 2 if self.context_scale else 0
+        ctx = self._context_width if self.context_scale else 0
         return 1024 + cells + (self.image_size**2 if self.roi_head == "jaw_depth" else 0) + ctx
 
     @property
     def _cells_width(self) -> int:
         """Floats of the conv2 feature map a jaw-grid encoding carries (S/2 * S/2 * C)."""
         return self.conv2_channels * (self.image_size // 2) ** 2
+
+    @property
+    def _context_width(self) -> int:
+        """Floats of the context view's feature map a context encoding carries last (S/2 * S/2 * C)."""
+        return CONTEXT_CHANNELS[1] * (self.image_size // 2) ** 2
 
     def encode(self, depth: torch.Tensor) -> torch.Tensor:
         """Raw depth crops (n, 1, S, S) in metres -> (n, ``encoding_width``): the image term of fc4,
@@ -282,8 +287,7 @@ class GraspQualityNet(nn.Module):
         """The context feature map (n, S/2 * S/2, C) an encoding carries last (None without context)."""
         if not self.context_scale:
             return None
-        w = CONTEXT_CHANNELS[1] * (self.image_size // 2) ** 2
-        return encoding[:, -w:].reshape(encoding.shape[0], -1, CONTEXT_CHANNELS[1])
+        return encoding[:, -self._context_width :].reshape(encoding.shape[0], -1, CONTEXT_CHANNELS[1])
 
     def jaw_grid_points(self, poses: torch.Tensor, grid: torch.Tensor | None = None, scale: int = 1) -> torch.Tensor:
         """(k, Ga, Gb, 2) grid_sample coordinates (-1..1 across the crop, u then v) of each grasp's
