@@ -30,9 +30,11 @@ class Number:
     maximum: float | None = None
 
     def parse(self, raw) -> float | int | None:
-        """``raw``: None or "" (absent) -> None; text (query, form field) or a number (array
-        element) -> float / int. Raises ApiError 422 naming the field."""
-        if raw is None or (isinstance(raw, str) and raw == ""):
+        """``raw``: None (absent) -> None; text (query, form field) or a number (array element) ->
+        float / int. Raises ApiError 422 naming the field, also for an empty value (``?fx=``: the
+        schema says number, and a client that sent one meant some value; taking the default
+        would answer for a camera it did not name)."""
+        if raw is None:
             return None
         if isinstance(raw, (bool, np.bool_)):
             self._fail(raw, "a number, not true / false")
@@ -125,14 +127,14 @@ UP = (UP_X, UP_Y, UP_Z)
 
 @dataclass(frozen=True)
 class Choice:
-    """A text query parameter that takes one of ``values`` (absent or "" -> None)."""
+    """A text query parameter that takes one of ``values`` (absent -> None; empty: 422, as for a Number)."""
 
     name: str
     description: str
     values: tuple[str, ...]
 
     def parse(self, raw) -> str | None:
-        if raw is None or raw == "":
+        if raw is None:
             return None
         text = str(raw).strip().lower()
         if text in self.values:

@@ -255,6 +255,7 @@ UPLOADS = [
     ("fx-zero", lambda: npy(table_scene()), NPY, {"fx": 0}, 422, ["fx"]),
     ("fy-nan", lambda: npy(table_scene()), NPY, {"fy": "nan"}, 422, ["fy", "finite"]),
     ("fx-negative", lambda: npy(table_scene()), NPY, {"fx": -500}, 422, ["fx", "> 0"]),
+    ("fx-empty", lambda: npy(table_scene()), NPY, {"fx": ""}, 422, ["fx", "a number"]),
     *[
         (
             f"width-{name}",

@@ -136,6 +136,7 @@ def test_roi_and_camera_reach_the_planner(url, two_boxes):
         ({"roi": "50,50,10,10"}, "roi"),  # u1 < u0
         ({"roi": "1,2,3"}, "roi"),
         ({"roi": "1,2,nan,4"}, "roi"),
+        ({"roi": "1,2,,4"}, "roi"),  # an empty part
         ({"roi": "1,-2,3,4"}, "roi"),
         ({"k": 0}, "k"),
         ({"k": 101}, "k"),

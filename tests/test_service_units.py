@@ -323,15 +323,18 @@ def test_integer_fields_refuse_what_is_not_a_usable_integer(raw):
     assert status == 422 and "field width must be" in msg
 
 
+def test_an_empty_number_or_choice_is_refused_not_taken_as_absent():
+    from service.numbers import FX, LEVEL
+
+    assert status_of(FX.parse, "") == (422, "field fx must be a number, got ''")
+    status, msg = status_of(LEVEL.parse, "")
+    assert status == 422 and msg.startswith("field level must be 'table'")
+
+
 def test_numbers_accept_text_and_array_elements():
     from service.numbers import CENTER_U, FX, WIDTH
 
-    assert (
-        WIDTH.parse("300") == 300
-        and WIDTH.parse("300.0") == 300
-        and WIDTH.parse(None) is None
-        and WIDTH.parse("") is None
-    )
+    assert WIDTH.parse("300") == 300 and WIDTH.parse("300.0") == 300 and WIDTH.parse(None) is None
     assert CENTER_U.parse(np.float64(12.5)) == 12.5 and CENTER_U.parse("0") == 0.0
     assert status_of(CENTER_U.parse, np.float32(np.nan))[1] == "field center_u must be finite, got np.float32(nan)"
     assert status_of(FX.parse, "0")[0] == 422 and FX.schema()["exclusiveMinimum"] == 0.0
