@@ -23,9 +23,9 @@ import io  # noqa: E402
 
 import numpy as np  # noqa: E402
 from conftest import table_scene  # noqa: E402
-from hypothesis import HealthCheck, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from PIL import Image  # noqa: E402
+from schema_operations import add_operation_tests  # noqa: E402
 from schemathesis.config import SchemathesisConfig  # noqa: E402
 from servers import grasps_at, running_service  # noqa: E402
 from test_service_bad_input import npy  # noqa: E402
@@ -90,11 +90,11 @@ def image_id(url):
     return r.json()["image_id"]
 
 
-@schema.parametrize()
-@settings(
-    max_examples=MAX_EXAMPLES, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck)
-)
-def test_every_check(case, url, image_id):
+def check_every(case, url, image_id):
+    """One case with every check enabled in CONFIG (all of schemathesis's built-ins)."""
     if "image_id" in (case.path_parameters or {}) and len(str(case.path_parameters["image_id"])) % 2 == 0:
         case.path_parameters["image_id"] = image_id  # half the score requests reach a cached image
     case.call_and_validate(base_url=url)  # every check enabled in CONFIG: all of schemathesis's built-ins
+
+
+add_operation_tests(globals(), "test_every_check_", schema, MAX_EXAMPLES, check_every)
