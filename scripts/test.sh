@@ -61,4 +61,9 @@ if [ "${VGQ_LINT:-1}" != 0 ]; then
   .venv/bin/ruff check --quiet . && .venv/bin/ruff format --check --quiet . \
     || { echo "ruff: fix the above (ruff check --fix . && ruff format .), or VGQ_LINT=0 to skip" >&2; exit 1; }
 fi
-exec .venv/bin/python -m pytest "$@"
+# test files run in parallel worker processes (pytest-xdist; each file on one worker, in its own
+# order): one per core up to 4; VGQ_TEST_WORKERS=0 runs them in this process (so does -n 0)
+cores=$(nproc 2>/dev/null || echo 1)
+workers=${VGQ_TEST_WORKERS:-$(( cores < 4 ? cores : 4 ))}
+if [ "$workers" -le 1 ] 2>/dev/null; then workers=0; fi
+exec .venv/bin/python -m pytest -n "$workers" --dist loadfile "$@"
