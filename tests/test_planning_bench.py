@@ -9,7 +9,8 @@ import pytest
 import trimesh
 
 from datagen.config import DatagenConfig
-from planning.bench import BenchScene, _recipe_config, default_oracle, judge
+from planning.bench.oracle import default_oracle, judge
+from planning.bench.scenes import BenchScene, recipe_config
 from planning.types import PlanParams
 
 
@@ -26,9 +27,9 @@ class _Model:
 def test_a_recipe_recorded_before_the_label_setting_is_judged_by_ferrari_canny():
     old = DatagenConfig().to_dict()
     old.pop("label")  # the bundled v1 card's recipe: the paper's label
-    cfg = _recipe_config(_Model(old))
+    cfg = recipe_config(_Model(old))
     assert cfg.label.kind == "paper" and default_oracle(cfg) == "fc"
-    assert default_oracle(_recipe_config(_Model(DatagenConfig().to_dict()))) == "physics"
+    assert default_oracle(recipe_config(_Model(DatagenConfig().to_dict()))) == "physics"
 
 
 def _box_scene() -> BenchScene:
@@ -66,7 +67,7 @@ def test_the_physics_oracle_runs_trials_and_skips_colliding_grasps():
 def test_held_out_objects_come_from_a_crop_file_or_a_crop_datasets_test_split(tmp_path):
     import json
 
-    from planning.bench import heldout_object_ids
+    from planning.bench.scenes import heldout_object_ids
 
     np.savez(tmp_path / "crops.npz", object_id=np.array([7, 3, 7, 12]))
     assert heldout_object_ids(str(tmp_path / "crops.npz")) == [3, 7, 12]
@@ -81,12 +82,12 @@ def test_held_out_objects_come_from_a_crop_file_or_a_crop_datasets_test_split(tm
 
 
 def test_unseen_objects_are_the_ones_the_recipes_dataset_never_held():
-    from planning.bench import _recipe_sources, scene_objects
+    from planning.bench.scenes import recipe_sources, scene_objects
 
     cfg = DatagenConfig.from_dict({**DatagenConfig().to_dict(), "num_objects": 3, "families": {"box": 2, "mug": 1}})
     ids, unseen = scene_objects("unseen", "test", cfg)
-    recipe = _recipe_sources(json.dumps(cfg.to_dict(), sort_keys=True))
-    others = _recipe_sources(json.dumps(unseen.to_dict(), sort_keys=True))
+    recipe = recipe_sources(json.dumps(cfg.to_dict(), sort_keys=True))
+    others = recipe_sources(json.dumps(unseen.to_dict(), sort_keys=True))
     assert [others[i].name for i in range(3)] == [s.name for s in recipe[:3]]  # the recipe's meshes come first
     picked = [others[i] for i in ids]
     meshes = [s for s in picked if s.family is None]
@@ -98,7 +99,8 @@ def test_unseen_objects_are_the_ones_the_recipes_dataset_never_held():
 
 
 def test_command_line_turns_the_top_view_off_with_zero():
-    from planning.bench import parse_args, plan_params
+    from planning.bench.cli import parse_args
+    from planning.bench.common import plan_params
 
     assert plan_params(parse_args(["trials"])).top_view_cell == PlanParams().top_view_cell
     assert plan_params(parse_args(["trials", "--top-view-cell", "0"])).top_view_cell is None
@@ -106,7 +108,7 @@ def test_command_line_turns_the_top_view_off_with_zero():
 
 def test_candidate_features_measure_the_grasp_against_the_true_scene():
     """planning.bench pool's features of a top-down grasp across a box standing on the table."""
-    from planning.bench import candidate_features
+    from planning.bench.pool import candidate_features
     from vgq.gripper import GripperGeometry
 
     scene = _box_scene()  # box centre of mass 3 cm above the table
@@ -124,7 +126,8 @@ def test_candidate_features_measure_the_grasp_against_the_true_scene():
 
 
 def test_command_line_sets_the_approach_tilt_and_refuses_nonsense(capsys):
-    from planning.bench import parse_args, plan_params
+    from planning.bench.cli import parse_args
+    from planning.bench.common import plan_params
 
     assert np.isclose(plan_params(parse_args(["precision", "--max-approach-tilt", "30"])).max_approach_tilt, np.pi / 6)
     assert np.isclose(plan_params(parse_args(["precision"])).max_approach_tilt, PlanParams().max_approach_tilt)
@@ -134,7 +137,7 @@ def test_command_line_sets_the_approach_tilt_and_refuses_nonsense(capsys):
 
 
 def test_pool_options_parse():
-    from planning.bench import parse_args
+    from planning.bench.cli import parse_args
 
     a = parse_args(["pool", "--retest", "--split", "train"])
     assert a.retest and a.split == "train" and a.scenes == 60
@@ -144,7 +147,7 @@ def test_pool_options_parse():
 def test_ceiling_judges_each_scenes_best_true_mesh_grasp_again_on_fresh_trials(tmp_path, capsys):
     import json
 
-    from planning.bench import main, parse_args
+    from planning.bench.cli import main, parse_args
 
     out = tmp_path / "ceiling.json"
     args = ["ceiling", "--scenes", "1", "--trials", "2", "--confirm", "3", "--threads", "1", "--json", str(out)]
@@ -166,7 +169,7 @@ def test_ceiling_judges_each_scenes_best_true_mesh_grasp_again_on_fresh_trials(t
 
 
 def test_the_plans_verdicts_are_counted_per_class_of_scene_by_its_best_true_mesh_grasp():
-    from planning.bench import plan_by_ceiling
+    from planning.bench.ceiling import plan_by_ceiling
 
     ceiling = {"seed": 0, "scenes": 3, "success_threshold": 0.5, "rows": []}
     ceiling["rows"] = [{"scene": 0, "confirmed_estimate": 0.9}, {"scene": 2, "confirmed_estimate": 0.3}]
@@ -181,7 +184,7 @@ def test_the_plans_verdicts_are_counted_per_class_of_scene_by_its_best_true_mesh
 def test_trials_judge_the_plan_the_score_alone_and_a_random_pick_on_the_same_scenes(tmp_path, capsys):
     import json
 
-    from planning.bench import main
+    from planning.bench.cli import main
 
     out = tmp_path / "trials.json"
     assert main(["trials", "--scenes", "2", "--trials", "2", "--threads", "1", "--json", str(out)]) == 0
@@ -199,7 +202,7 @@ def test_trials_judge_the_plan_the_score_alone_and_a_random_pick_on_the_same_sce
 def test_trials_judge_the_noise_averaged_score_on_the_same_trials(tmp_path):
     import json
 
-    from planning.bench import main, parse_args
+    from planning.bench.cli import main, parse_args
 
     out = tmp_path / "trials.json"
     assert (
@@ -217,28 +220,29 @@ def test_noisy_scores_average_the_planners_own_scores():
     import unittest.mock as mock
 
     from datagen.physics import PhysicsParams
-    from planning import bench
+    from planning.bench.common import MODEL_DIR, load_model
+    from planning.bench.trials import noisy_scores
     from planning.policy import WindowScorer, grasp_rows, plan
     from planning.types import PlanParams
     from tests.planning_scenes import boxes_scene
     from vgq.camera import DEFAULT_INTRINSICS as intr
 
     depth = boxes_scene()[0]
-    model = bench._model(bench.MODEL_DIR, 1)
+    model = load_model(MODEL_DIR, 1)
     res = plan(depth, intr, model, k=5, seed=0)
     frames = res.candidates["frames"][:8]
     own, _ = WindowScorer(model, depth, PlanParams().windows).score(grasp_rows(frames, intr))
     quiet = dataclasses.replace(PhysicsParams(), sigma_translation=0.0, sigma_rotation=0.0)
     with mock.patch("datagen.physics.PhysicsParams", return_value=quiet):
-        avg = bench.noisy_scores(model, depth, intr, frames, 4, PlanParams(), 0)
+        avg = noisy_scores(model, depth, intr, frames, 4, PlanParams(), 0)
     assert np.allclose(avg, own, atol=1e-6)
-    noisy = bench.noisy_scores(model, depth, intr, frames, 4, PlanParams(), 0)
+    noisy = noisy_scores(model, depth, intr, frames, 4, PlanParams(), 0)
     assert noisy.shape == (8,) and not np.allclose(noisy, own)
 
 
 @pytest.mark.parametrize("flag,value", [("--model", "/nonexistent"), ("--heldout", "/nonexistent.npz")])
 def test_a_model_or_heldout_file_it_cannot_read_exits_2_naming_it(capsys, flag, value):
-    from planning.bench import main
+    from planning.bench.cli import main
 
     assert main(["timing", flag, value, "--scenes", "1", "--repeats", "2"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -248,7 +252,7 @@ def test_a_model_or_heldout_file_it_cannot_read_exits_2_naming_it(capsys, flag, 
 def test_timing_against_another_checkout_interleaves_the_two_planners(capsys, tmp_path):
     from pathlib import Path
 
-    from planning.bench import main
+    from planning.bench.cli import main
 
     here = Path(__file__).resolve().parents[1]  # this checkout's own planner stands in for another's
     assert main(["timing", "--scenes", "1", "--repeats", "2", "--against", str(here)]) == 0
