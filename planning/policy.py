@@ -30,7 +30,6 @@ from vgq.camera import (
 )
 from vgq.crop import grid_window_centers, origin_range, pose_uv, window_center, window_origin
 from vgq.inpaint import crop_filled
-from vgq.model_card import ENCODER_INPUT, ENCODER_OUTPUT, HEAD_INPUTS, HEAD_OUTPUT
 from vgq.ood import flag_names, ood_flags
 from vgq.placement import unknown_rows
 from vgq.pose import canonical_quaternion, quaternion_from_matrix, roll_quaternions
@@ -256,8 +255,7 @@ class WindowScorer:
             self.actual[k] = actual
             self.missing[k] = frac
         if new:
-            x = np.ascontiguousarray(np.stack(imgs)[:, None], dtype=np.float32)
-            terms = self.model.encoder.run([ENCODER_OUTPUT], {ENCODER_INPUT: x})[0]
+            terms = self.model.encode(np.stack(imgs))  # the service's encoder call (service.runtime)
             for k, term in zip(new, terms):
                 self.terms[k] = term
             if self.store is not None:
@@ -311,8 +309,7 @@ class WindowScorer:
         p = np.empty(len(rows), np.float64)
         for k, ix in groups.items():
             ix = slice(None) if len(groups) == 1 else np.asarray(ix)
-            term = np.asarray(self.terms[k], np.float32).reshape(1, -1)
-            p[ix] = self.model.head.run([HEAD_OUTPUT], {HEAD_INPUTS[0]: term, HEAD_INPUTS[1]: poses[ix]})[0].reshape(-1)
+            p[ix] = self.model.score(np.asarray(self.terms[k], np.float32).reshape(1, -1), poses[ix]).reshape(-1)
         self.score_seconds += time.perf_counter() - t
         return p, np.array([self.missing[k] for k in keys])
 
