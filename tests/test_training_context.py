@@ -100,5 +100,5 @@ def test_freeze_init_trains_only_the_context_layers_and_resumes_so(data, tmp_pat
     for name in before:
         torch.testing.assert_close(own[name], before[name], msg=name)  # the init's layers never moved
     assert not torch.all(own["ctx_fc2.weight"] == 0)  # the context view's did, from zero
-    with pytest.raises(ValueError, match="freeze_init needs init"):
+    with pytest.raises(ValueError, match="freeze_init and freeze_encoder need init"):
         TrainConfig(freeze_init=True)

@@ -409,3 +409,21 @@ def test_windows_turned_in_steps_train_fast_vgqcnn_only_and_evaluate_only_a_net_
     centred = _turned_copy(plain, tmp_path / "centred", jaw_turns=4, kappa_px=0.0)
     with pytest.raises(DatasetError, match="turned in 4 steps.*cannot train 'vgqcnn'"):
         open_crop_dataset(centred).check_arch("vgqcnn")
+
+
+def test_freeze_encoder_trains_only_the_head_and_resumes_so(data, run, tmp_path):
+    from training.networks import ENCODER_LAYERS
+
+    cfg = TrainConfig(samples=64, val_every_samples=64, init=str(run), freeze_encoder=True, **FAST)
+    train(cfg, data, tmp_path / "ft", progress=False)
+    train(TrainConfig(**{**cfg.to_dict(), "samples": 128}), data, tmp_path / "ft", resume=True, progress=False)
+    init, _ = load_trained(run)
+    net, _ = load_trained(tmp_path / "ft")
+    own, before = net.state_dict(), init.state_dict()
+    encoder = [k for k in before if k.split(".")[0] in ENCODER_LAYERS]
+    assert {k.split(".")[0] for k in encoder} >= {"conv1_1", "conv2_2", "fc3", "fc4_image"}
+    for name in encoder:
+        torch.testing.assert_close(own[name], before[name], msg=name)  # the encoder never moved
+    assert not torch.equal(own["fc5.weight"], before["fc5.weight"])  # the head did
+    with pytest.raises(ValueError, match="freeze_encoder need init"):
+        TrainConfig(freeze_encoder=True)

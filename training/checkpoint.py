@@ -26,7 +26,7 @@ import torch
 from vgq import atomic
 from vgq.normalization import Normalization
 
-from .networks import GraspQualityNet
+from .networks import ENCODER_LAYERS, GraspQualityNet
 
 CHECKPOINT_FORMAT = "vgq-training-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -186,6 +186,15 @@ def freeze_init_layers(net: GraspQualityNet, state: dict) -> list[str]:
     for n, p in net.named_parameters():
         p.requires_grad_(n in fresh)
     return trained
+
+
+def freeze_encoder_layers(net: GraspQualityNet) -> list[str]:
+    """Stop the gradient of the encoder's parameters (:data:`training.networks.ENCODER_LAYERS`): a
+    fine-tune of the head alone. Returns the names still trained."""
+    for n, p in net.named_parameters():
+        if n.split(".")[0] in ENCODER_LAYERS:
+            p.requires_grad_(False)
+    return [n for n, p in net.named_parameters() if p.requires_grad]
 
 
 def _widen_pc1(net: GraspQualityNet, state: dict) -> dict:

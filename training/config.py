@@ -98,6 +98,13 @@ class TrainConfig:
             "view); the init's own layers keep its weights, so what the run gains is what the new input adds"
         },
     )
+    freeze_encoder: bool = field(
+        default=False,
+        metadata={
+            "help": "fine-tune: train only the head; the encoder's layers (training.networks.ENCODER_LAYERS, fc4's "
+            "image term included) keep the init's weights, and need no backward pass"
+        },
+    )
     placement_dropout: float = field(
         default=0.1,
         metadata={
@@ -224,8 +231,8 @@ class TrainConfig:
             raise ValueError(
                 f"context_scale must be one of {CONTEXT_SCALES} (> 0 with a roi_head), got {self.context_scale}"
             )
-        if self.freeze_init and not self.init:
-            raise ValueError("freeze_init needs init (the checkpoint whose layers stay as they are)")
+        if (self.freeze_init or self.freeze_encoder) and not self.init:
+            raise ValueError("freeze_init and freeze_encoder need init (the checkpoint whose layers stay as they are)")
         if not 0.0 <= self.placement_dropout <= 1.0:
             raise ValueError(f"placement_dropout must be in [0, 1], got {self.placement_dropout}")
         if self.val_max_samples < 0 or self.num_threads < 0:

@@ -86,6 +86,11 @@ class LocalResponseNorm(nn.Module):
         return x * torch.pow(self.bias + self.alpha * s, -self.beta)
 
 
+#: the layers ``GraspQualityNet.encode`` runs (the exported encoder graph's): fc4's image term
+#: included; the context view's convolutions too (its grid read and layers are the head's)
+ENCODER_LAYERS = ("conv1_1", "conv1_2", "conv2_1", "conv2_2", "fc3", "fc4_image", "fc4_ref", "ctx_conv1", "ctx_conv2")
+
+
 class GraspQualityNet(nn.Module):
     """VGQ-CNN / Fast-VGQ-CNN / GQ-CNN. ``forward`` returns logits (k, 2)."""
 

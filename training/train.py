@@ -47,6 +47,7 @@ from .checkpoint import (
     CheckpointError,
     RunPaths,
     conv2_channels,
+    freeze_encoder_layers,
     freeze_init_layers,
     load_checkpoint,
     load_init_weights,
@@ -425,7 +426,9 @@ def _optimizer(cfg: TrainConfig, net: GraspQualityNet) -> torch.optim.Optimizer:
     faster end to end on a Zen 4; the same update up to floating-point order). Each parameter group's
     ``lr_scale`` multiplies the schedule's rate (:func:`_sgd_step`): the placement stream's is
     ``cfg.placement_lr_scale``, the context view's ``cfg.context_lr_scale``."""
-    named = [(n, p) for n, p in net.named_parameters() if p.requires_grad]  # not the layers freeze_init holds
+    named = [
+        (n, p) for n, p in net.named_parameters() if p.requires_grad
+    ]  # not the layers freeze_init / freeze_encoder hold
     scaled = {"place_": cfg.placement_lr_scale, "ctx_": cfg.context_lr_scale}
     groups = [{"params": [p for n, p in named if not n.startswith(tuple(scaled))], "lr_scale": 1.0}]
     for prefix, scale in scaled.items():
@@ -459,6 +462,9 @@ def _start_or_resume(cfg: TrainConfig, data: CropDataset, train_split: CropSplit
     if cfg.freeze_init:
         trained = freeze_init_layers(net, init["model"])
         print(f"freeze_init: training {len(trained)} tensors the init lacks, the rest stay", file=sys.stderr)
+    if cfg.freeze_encoder:
+        trained = freeze_encoder_layers(net)
+        print(f"freeze_encoder: training the head's {len(trained)} tensors, the encoder's stay", file=sys.stderr)
     opt = _optimizer(cfg, net)
     best_val: dict = {}
     if ckpt is None and cfg.init:  # fine-tuning: the init's weights and its input normalisation, a fresh optimizer
