@@ -19,7 +19,6 @@ Fit: ``python -m planning.calibration FIT.json --model DIR [--judge TEST.json ..
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -28,7 +27,7 @@ import numpy as np
 from vgq.calibration import Calibration, expected_calibration_error
 
 from . import model_files
-from .linear import FEATURES, LinearModel, design, parse_features, sigmoid
+from .linear import FEATURES, LinearModel, design, fit_command, sigmoid
 from .ranker import pool_rows
 
 #: the planner calibration's file name in a model folder
@@ -96,39 +95,28 @@ def report(model: LinearModel, paths) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m planning.calibration", description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "fit", nargs="+", help="pool JSON(s) of training objects (planning.bench pool --split train --json)"
+    return fit_command(
+        argv,
+        prog="python -m planning.calibration",
+        description=__doc__.splitlines()[0],
+        file=FILE,
+        key="p_hold",
+        fit=fit,
+        judge=report,
+        what="the calibration",
+        features_help="; score alone: a Platt map",
+        headline=lambda m: (
+            "p_hold = sigmoid("
+            + f"{m.intercept:+.3f} + "
+            + ", ".join(f"{k} {x:+.3f}" for k, x in zip(m.features, m.weights))
+            + " (standardised))"
+        ),
+        line=lambda r: (
+            f"{r['candidates']} candidates, {100 * r['held_more_than_half']:.1f}% held; mean p_hold "
+            f"{r['mean_p_hold']:.3f}; ECE score {r['ece_score']:.3f} -> p_hold {r['ece_p_hold']:.3f}; "
+            f"ROC AUC score {r['auc_score']:.3f} -> p_hold {r['auc_p_hold']:.3f}"
+        ),
     )
-    ap.add_argument("--model", required=True, help="model folder to write planner_calibration.json into")
-    ap.add_argument("--judge", nargs="+", help="pool JSON(s) of test objects to measure the calibration on, together")
-    ap.add_argument(
-        "--features",
-        default=",".join(FEATURES),
-        help=f"comma-separated plan features (planning.features; default {','.join(FEATURES)}; score alone: a Platt map)",
-    )
-    args = ap.parse_args(argv)
-    try:
-        model_files.check_model_folder(args.model)
-        model = fit(args.fit, parse_features(args.features))
-        rec = {"p_hold": model.to_dict(), "fitted_on": report(model, args.fit)}
-        if args.judge:
-            rec["judged_on"] = report(model, args.judge)
-    except ValueError as e:
-        print(f"planning.calibration: {e}", file=sys.stderr)
-        return 2
-    path = model_files.write(args.model, FILE, rec)
-    w = ", ".join(f"{k} {x:+.3f}" for k, x in zip(model.features, model.weights))
-    print(f"p_hold = sigmoid({model.intercept:+.3f} + {w} (standardised)) -> {path}")
-    for k in ("fitted_on", "judged_on"):
-        if k in rec:
-            r = rec[k]
-            print(
-                f"{k}: {r['candidates']} candidates, {100 * r['held_more_than_half']:.1f}% held; mean p_hold "
-                f"{r['mean_p_hold']:.3f}; ECE score {r['ece_score']:.3f} -> p_hold {r['ece_p_hold']:.3f}; "
-                f"ROC AUC score {r['auc_score']:.3f} -> p_hold {r['auc_p_hold']:.3f}"
-            )
-    return 0
 
 
 if __name__ == "__main__":

@@ -6,10 +6,14 @@ as its logit and a missing value (NaN: no table estimate, no object region) as t
 
 from __future__ import annotations
 
+import argparse
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
+from . import model_files
 from .features import PLAN_FEATURES
 
 #: the features the planner's models combine by default ("seen" is almost always 1: left out)
@@ -88,3 +92,51 @@ def parse_features(text: str) -> tuple[str, ...]:
     if unknown or not features:
         raise ValueError(f"--features: {unknown or 'none given'}; choose from {', '.join(PLAN_FEATURES)}")
     return features
+
+
+def fit_command(
+    argv,
+    *,
+    prog: str,
+    description: str,
+    file: str,
+    key: str,
+    fit: Callable[[list[str], tuple[str, ...]], LinearModel],
+    judge: Callable[[LinearModel, list[str]], dict],
+    what: str,
+    features_help: str,
+    headline: Callable[[LinearModel], str],
+    line: Callable[[dict], str],
+) -> int:
+    """The command line of a linear model fitted on judged pools and written beside a model
+    (``python -m planning.calibration`` / ``planning.ranker``): pool JSON(s) to fit on, ``--model``
+    DIR, ``--judge`` pools, ``--features``. Writes ``{key: model, "fitted_on": judge(fit pools),
+    "judged_on": judge(judge pools)}`` as ``file`` in DIR and prints ``headline(model)`` and a
+    ``line(record)`` per judging. Exit 2 with one line for a bad pool, folder or feature."""
+    ap = argparse.ArgumentParser(prog=prog, description=description)
+    ap.add_argument(
+        "fit", nargs="+", help="pool JSON(s) of training objects (planning.bench pool --split train --json)"
+    )
+    ap.add_argument("--model", required=True, help=f"model folder to write {file} into")
+    ap.add_argument("--judge", nargs="+", help=f"pool JSON(s) of test objects to measure {what} on, together")
+    ap.add_argument(
+        "--features",
+        default=",".join(FEATURES),
+        help=f"comma-separated plan features (planning.features; default {','.join(FEATURES)}{features_help})",
+    )
+    args = ap.parse_args(argv)
+    try:
+        model_files.check_model_folder(args.model)
+        model = fit(args.fit, parse_features(args.features))
+        rec = {key: model.to_dict(), "fitted_on": judge(model, args.fit)}
+        if args.judge:
+            rec["judged_on"] = judge(model, args.judge)
+    except ValueError as e:
+        print(f"{prog.removeprefix('python -m ')}: {e}", file=sys.stderr)
+        return 2
+    path = model_files.write(args.model, file, rec)
+    print(f"{headline(model)} -> {path}")
+    for k in ("fitted_on", "judged_on"):
+        if k in rec:
+            print(f"{k}: {line(rec[k])}")
+    return 0

@@ -15,7 +15,6 @@ Fit: ``python -m planning.ranker FIT.json --model DIR [--judge TEST.json ...]``.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 from pathlib import Path
@@ -24,7 +23,7 @@ import numpy as np
 
 from . import model_files
 from .features import PLAN_FEATURES, read_pool
-from .linear import FEATURES, LinearModel, design, parse_features
+from .linear import FEATURES, LinearModel, design, fit_command
 
 #: the ranker's file name in a model folder
 FILE = "planner_ranker.json"
@@ -108,38 +107,24 @@ def load(model_dir: str | Path) -> LinearModel | None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m planning.ranker", description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "fit", nargs="+", help="pool JSON(s) of training objects (planning.bench pool --split train --json)"
+    return fit_command(
+        argv,
+        prog="python -m planning.ranker",
+        description=__doc__.splitlines()[0],
+        file=FILE,
+        key="ranker",
+        fit=fit,
+        judge=judge,
+        what="the ranker",
+        features_help="",
+        headline=lambda m: (
+            "utility weights (standardised): " + ", ".join(f"{k} {x:+.3f}" for k, x in zip(m.features, m.weights))
+        ),
+        line=lambda r: (
+            f"{r['candidates']} candidates of {r['scenes']} scenes; precision@1 among judged: ranker "
+            f"{100 * r['p_at_1_ranker']:.1f}%, score {100 * r['p_at_1_score']:.1f}%, random {100 * r['p_at_1_random']:.1f}%"
+        ),
     )
-    ap.add_argument("--model", required=True, help="model folder to write planner_ranker.json into")
-    ap.add_argument("--judge", nargs="+", help="pool JSON(s) of test objects to measure the ranker on, together")
-    ap.add_argument(
-        "--features",
-        default=",".join(FEATURES),
-        help=f"comma-separated plan features to combine (planning.features; default {','.join(FEATURES)})",
-    )
-    args = ap.parse_args(argv)
-    try:
-        model_files.check_model_folder(args.model)
-        ranker = fit(args.fit, parse_features(args.features))
-        rec = {"ranker": ranker.to_dict(), "fitted_on": judge(ranker, args.fit)}
-        if args.judge:
-            rec["judged_on"] = judge(ranker, args.judge)
-    except ValueError as e:
-        print(f"planning.ranker: {e}", file=sys.stderr)
-        return 2
-    path = model_files.write(args.model, FILE, rec)
-    w = ", ".join(f"{k} {x:+.3f}" for k, x in zip(ranker.features, ranker.weights))
-    print(f"utility weights (standardised): {w} -> {path}")
-    for k in ("fitted_on", "judged_on"):
-        if k in rec:
-            r = rec[k]
-            print(
-                f"{k}: {r['candidates']} candidates of {r['scenes']} scenes; precision@1 among judged: ranker "
-                f"{100 * r['p_at_1_ranker']:.1f}%, score {100 * r['p_at_1_score']:.1f}%, random {100 * r['p_at_1_random']:.1f}%"
-            )
-    return 0
 
 
 if __name__ == "__main__":
