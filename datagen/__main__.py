@@ -13,49 +13,7 @@ from pathlib import Path
 
 from vgq.crop import CONTEXT_SCALES
 
-# The datasets of the bundled models (``datagen recipe --version V``): generate -> sample -> crops.
-RECIPES = {
-    # v1: the model bundled until 2026-11-30 (fast_vgqcnn-60b272a5a797): random_urdfs only, the paper's label, clean renders
-    "v1": {
-        "objects": 600,  # first 600 of pybullet_data's random_urdfs (sorted by name)
-        "families": None,
-        "cameras": 10,  # camera poses per stable pose
-        "seed": 0,
-        "arch": "fast_vgqcnn",
-        "kappa": 36.0,  # px in the 96 px window (the authors' default)
-        "sampling": {"uniform_quantile": 0.1},  # small dataset: cap bins at the 10% quantile, not the minimum
-        "sensor": "clean",
-        "set": {"label.kind": "paper"},
-    },
-    # v2 (issue 10), bundled since 2026-11-30: everyday families + random_urdfs, the physics label
-    # (docs/labels.md), the depth-sensor model
-    "v2": {
-        "objects": 600,
-        "families": "all=40",  # 40 objects of each of the 11 families, split object-wise within every family
-        "cameras": 50,  # Dex-Net 2.0's 50: labels are per grasp and stable pose, so more views cost only rendering
-        "seed": 0,
-        "arch": "fast_vgqcnn",
-        "kappa": 36.0,
-        # windows turned towards each grasp's jaw axis in K steps (`datagen crops --jaw-turns K`; 0: centred
-        # windows, the bundled model's)
-        "jaw_turns": 0,
-        # cap (phi, beta) bins at their median count: at the 10% quantile the ~28 M native grasps would
-        # leave ~1.5 M for training, below the paper's 2 M (measured on the first 245 objects: the
-        # uniform step keeps 56% at 0.1, 75% at 0.3, 90% at 0.5)
-        "sampling": {"uniform_quantile": 0.5},
-        "sensor": "realistic",
-        # round objects have up to 34 poses; a grasp's trials stop once its label is decided (the same labels,
-        # -22% generation time, docs/labels.md; the bundled model's dataset ran all 8)
-        "set": {"label.kind": "physics", "max_stable_poses": 6, "label.early_stop": True},
-        # the leave-family-out experiment: these families' objects all go to test (a second sampled set)
-        "leave_out": ["mug", "metaball"],
-        # the physics trials of the objects generated so far (`datagen physics-cache`), replayed by `generate`:
-        # the same dataset, without the trials' ~80% of the generation time
-        "physics_cache": "v2_physics_trials.npz",
-    },
-}
-RECIPE_FILES = Path(__file__).resolve().parent / "recipes"  # the recipes' data files
-RECIPE = RECIPES["v2"]  # the bundled model's recipe
+from .recipe import RECIPE, RECIPES
 
 
 class CliError(Exception):
@@ -332,91 +290,23 @@ def cmd_labelstudy(args) -> int:
 def cmd_recipe(args) -> int:
     import shlex
 
+    from . import recipe as recipes
     from .parallel import default_workers
 
-    recipe = RECIPES[args.version]
-    out = Path(args.out)
-    objects = args.objects or recipe["objects"]
-    workers = args.workers or default_workers()
-    sets = " ".join(f"--set {k}={json.dumps(v)}" for k, v in recipe["set"].items())
-    samp = " ".join(f"--set sampling.{k}={json.dumps(v)}" for k, v in recipe["sampling"].items())
-    fams = f" --families {recipe['families']}" if recipe["families"] else ""
-    cache = RECIPE_FILES / recipe["physics_cache"] if recipe.get("physics_cache") else None
-    if cache is not None and cache.is_file() and not args.no_physics_cache:
-        sets += f" --physics-cache {shlex.quote(str(cache))}"
-    crops = f"--arch {recipe['arch']} --kappa {recipe['kappa']:g} --seed {recipe['seed']}"
-    if recipe.get("jaw_turns"):  # every crop step of the recipe: the model's input is one geometry
-        crops += f" --jaw-turns {recipe['jaw_turns']}"
-    steps = [  # (command, output folder; None: always runs, it resumes)
-        (
-            f"python -m datagen generate --out {out / 'grasps'} --objects {objects}{fams} "
-            f"--cameras {recipe['cameras']} --seed {recipe['seed']} --workers {workers} {sets}",
-            None,
-        ),
-        (
-            f"python -m datagen sample --in {out / 'grasps'} --out {out / 'sampled'} --seed {recipe['seed']} {samp}",
-            "sampled",
-        ),
-        (
-            f"python -m datagen crops --in {out / 'sampled'} --out {out / 'crops'} {crops} --sensor {recipe['sensor']}",
-            "crops",
-        ),
-    ]
-    if recipe["sensor"] != "clean":  # the same test grasps without the sensor model: clean vs corrupted
-        steps.append(
-            (
-                f"python -m datagen crops --in {out / 'sampled'} --out {out / 'crops_clean_test'} {crops} "
-                "--sensor clean --splits test",
-                "crops_clean_test",
-            )
-        )
-    if recipe.get("leave_out") and not args.no_leave_out:  # leave-family-out: those families only in test
-        lfo = shlex.quote("sampling.holdout_families=" + json.dumps(recipe["leave_out"], separators=(",", ":")))
-        steps += [
-            (
-                f"python -m datagen sample --in {out / 'grasps'} --out {out / 'sampled_lfo'} --seed {recipe['seed']} "
-                f"{samp} --set {lfo}",
-                "sampled_lfo",
-            ),
-            (
-                f"python -m datagen crops --in {out / 'sampled_lfo'} --out {out / 'crops_lfo'} {crops} "
-                f"--sensor {recipe['sensor']}",
-                "crops_lfo",
-            ),
-        ]
-    if args.more_test:  # more held-out objects per family: tighter per-family test numbers, no retraining
-        if not recipe["families"]:
-            raise CliError(f"--more-test: recipe {args.version} has no procedural families")
-        from .families import family_names
-
-        names = [f.split("=")[0] for f in recipe["families"].split(",")]
-        more = f"all={args.more_test}" if names == ["all"] else ",".join(f"{n}={args.more_test}" for n in names)
-        names = family_names() if names == ["all"] else names
-        held = shlex.quote("sampling.holdout_families=" + json.dumps(names, separators=(",", ":")))
-        seed = recipe["seed"] + 1  # another run seed: shapes the recipe never drew (same names, new parameters)
-        steps += [
-            (
-                f"python -m datagen generate --out {out / 'grasps_more'} --objects 0 --families {more} "
-                f"--cameras {recipe['cameras']} --seed {seed} --workers {workers} "
-                + " ".join(f"--set {k}={json.dumps(v)}" for k, v in recipe["set"].items()),
-                None,
-            ),
-            (
-                f"python -m datagen sample --in {out / 'grasps_more'} --out {out / 'sampled_more'} "
-                f"--seed {recipe['seed']} {samp} --set {held}",
-                "sampled_more",
-            ),
-            (
-                f"python -m datagen crops --in {out / 'sampled_more'} --out {out / 'crops_more'} {crops} "
-                f"--sensor {recipe['sensor']} --splits test",
-                "crops_more",
-            ),
-        ]
+    steps = recipes.recipe_steps(
+        args.version,
+        Path(args.out),
+        objects=args.objects,
+        workers=args.workers or default_workers(),
+        physics_cache=not args.no_physics_cache,
+        leave_out=not args.no_leave_out,
+        more_test=args.more_test,
+    )
     for s, _ in steps:
         print(s)
     if args.dry_run:
         return 0
-    for s, o in ((s, o and out / o) for s, o in steps):
+    for s, o in steps:
         if o is not None and (o / "manifest.json").is_file():
             if json.loads((o / "manifest.json").read_text()).get("complete", True):
                 print(f"\n{o} exists: skipping `{' '.join(shlex.split(s)[3:5])}`", flush=True)

@@ -155,7 +155,7 @@ def test_v2_recipe_adds_a_clean_test_copy_and_the_leave_family_out_split(tmp_pat
 def test_a_recipe_with_jaw_turns_cuts_every_crop_copy_turned(tmp_path, capsys, monkeypatch):
     import shlex
 
-    import datagen.__main__ as cli
+    import datagen.recipe as cli
 
     monkeypatch.setitem(cli.RECIPES, "v2", {**cli.RECIPES["v2"], "jaw_turns": 4})
     rc, out, _ = run_main(capsys, "recipe", "--version", "v2", "--out", tmp_path, "--dry-run")
@@ -192,7 +192,7 @@ def test_stats_counts_each_family_and_its_objects_without_a_positive(tmp_path, c
 def test_v2_recipe_replays_its_recorded_physics_trials_when_the_file_is_there(tmp_path, capsys, monkeypatch):
     import shlex
 
-    import datagen.__main__ as cli
+    import datagen.recipe as cli
 
     monkeypatch.setattr(cli, "RECIPE_FILES", tmp_path)
     argv = ("recipe", "--version", "v2", "--out", tmp_path / "d", "--dry-run")
@@ -207,7 +207,7 @@ def test_v2_recipe_replays_its_recorded_physics_trials_when_the_file_is_there(tm
 def test_more_test_objects_are_new_shapes_of_every_family_all_held_out(tmp_path, capsys, monkeypatch):
     import shlex
 
-    import datagen.__main__ as cli
+    import datagen.recipe as cli
     from datagen.families import family_names
     from vgq.cli_config import parse_override
 
