@@ -29,11 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-from datagen.__main__ import RECIPE
 from datagen.config import DatagenConfig
 from datagen.crops import fast_window_origins
 from datagen.mesh import mesh_sources
 from datagen.pipeline import generate_object, interleaved, object_seed
+from datagen.recipe import RECIPE
 from datagen.sampling import SamplingParams
 from vgq import atomic
 from vgq import crop as vcrop
