@@ -1,4 +1,4 @@
-"""Command line: ``python -m training {train,evaluate,baseline,ablation,label-noise,centroid-probe,placement-drift,bench} ...``.
+"""Command line: ``python -m training {train,evaluate,baseline,ablation,label-noise,centroid-probe,stacker,placement-drift,bench} ...``.
 
 Training options are generated from ``TrainConfig`` (``--batch-size``, ``--base-lr``, ...)
 by the shared bridge ``vgq.cli_config``, so the dataclass stays the one place where they
@@ -103,6 +103,19 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--per-object", type=int, default=1500, help="grasps drawn per object (default 1500)")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--json", help="also write the result here")
+
+    st = sub.add_parser(
+        "stacker", help="fit a placement stacker on a model's scores and write the stacked model folder"
+    )
+    st.add_argument("--model-dir", required=True, help="exported Fast-VGQ-CNN folder (its head reads no placement)")
+    st.add_argument("--fit", nargs="+", required=True, help="crop dataset(s) of objects the model never saw, to fit on")
+    st.add_argument("--judge", nargs="+", required=True, help="crop dataset(s) of other such objects, to judge on")
+    st.add_argument("--out", required=True, help="the stacked model folder to write")
+    st.add_argument("--split", default="test", choices=("train", "val", "test"))
+    st.add_argument("--per-object", type=int, default=1500, help="rows drawn per object (default 1500)")
+    st.add_argument("--hidden", type=int, default=32, help="units of each of the MLP's two hidden layers")
+    st.add_argument("--epochs", type=int, default=8)
+    st.add_argument("--seed", type=int, default=0)
 
     d = sub.add_parser(
         "placement-drift", help="how far the sensor model moves the placement rows (clean vs sensor crops)"
@@ -232,6 +245,23 @@ def main(argv: list[str] | None = None) -> int:
                 from vgq import atomic
 
                 atomic.write_json(args.json, rec)
+        elif args.command == "stacker":
+            from .stacker import run
+            from .stacker import table as stacker_table
+
+            rec = run(
+                args.model_dir,
+                args.fit,
+                args.judge,
+                args.out,
+                args.split,
+                args.per_object,
+                args.hidden,
+                args.epochs,
+                args.seed,
+            )
+            print(stacker_table(rec))
+            print(f"-> {args.out}")
         elif args.command == "placement-drift":
             from .placement_drift import compare
             from .placement_drift import table as drift_table

@@ -1,0 +1,111 @@
+"""training.stacker and export.stack_head: a placement stacker fitted on a model's scores, and
+the stacked head graphs that serve it."""
+
+import json
+
+import numpy as np
+import pytest
+
+from export.stack_head import write_stacked
+from service.runtime import FastModel
+from training.stacker import INPUTS, Stacker, logit
+from vgq.model_card import ModelCard
+
+BUNDLE = "models/fast-vgqcnn-default"
+
+
+def random_stacker(rng: np.random.Generator, hidden: int = 8) -> Stacker:
+    shapes = [(hidden, len(INPUTS)), (hidden, hidden), (1, hidden)]
+    layers = tuple(
+        (rng.normal(0, 0.5, s).astype(np.float32), rng.normal(0, 0.1, s[0]).astype(np.float32)) for s in shapes
+    )
+    return Stacker(
+        rng.normal(0, 1, len(INPUTS)).astype(np.float32), rng.uniform(0.5, 2, len(INPUTS)).astype(np.float32), layers
+    )
+
+
+def example_rows(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The example image's centre window (32, 32), its 16 example grasps' pose rows (16, 7) and
+    random placement rows (16, 7), the first 4 unknown."""
+    from export.benchmark import fast_preprocess
+
+    depth = np.load("examples/depth_example.npy")
+    g = np.asarray(json.loads(open("examples/grasps_example.json").read())["grasps"], np.float64)
+    centre = np.array([(depth.shape[1] - 1) / 2, (depth.shape[0] - 1) / 2])
+    crop, poses = fast_preprocess(depth, g, ModelCard.load(BUNDLE).geometry, centre)
+    k = len(poses)
+    place = np.c_[np.ones(k), rng.uniform(0, 0.1, (k, 3)), rng.uniform(-0.05, 0.05, k), rng.uniform(0, 0.2, (k, 2))]
+    place[:4] = 0.0
+    return crop[0, 0], poses.astype(np.float32), place.astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def stacked(tmp_path_factory):
+    stacker = random_stacker(np.random.default_rng(0))
+    out = write_stacked(BUNDLE, stacker, tmp_path_factory.mktemp("stk") / "m", {"fit_on": ["test"]})
+    return stacker, out
+
+
+@pytest.mark.parametrize("precision", ["fp32", "int8"])
+def test_the_stacked_head_scores_as_the_stacker_on_the_heads_own_logit(stacked, precision):
+    stacker, out = stacked
+    rng = np.random.default_rng(1)
+    base = FastModel(BUNDLE, threads=1, head_precision=precision, encoder_precision="fp32")
+    model = FastModel(out, threads=1, head_precision=precision, encoder_precision="fp32")
+    crop, poses, place = example_rows(rng)
+    term = base.encode(crop)
+    p = base.score(term, poses)
+    assert ((p > 1e-3) & (p < 1 - 1e-3)).all()  # logit(p) is the head's own logit to float precision
+    want = 1 / (1 + np.exp(-stacker.apply(logit(p), place)))
+    got = model.score(term, np.c_[poses, place])
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    np.testing.assert_array_equal(got[:4], p[:4])  # unknown rows: the head as it was
+    assert np.abs(got[4:] - p[4:]).max() > 1e-2
+
+
+def test_the_stacked_card_asks_for_placement_rows_under_a_new_version(stacked):
+    stacker, out = stacked
+    base, card = ModelCard.load(BUNDLE), ModelCard.load(out)
+    assert card.placement_columns and card.head_pose_width == 14
+    assert card.model_version.startswith(base.model_version + "-stk") and card.model_version != base.model_version
+    assert Stacker.from_dict(card.export["stacker"]["weights"]).to_dict() == stacker.to_dict()
+    assert card.calibration == {}  # the bundle's calibration fits the unstacked scores: dropped unless refitted
+
+
+def test_a_folder_whose_head_reads_placement_rows_is_not_stacked_again(stacked, tmp_path):
+    stacker, out = stacked
+    with pytest.raises(ValueError, match="already reads placement rows"):
+        write_stacked(out, stacker, tmp_path / "again", {})
+
+
+def test_a_stacker_fitted_where_the_label_follows_the_placement_row_beats_the_model(tmp_path, capsys):
+    from training.__main__ import main
+    from training.synthetic import make_synthetic_crop_dataset
+
+    for name, seed in (("fit", 1), ("judge", 2)):
+        make_synthetic_crop_dataset(tmp_path / name, 8, 8, 600, signal="placement", seed=seed)
+    argv = ["stacker", "--model-dir", BUNDLE, "--fit", str(tmp_path / "fit"), "--judge", str(tmp_path / "judge")]
+    assert main([*argv, "--out", str(tmp_path / "m"), "--per-object", "600", "--epochs", "300"]) == 0
+    judged = ModelCard.load(tmp_path / "m").export["stacker"]["judged"]
+    assert judged["stacked"]["all"]["balanced_accuracy"] > judged["model"]["all"]["balanced_accuracy"] + 0.1
+    assert "| all |" in capsys.readouterr().out
+    rec = json.loads((tmp_path / "m" / "model_card.json").read_text())
+    assert rec["calibration"]["method"] == "platt" and (tmp_path / "m" / "reliability_diagram.png").is_file()
+
+
+def test_bad_stacker_options_exit_2_naming_them(tmp_path, capsys):
+    from training.__main__ import main
+
+    argv = [
+        "stacker",
+        "--model-dir",
+        BUNDLE,
+        "--fit",
+        str(tmp_path),
+        "--judge",
+        str(tmp_path),
+        "--out",
+        str(tmp_path / "m"),
+    ]
+    assert main([*argv, "--per-object", "0"]) == 2
+    assert "--per-object" in capsys.readouterr().err
