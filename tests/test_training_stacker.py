@@ -109,3 +109,19 @@ def test_bad_stacker_options_exit_2_naming_them(tmp_path, capsys):
     ]
     assert main([*argv, "--per-object", "0"]) == 2
     assert "--per-object" in capsys.readouterr().err
+
+
+def test_family_balance_weighs_each_familys_classes_alike():
+    from training.stacker import row_weights
+
+    labels = np.array([1, 0, 0, 0, 1, 1, 1, 0], bool)
+    family = np.array(["mug"] * 4 + ["box"] * 4)
+    w = row_weights(labels, family, "family")
+    for f in ("mug", "box"):
+        for c in (False, True):
+            r = (family == f) & (labels == c)
+            assert w[r].sum() == pytest.approx(len(labels) / 4)
+    w = row_weights(labels, family, "class")
+    assert w[labels].sum() == pytest.approx(w[~labels].sum()) and w.mean() == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="balance"):
+        row_weights(labels, family, "objects")

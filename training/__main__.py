@@ -115,6 +115,12 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--per-object", type=int, default=1500, help="rows drawn per object (default 1500)")
     st.add_argument("--hidden", type=int, default=32, help="units of each of the MLP's two hidden layers")
     st.add_argument("--epochs", type=int, default=8)
+    st.add_argument(
+        "--balance",
+        default="family",
+        choices=("family", "class"),
+        help="loss weights: each family's positives and negatives alike (default), or all positives against all negatives",
+    )
     st.add_argument("--seed", type=int, default=0)
 
     d = sub.add_parser(
@@ -259,6 +265,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.hidden,
                 args.epochs,
                 args.seed,
+                args.balance,
             )
             print(stacker_table(rec))
             print(f"-> {args.out}")

@@ -12,7 +12,8 @@ model's scores:
     logit' = logit + known * mlp((logit, offset, along, across, depth, height, top))
 
 a small MLP (metres in, standardised) whose last layer starts at zero, trained with
-class-balanced cross-entropy on grasps of objects the model never saw; ``known`` = 0 (no table or
+cross-entropy on grasps of objects the model never saw, each family's positives and negatives
+weighted alike (the target is every family's balanced accuracy); ``known`` = 0 (no table or
 no object region found) leaves the model's logit as it was. ``export.stack_head`` appends it to a
 model folder's head graphs, so the service serves it as any placement head (it analyses each
 upload once and appends each grasp's row).
@@ -114,15 +115,39 @@ def stack_rows(model_dir: str | Path, crops: list[str | Path], split: str, per_o
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def fit(rows: dict, hidden: int = 32, epochs: int = 8, lr: float = 1e-3, seed: int = 0) -> Stacker:
-    """The stacker fitted to ``rows`` (:func:`stack_rows`): Adam, batches of 512, class-balanced
-    binary cross-entropy (positives weighted by negatives / positives), weight decay 1e-4."""
+#: how :func:`fit` weighs its rows: "family" (each family's positives and negatives alike: the
+#: balanced accuracy of every family is the target) or "class" (all positives against all negatives)
+BALANCES = ("family", "class")
+
+
+def row_weights(labels: np.ndarray, family: np.ndarray, balance: str = "family") -> np.ndarray:
+    """(n,) loss weights, mean 1: 1 / (rows of the row's class) overall ("class") or within the
+    row's family ("family"; a family with one class only weighs as the others' rows of that class)."""
+    if balance not in BALANCES:
+        raise ValueError(f"balance must be one of {BALANCES}, got {balance!r}")
+    y = np.asarray(labels, bool)
+    groups = [np.ones(len(y), bool)] if balance == "class" else [family == f for f in np.unique(family)]
+    w = np.zeros(len(y))
+    for g in groups:
+        for c in (False, True):
+            r = g & (y == c)
+            if r.any():
+                w[r] = 1.0 / r.sum()
+    return w * len(y) / w.sum()
+
+
+def fit(
+    rows: dict, hidden: int = 32, epochs: int = 8, lr: float = 1e-3, seed: int = 0, balance: str = "family"
+) -> Stacker:
+    """The stacker fitted to ``rows`` (:func:`stack_rows`): Adam, batches of 512, binary
+    cross-entropy weighted by :func:`row_weights` (``balance``), weight decay 1e-4."""
     import torch
 
     torch.manual_seed(seed)
     y = rows["labels"].astype(np.float32)
     if len(y) == 0 or y.min() == y.max():
         raise ValueError(f"need positive and negative rows to fit a stacker, got {int(y.sum())} of {len(y)} positive")
+    wt = torch.tensor(row_weights(rows["labels"], rows["family"], balance), dtype=torch.float32)
     x = np.c_[rows["logit"], rows["placement"][:, 1:]].astype(np.float64)
     mean, std = x.mean(0), x.std(0) + 1e-6
     net = torch.nn.Sequential(
@@ -139,11 +164,10 @@ def fit(rows: dict, hidden: int = 32, epochs: int = 8, lr: float = 1e-3, seed: i
     lt = torch.tensor(rows["logit"], dtype=torch.float32)
     kt = torch.tensor(rows["placement"][:, 0], dtype=torch.float32)
     yt = torch.tensor(y)
-    pos_weight = torch.tensor((1 - y.mean()) / y.mean())
     for _ in range(epochs):
         for b in torch.randperm(len(yt)).split(512):
             out = lt[b] + kt[b] * net(xt[b]).squeeze(1)
-            loss = torch.nn.functional.binary_cross_entropy_with_logits(out, yt[b], pos_weight=pos_weight)
+            loss = (torch.nn.functional.binary_cross_entropy_with_logits(out, yt[b], reduction="none") * wt[b]).mean()
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -180,6 +204,7 @@ def run(
     hidden: int = 32,
     epochs: int = 8,
     seed: int = 0,
+    balance: str = "family",
 ) -> dict:
     """Fit a stacker on the ``split`` rows of ``fit_crops`` (objects ``model_dir``'s model never
     saw), judge it on those of ``judge_crops`` (other such objects), refit the card's calibration
@@ -194,7 +219,7 @@ def run(
     card = ModelCard.load(model_dir)
     rows = stack_rows(model_dir, fit_crops, split, per_object, seed)
     judge = stack_rows(model_dir, judge_crops, split, per_object, seed + 1)
-    stacker = fit(rows, hidden, epochs, seed=seed)
+    stacker = fit(rows, hidden, epochs, seed=seed, balance=balance)
     record = {
         "fit_on": [str(c) for c in fit_crops],
         "judged_on": [str(c) for c in judge_crops],
@@ -203,6 +228,7 @@ def run(
         "hidden": hidden,
         "epochs": epochs,
         "seed": seed,
+        "balance": balance,
         "fit_rows": int(len(rows["labels"])),
         "fit_objects": int(len(np.unique(rows["object"]))),
         "judge_rows": int(len(judge["labels"])),
