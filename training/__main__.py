@@ -255,18 +255,8 @@ def main(argv: list[str] | None = None) -> int:
             from .stacker import run
             from .stacker import table as stacker_table
 
-            rec = run(
-                args.model_dir,
-                args.fit,
-                args.judge,
-                args.out,
-                args.split,
-                args.per_object,
-                args.hidden,
-                args.epochs,
-                args.seed,
-                args.balance,
-            )
+            opts = ("split", "per_object", "hidden", "epochs", "seed", "balance")
+            rec = run(args.model_dir, args.fit, args.judge, args.out, **{k: getattr(args, k) for k in opts})
             print(stacker_table(rec))
             print(f"-> {args.out}")
         elif args.command == "placement-drift":
