@@ -225,6 +225,11 @@ def in_process_calls(model_dir: str, threads: int, k: int) -> dict:
     center = np.array([(depth.shape[1] - 1) / 2, (depth.shape[0] - 1) / 2])
     crop, poses = fast_preprocess(depth, grasps, model.geometry, center)
     crop = crop[0, 0]
+    if model.card.placement_columns:  # a placement head reads each grasp's row after its pose columns
+        from service import placement
+
+        rows = placement.rows(placement.analyse(depth, model.card.intrinsics), grasps)
+        poses = np.c_[poses, rows].astype(np.float32)
     term = model.encode(crop)
     fresh = FreshImages(depth, seed=1)
     gbytes = np.ascontiguousarray(work.grasps, "<f4").tobytes()
