@@ -103,6 +103,7 @@ def cmd_generate(args) -> int:
         base,
         source=str(Path(args.source).resolve()) if args.source else None,
         num_objects=args.objects,
+        first_object=args.first_object,
         cameras_per_pose=args.cameras,
         seed=args.seed,
         families=parse_family_counts(args.families) if args.families else None,
@@ -430,6 +431,12 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--source", help="mesh folder or file (default: pybullet_data random_urdfs)")
     g.add_argument(
         "--objects", type=_count("--objects"), help="use the first N objects of --source (sorted by name; 0: none)"
+    )
+    g.add_argument(
+        "--first-object",
+        type=_count("--first-object"),
+        metavar="K",
+        help="skip the first K objects of --source (sorted by name): --objects counts from the K-th (default 0)",
     )
     g.add_argument(
         "--families", metavar="FAMILY=N,...", help="add N procedural objects per family, e.g. mug=5,box=5 or all=5"

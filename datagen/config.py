@@ -52,6 +52,7 @@ class DatagenConfig:
     seed: int = 0  # run seed; per-object seeds derive from (seed, object name)
     source: str | None = None  # mesh folder; None -> pybullet_data random_urdfs
     num_objects: int | None = None  # first N mesh sources (sorted); None -> all; 0 -> none (families only)
+    first_object: int = 0  # skip this many mesh sources (sorted) first: num_objects counts from here
     # procedural objects per family (datagen.families), after the source's objects, e.g. {"mug": 60}
     families: dict[str, int] = field(default_factory=dict, hash=False)
 
@@ -161,6 +162,8 @@ def validate(cfg: DatagenConfig) -> None:
         raise ConfigError(f"max_stable_poses must be >= 1 or null, got {cfg.max_stable_poses}")
     if cfg.num_objects is not None and cfg.num_objects < 0:
         raise ConfigError(f"num_objects must be >= 0 or null, got {cfg.num_objects}")
+    if isinstance(cfg.first_object, bool) or not isinstance(cfg.first_object, int) or cfg.first_object < 0:
+        raise ConfigError(f"first_object must be an integer >= 0, got {cfg.first_object!r}")
     if cfg.families:
         from .families import FAMILIES
 

@@ -307,12 +307,13 @@ def source_family(source: str | None) -> str:
 
 
 def run_sources(config: DatagenConfig) -> list:
-    """The run's objects in id order: the first ``num_objects`` of the mesh source (none
-    when 0), then ``families`` (procedural objects, ``<family>_<index>``)."""
+    """The run's objects in id order: ``num_objects`` of the mesh source from its
+    ``first_object``-th (sorted by name; none when 0), then ``families`` (procedural objects,
+    ``<family>_<index>``)."""
     from .families import family_sources
     from .mesh import mesh_sources
 
-    sources = [] if config.num_objects == 0 else mesh_sources(config.source)
+    sources = [] if config.num_objects == 0 else mesh_sources(config.source)[config.first_object :]
     if config.num_objects is not None:
         sources = sources[: config.num_objects]
     sources += family_sources(config.families, config.seed)

@@ -227,3 +227,21 @@ def test_more_test_objects_are_new_shapes_of_every_family_all_held_out(tmp_path,
     assert gen[gen.index("--families") + 1] == "mug=3,box=3"
     rc, _, err = run_main(capsys, "recipe", "--version", "v1", "--out", tmp_path, "--dry-run", "--more-test", "3")
     assert rc == 2 and "no procedural families" in err
+
+
+def test_first_object_starts_the_run_that_many_sources_in(tmp_path, capsys):
+    import trimesh
+
+    from datagen.config import ConfigError, DatagenConfig, validate
+    from datagen.pipeline import run_sources
+
+    for i in range(5):
+        trimesh.creation.box((0.05, 0.04, 0.03)).export(tmp_path / f"m{i}.obj")
+    cfg = DatagenConfig(source=str(tmp_path), num_objects=2, first_object=3)
+    assert [s.name for s in run_sources(cfg)] == ["m3", "m4"]
+    assert [s.name for s in run_sources(DatagenConfig(source=str(tmp_path), first_object=4))] == ["m4"]
+    with pytest.raises(ConfigError, match="first_object"):
+        validate(DatagenConfig(first_object=-1))
+    with pytest.raises(SystemExit) as e:
+        run_main(capsys, "generate", "--out", tmp_path / "o", "--first-object", "-1")
+    assert e.value.code == 2 and "--first-object must be >= 0" in capsys.readouterr().err
