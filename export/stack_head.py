@@ -96,11 +96,14 @@ def write_stacked(
     graph stacked and the card updated; ``record`` (what the stacker was fitted and judged on) is
     kept in the card's ``export.stacker``; ``calibration`` (``export.calibrate``'s record, refitted
     on the stacked scores) replaces the card's, which would no longer fit (None: dropped).
-    ValueError for a folder whose head already reads placement rows."""
+    ValueError for a folder whose head already reads placement rows, or an ``out`` that exists and
+    is not a model folder (it would be replaced)."""
     model_dir, out = Path(model_dir), Path(out)
     card = ModelCard.load(model_dir)
     if card.placement_columns:
         raise ValueError(f"{model_dir}: its head already reads placement rows")
+    if out.exists() and not (out / "model_card.json").is_file():  # only a model folder is replaced
+        raise ValueError(f"--out {out} exists and is not a model folder: choose a new folder")
     tmp = out.with_name(out.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(model_dir, tmp)

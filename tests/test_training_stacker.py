@@ -78,6 +78,17 @@ def test_a_folder_whose_head_reads_placement_rows_is_not_stacked_again(stacked, 
         write_stacked(out, stacker, tmp_path / "again", {})
 
 
+def test_an_out_folder_that_is_not_a_model_folder_is_left_alone(stacked, tmp_path):
+    stacker, _ = stacked
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "keep.txt").write_text("mine")
+    with pytest.raises(ValueError, match="not a model folder"):
+        write_stacked(BUNDLE, stacker, tmp_path / "data", {})
+    assert (tmp_path / "data" / "keep.txt").read_text() == "mine"
+    again = write_stacked(BUNDLE, stacker, tmp_path / "m", {})
+    assert write_stacked(BUNDLE, stacker, again, {}) == again  # a model folder it wrote is replaced
+
+
 def test_a_stacker_fitted_where_the_label_follows_the_placement_row_beats_the_model(tmp_path, capsys):
     from training.__main__ import main
     from training.synthetic import make_synthetic_crop_dataset
