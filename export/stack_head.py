@@ -22,7 +22,7 @@ from onnx import helper, numpy_helper
 
 from training.stacker import Stacker
 from vgq import atomic
-from vgq.model_card import HEAD_INPUTS, HEAD_OUTPUT, ModelCard
+from vgq.model_card import CARD_NAME, HEAD_INPUTS, HEAD_OUTPUT, ModelCard
 from vgq.placement import PLACEMENT_COLUMNS
 
 #: the card's head graphs, each stacked alike
@@ -102,7 +102,7 @@ def write_stacked(
     card = ModelCard.load(model_dir)
     if card.placement_columns:
         raise ValueError(f"{model_dir}: its head already reads placement rows")
-    if out.exists() and not (out / "model_card.json").is_file():  # only a model folder is replaced
+    if out.exists() and not (out / CARD_NAME).is_file():  # only a model folder is replaced
         raise ValueError(f"--out {out} exists and is not a model folder: choose a new folder")
     tmp = out.with_name(out.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)

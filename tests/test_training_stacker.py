@@ -8,7 +8,8 @@ import pytest
 
 from export.stack_head import write_stacked
 from service.runtime import FastModel
-from training.stacker import INPUTS, Stacker, logit
+from training.stacker import INPUTS, Stacker
+from vgq.calibration import logit
 from vgq.model_card import ModelCard
 
 BUNDLE = "models/fast-vgqcnn-default"

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vgq.calibration import logit, sigmoid
 from vgq.placement import PLACEMENT_COLUMNS
 
 #: what the MLP reads: the model's logit, then the placement row without its ``known`` flag
@@ -71,11 +72,6 @@ class Stacker:
             raise ValueError(f"a stacker of inputs {d['inputs']}; this code reads {list(INPUTS)}")
         layers = tuple((np.asarray(x["weight"], np.float32), np.asarray(x["bias"], np.float32)) for x in d["layers"])
         return cls(np.asarray(d["mean"], np.float32), np.asarray(d["std"], np.float32), layers)
-
-
-def logit(p: np.ndarray) -> np.ndarray:
-    p = np.clip(np.asarray(p, np.float64), 1e-7, 1 - 1e-7)
-    return np.log(p / (1 - p))
 
 
 def stack_rows(model_dir: str | Path, crops: list[str | Path], split: str, per_object: int, seed: int = 0) -> dict:
@@ -179,19 +175,13 @@ def fit(
     return Stacker(mean.astype(np.float32), std.astype(np.float32), layers)
 
 
-def balanced_accuracy(labels: np.ndarray, logits: np.ndarray) -> float:
-    """Balanced accuracy of ``logits`` > 0 (the 0.5 threshold of training.metrics)."""
-    y, g = np.asarray(labels, bool), np.asarray(logits) > 0
-    return float(0.5 * (g[y].mean() + (~g[~y]).mean())) if y.any() and (~y).any() else float("nan")
-
-
 def by_family(rows: dict, logits: np.ndarray) -> dict:
-    """Balanced accuracy of ``logits`` on ``rows``, over all and per family, with row counts."""
-    out = {"all": {"n": int(len(logits)), "balanced_accuracy": balanced_accuracy(rows["labels"], logits)}}
-    for f in np.unique(rows["family"]):
-        r = rows["family"] == f
-        out[str(f)] = {"n": int(r.sum()), "balanced_accuracy": balanced_accuracy(rows["labels"][r], logits[r])}
-    return out
+    """``training.metrics.binary_metrics`` (balanced accuracy at P 0.5, TPR, TNR, AUC, row counts)
+    of ``logits`` on ``rows``, over all (``"all"``) and per family."""
+    from .metrics import binary_metrics, metrics_by_group
+
+    p = sigmoid(logits)
+    return {"all": binary_metrics(rows["labels"], p), **metrics_by_group(rows["labels"], p, rows["family"])}
 
 
 def run(
@@ -240,11 +230,10 @@ def run(
     }
     calibration = None
     if card.calibration:
-        sig = lambda z: 1.0 / (1.0 + np.exp(-z))  # noqa: E731
         report = calibration_report(
-            sig(stacker.apply(rows["logit"], rows["placement"])),
+            sigmoid(stacker.apply(rows["logit"], rows["placement"])),
             rows["labels"],
-            sig(stacker.apply(judge["logit"], judge["placement"])),
+            sigmoid(stacker.apply(judge["logit"], judge["placement"])),
             judge["labels"],
             float(card.calibration["target_positivity"]),
             str(card.calibration.get("target_positivity_source", "the model's card")),
