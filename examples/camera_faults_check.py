@@ -9,7 +9,7 @@ its up direction), and prints the balanced accuracy of ``raw_score`` at 0.5 for 
 Then NaN pixels, an all-zero image and malformed grasps, which must be clear 422s, and a plan on
 an object family the v1 model never saw.
 
-    .venv/bin/python examples/camera_faults_check.py [--port 8811]
+    .venv/bin/python examples/camera_faults_check.py [--port 8811] [--model-dir DIR]
 """
 
 from __future__ import annotations
@@ -73,9 +73,12 @@ def holes(depth: np.ndarray, i: int) -> np.ndarray:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--port", type=int, default=8811)
-    port = ap.parse_args().port
+    ap.add_argument("--model-dir", help="model folder to serve (default: the bundled model)")
+    a = ap.parse_args()
+    port = a.port
     server = subprocess.Popen(
-        [sys.executable, "-m", "service", "--port", str(port), "--threads", "1"],
+        [sys.executable, "-m", "service", "--port", str(port), "--threads", "1"]
+        + (["--model-dir", str(Path(a.model_dir).resolve())] if a.model_dir else []),
         cwd=ROOT,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
