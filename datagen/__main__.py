@@ -302,6 +302,7 @@ def cmd_recipe(args) -> int:
         physics_cache=not args.no_physics_cache,
         leave_out=not args.no_leave_out,
         more_test=args.more_test,
+        stacker=args.stacker,
     )
     for s, _ in steps:
         print(s)
@@ -646,6 +647,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="also N new objects of each procedural family (run seed + 1), all in test: grasps_more, "
         "sampled_more, crops_more (per-family test numbers on more objects, for the same model)",
+    )
+    r.add_argument(
+        "--stacker",
+        action="store_true",
+        help="also the placement stacker's fit set (run seed + 2, objects the recipe and --more-test never "
+        "draw; `training stacker --fit`): grasps_stacker, sampled_stacker, crops_stacker",
     )
     r.add_argument(
         "--no-physics-cache",

@@ -46,6 +46,9 @@ RECIPES = {
         # the physics trials of the objects generated so far (`datagen physics-cache`), replayed by `generate`:
         # the same dataset, without the trials' ~80% of the generation time
         "physics_cache": "v2_physics_trials.npz",
+        # the placement stacker's fit set (`training stacker`, docs/training.md): objects neither the recipe
+        # nor its --more-test draws (run seed + 2; random_urdfs from the 800th), nearly all in test
+        "stacker": {"objects": 40, "first_object": 800, "families": "all=8"},
     },
 }
 RECIPE_FILES = Path(__file__).resolve().parent / "recipes"  # the recipes' data files
@@ -71,12 +74,14 @@ def recipe_steps(
     physics_cache: bool = True,
     leave_out: bool = True,
     more_test: int | None = None,
+    stacker: bool = False,
 ) -> list[tuple[str, Path | None]]:
     """The commands that build recipe ``version`` in ``out``, in order, each with the folder it
     writes (None: the generation, which always runs: it resumes). ``objects``: random_urdfs
     objects (default the recipe's); ``physics_cache``: replay the recipe's recorded physics trials
     when its file is there; ``leave_out``: the leave-family-out copy; ``more_test``: N new objects
-    of each procedural family (run seed + 1), all in test. ValueError naming what the recipe lacks."""
+    of each procedural family (run seed + 1), all in test; ``stacker``: the placement stacker's fit
+    set (run seed + 2). ValueError naming what the recipe lacks."""
     from .families import family_names
 
     recipe = RECIPES[version]
@@ -142,6 +147,30 @@ def recipe_steps(
                 f"python -m datagen crops --in {out / 'sampled_more'} --out {out / 'crops_more'} {crops} "
                 f"--sensor {recipe['sensor']} --splits test",
                 "crops_more",
+            ),
+        ]
+    if stacker:  # objects of neither the recipe nor its tests, to fit `training stacker` on
+        if not recipe.get("stacker"):
+            raise ValueError(f"--stacker: recipe {version} has no stacker fit set")
+        st = recipe["stacker"]
+        names = [f.split("=")[0] for f in st["families"].split(",")]
+        names = family_names() if names == ["all"] else names
+        steps += [
+            (
+                f"python -m datagen generate --out {out / 'grasps_stacker'} --objects {st['objects']} "
+                f"--first-object {st['first_object']} --families {st['families']} --cameras {cameras} "
+                f"--seed {seed + 2} --workers {workers} {sets}",
+                None,
+            ),
+            (  # the families all in test; random_urdfs too but for a token train object (train may not be empty)
+                f"python -m datagen sample --in {out / 'grasps_stacker'} --out {out / 'sampled_stacker'} "
+                f"--seed {seed} {samp} --set {_holdout(names)} --set 'sampling.split_fractions=[0.02,0,0.98]'",
+                "sampled_stacker",
+            ),
+            (
+                f"python -m datagen crops --in {out / 'sampled_stacker'} --out {out / 'crops_stacker'} {crops} "
+                f"--sensor {recipe['sensor']} --splits test",
+                "crops_stacker",
             ),
         ]
     return [(s, None if o is None else out / o) for s, o in steps]

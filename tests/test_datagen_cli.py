@@ -229,6 +229,31 @@ def test_more_test_objects_are_new_shapes_of_every_family_all_held_out(tmp_path,
     assert rc == 2 and "no procedural families" in err
 
 
+def test_stacker_fit_set_is_objects_neither_the_recipe_nor_its_tests_draw(tmp_path, capsys):
+    import shlex
+
+    from datagen.families import family_names
+    from datagen.recipe import RECIPES
+    from vgq.cli_config import parse_override
+
+    argv = ("recipe", "--version", "v2", "--out", tmp_path, "--dry-run", "--no-leave-out", "--more-test", "3")
+    rc, out, _ = run_main(capsys, *argv, "--stacker")
+    lines = [shlex.split(ln) for ln in out.strip().splitlines()]
+    assert rc == 0 and [a[3] for a in lines[-3:]] == ["generate", "sample", "crops"]
+    gen, samp, crops = lines[-3:]
+    seeds = {g[g.index("--seed") + 1] for g in lines if g[3] == "generate"}
+    assert gen[gen.index("--seed") + 1] == "2" and seeds == {"0", "1", "2"}  # new shapes: no other run's seed
+    first = int(gen[gen.index("--first-object") + 1])
+    assert (
+        first >= RECIPES["v2"]["objects"] and gen[gen.index("--objects") + 1] == "40"
+    )  # random_urdfs past the recipe's
+    sets = [parse_override(samp[i + 1]) for i, a in enumerate(samp) if a == "--set"]
+    assert sorted(dict(sets)["sampling.holdout_families"]) == sorted(family_names())
+    assert crops[-2:] == ["--splits", "test"] and crops[crops.index("--out") + 1].endswith("crops_stacker")
+    rc, _, err = run_main(capsys, "recipe", "--version", "v1", "--out", tmp_path, "--dry-run", "--stacker")
+    assert rc == 2 and "no stacker fit set" in err
+
+
 def test_first_object_starts_the_run_that_many_sources_in(tmp_path, capsys):
     import trimesh
 
