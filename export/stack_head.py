@@ -27,6 +27,9 @@ from vgq.placement import PLACEMENT_COLUMNS
 
 #: the card's head graphs, each stacked alike
 HEAD_ROLES = ("head", "head_int8")
+#: the card's metrics measured through the head graphs: once stacked they are the unstacked model's, kept
+#: under ``metrics.before_stacker`` (``training.stacker.measure`` measures the stacked graphs' again)
+GRAPH_METRICS = ("test", "test_clean", "test_more_objects")
 
 
 def stack_graph(model: onnx.ModelProto, stacker: Stacker, n_pose: int) -> onnx.ModelProto:
@@ -95,8 +98,8 @@ def write_stacked(
     """A copy of ``model_dir`` in ``out`` (written beside it, then moved into place) with every head
     graph stacked and the card updated; ``record`` (what the stacker was fitted and judged on) is
     kept in the card's ``export.stacker``; ``calibration`` (``export.calibrate``'s record, refitted
-    on the stacked scores) replaces the card's, which would no longer fit (None: dropped).
-    ValueError for a folder whose head already reads placement rows, or an ``out`` that exists and
+    on the stacked scores) replaces the card's, which would no longer fit (None: dropped); the card's
+    ``GRAPH_METRICS`` move under ``metrics.before_stacker``. ValueError for a folder whose head already reads placement rows, or an ``out`` that exists and
     is not a model folder (it would be replaced)."""
     model_dir, out = Path(model_dir), Path(out)
     card = ModelCard.load(model_dir)
@@ -117,6 +120,9 @@ def write_stacked(
     card.model_version = f"{card.model_version}-stk{hashlib.sha256(blob).hexdigest()[:8]}"
     card.export = {**card.export, "stacker": {**record, "weights": stacker.to_dict()}}
     card.calibration = dict(calibration or {})
+    before = {k: card.metrics.pop(k) for k in GRAPH_METRICS if k in card.metrics}
+    if before:
+        card.metrics["before_stacker"] = before
     card.save(tmp)
     if out.exists():
         shutil.rmtree(out)

@@ -107,6 +107,26 @@ def model_dir(tmp_path_factory, briefly_trained):
     return out
 
 
+@pytest.fixture(scope="session")
+def int8_model(tmp_path_factory, briefly_trained):
+    """(folder, card): the briefly trained net exported with a checked int8 head."""
+    from export.onnx_export import export_model
+
+    net, imgs, poses = briefly_trained
+    chk_imgs, chk_poses, chk_labels = synthetic_crops(400, np.random.default_rng(7))
+    out = tmp_path_factory.mktemp("int8") / "m"
+    card = export_model(
+        net,
+        out,
+        imgs[:16],
+        poses[:16],
+        CropGeometry(96, 32, 36.0),
+        DEFAULT_INTRINSICS,
+        int8_check=(chk_imgs, chk_poses, chk_labels),
+    )
+    return out, card
+
+
 @pytest.fixture()
 def scene():
     return table_scene()

@@ -344,18 +344,6 @@ def test_export_cli_refuses_baseline_of_another_dataset(tmp_path, capsys):
     assert not (tmp_path / "m").exists()
 
 
-@pytest.fixture(scope="module")
-def int8_model(tmp_path_factory, briefly_trained):
-    """The briefly trained net exported with a checked int8 head."""
-    net, imgs, poses = briefly_trained
-    chk_imgs, chk_poses, chk_labels = synthetic_crops(400, np.random.default_rng(7))
-    out = tmp_path_factory.mktemp("int8") / "m"
-    card = export_model(
-        net, out, imgs[:16], poses[:16], GEOM, DEFAULT_INTRINSICS, int8_check=(chk_imgs, chk_poses, chk_labels)
-    )
-    return out, card
-
-
 def test_int8_head_quantises_only_the_largest_layer_and_records_its_check(int8_model):
     out, card = int8_model
     q = card.export["int8_head"]

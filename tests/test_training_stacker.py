@@ -1,7 +1,9 @@
 """training.stacker and export.stack_head: a placement stacker fitted on a model's scores, and
-the stacked head graphs that serve it."""
+the stacked head graphs that serve it (on the tests' briefly trained model with an int8 head:
+the bundled model is itself stacked)."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -11,8 +13,6 @@ from service.runtime import FastModel
 from training.stacker import INPUTS, Stacker
 from vgq.calibration import logit
 from vgq.model_card import ModelCard
-
-BUNDLE = "models/fast-vgqcnn-default"
 
 
 def random_stacker(rng: np.random.Generator, hidden: int = 8) -> Stacker:
@@ -25,7 +25,7 @@ def random_stacker(rng: np.random.Generator, hidden: int = 8) -> Stacker:
     )
 
 
-def example_rows(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def example_rows(model_dir, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The example image's centre window (32, 32), its 16 example grasps' pose rows (16, 7) and
     random placement rows (16, 7), the first 4 unknown."""
     from export.benchmark import fast_preprocess
@@ -33,7 +33,7 @@ def example_rows(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.n
     depth = np.load("examples/depth_example.npy")
     g = np.asarray(json.loads(open("examples/grasps_example.json").read())["grasps"], np.float64)
     centre = np.array([(depth.shape[1] - 1) / 2, (depth.shape[0] - 1) / 2])
-    crop, poses = fast_preprocess(depth, g, ModelCard.load(BUNDLE).geometry, centre)
+    crop, poses = fast_preprocess(depth, g, ModelCard.load(model_dir).geometry, centre)
     k = len(poses)
     place = np.c_[np.ones(k), rng.uniform(0, 0.1, (k, 3)), rng.uniform(-0.05, 0.05, k), rng.uniform(0, 0.2, (k, 2))]
     place[:4] = 0.0
@@ -41,21 +41,37 @@ def example_rows(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 @pytest.fixture(scope="module")
-def stacked(tmp_path_factory):
+def base(int8_model, tmp_path_factory):
+    """The briefly trained model (fp32 and int8 heads) with a calibration and a test result in its card."""
+    from export.evaluate import record_in_card
+
+    out = tmp_path_factory.mktemp("base") / "m"
+    shutil.copytree(int8_model[0], out)
+    path = out / "model_card.json"
+    d = json.loads(path.read_text())
+    d["calibration"] = {"method": "platt", "target_positivity": 0.2, "target_positivity_source": "tests"}
+    path.write_text(json.dumps(d))
+    record_in_card(out, "test", {"balanced_accuracy": 0.5})
+    return out
+
+
+@pytest.fixture(scope="module")
+def stacked(base, tmp_path_factory):
     stacker = random_stacker(np.random.default_rng(0))
-    out = write_stacked(BUNDLE, stacker, tmp_path_factory.mktemp("stk") / "m", {"fit_on": ["test"]})
+    out = write_stacked(base, stacker, tmp_path_factory.mktemp("stk") / "m", {"fit_on": ["test"]})
     return stacker, out
 
 
 @pytest.mark.parametrize("precision", ["fp32", "int8"])
-def test_the_stacked_head_scores_as_the_stacker_on_the_heads_own_logit(stacked, precision):
+def test_the_stacked_head_scores_as_the_stacker_on_the_heads_own_logit(base, stacked, precision):
     stacker, out = stacked
     rng = np.random.default_rng(1)
-    base = FastModel(BUNDLE, threads=1, head_precision=precision, encoder_precision="fp32")
+    unstacked = FastModel(base, threads=1, head_precision=precision, encoder_precision="fp32")
     model = FastModel(out, threads=1, head_precision=precision, encoder_precision="fp32")
-    crop, poses, place = example_rows(rng)
-    term = base.encode(crop)
-    p = base.score(term, poses)
+    assert unstacked.head_precision == model.head_precision == precision
+    crop, poses, place = example_rows(base, rng)
+    term = unstacked.encode(crop)
+    p = unstacked.score(term, poses)
     assert ((p > 1e-3) & (p < 1 - 1e-3)).all()  # logit(p) is the head's own logit to float precision
     want = 1 / (1 + np.exp(-stacker.apply(logit(p), place)))
     got = model.score(term, np.c_[poses, place])
@@ -64,13 +80,15 @@ def test_the_stacked_head_scores_as_the_stacker_on_the_heads_own_logit(stacked, 
     assert np.abs(got[4:] - p[4:]).max() > 1e-2
 
 
-def test_the_stacked_card_asks_for_placement_rows_under_a_new_version(stacked):
+def test_the_stacked_card_asks_for_placement_rows_under_a_new_version(base, stacked):
     stacker, out = stacked
-    base, card = ModelCard.load(BUNDLE), ModelCard.load(out)
+    before, card = ModelCard.load(base), ModelCard.load(out)
     assert card.placement_columns and card.head_pose_width == 14
-    assert card.model_version.startswith(base.model_version + "-stk") and card.model_version != base.model_version
+    assert card.model_version.startswith(before.model_version + "-stk") and card.model_version != before.model_version
     assert Stacker.from_dict(card.export["stacker"]["weights"]).to_dict() == stacker.to_dict()
-    assert card.calibration == {}  # the bundle's calibration fits the unstacked scores: dropped unless refitted
+    assert card.calibration == {}  # the calibration fits the unstacked scores: dropped unless refitted
+    # the test result was the unstacked graphs': kept as theirs, not as the stacked model's
+    assert "test" not in card.metrics and card.metrics["before_stacker"]["test"] == before.metrics["test"]
 
 
 def test_a_folder_whose_head_reads_placement_rows_is_not_stacked_again(stacked, tmp_path):
@@ -79,39 +97,49 @@ def test_a_folder_whose_head_reads_placement_rows_is_not_stacked_again(stacked, 
         write_stacked(out, stacker, tmp_path / "again", {})
 
 
-def test_an_out_folder_that_is_not_a_model_folder_is_left_alone(stacked, tmp_path):
+def test_an_out_folder_that_is_not_a_model_folder_is_left_alone(base, stacked, tmp_path):
     stacker, _ = stacked
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / "keep.txt").write_text("mine")
     with pytest.raises(ValueError, match="not a model folder"):
-        write_stacked(BUNDLE, stacker, tmp_path / "data", {})
+        write_stacked(base, stacker, tmp_path / "data", {})
     assert (tmp_path / "data" / "keep.txt").read_text() == "mine"
-    again = write_stacked(BUNDLE, stacker, tmp_path / "m", {})
-    assert write_stacked(BUNDLE, stacker, again, {}) == again  # a model folder it wrote is replaced
+    again = write_stacked(base, stacker, tmp_path / "m", {})
+    assert write_stacked(base, stacker, again, {}) == again  # a model folder it wrote is replaced
 
 
-def test_a_stacker_fitted_where_the_label_follows_the_placement_row_beats_the_model(tmp_path, capsys):
+def test_a_stacker_fitted_where_the_label_follows_the_placement_row_beats_the_model(base, tmp_path, capsys):
     from training.__main__ import main
     from training.synthetic import make_synthetic_crop_dataset
 
     for name, seed in (("fit", 1), ("judge", 2)):
         make_synthetic_crop_dataset(tmp_path / name, 8, 8, 600, signal="placement", seed=seed)
-    argv = ["stacker", "--model-dir", BUNDLE, "--fit", str(tmp_path / "fit"), "--judge", str(tmp_path / "judge")]
+    judge = str(tmp_path / "judge")
+    argv = ["stacker", "--model-dir", str(base), "--fit", str(tmp_path / "fit"), "--judge", judge, "--test", judge]
     assert main([*argv, "--out", str(tmp_path / "m"), "--per-object", "600", "--epochs", "300"]) == 0
-    judged = ModelCard.load(tmp_path / "m").export["stacker"]["judged"]
+    card = ModelCard.load(tmp_path / "m")
+    judged = card.export["stacker"]["judged"]
     assert judged["stacked"]["all"]["balanced_accuracy"] > judged["model"]["all"]["balanced_accuracy"] + 0.1
     assert "| all |" in capsys.readouterr().out
     rec = json.loads((tmp_path / "m" / "model_card.json").read_text())
     assert rec["calibration"]["method"] == "platt" and (tmp_path / "m" / "reliability_diagram.png").is_file()
+    # --test: the card's test result is the stacked graphs', measured on the judge crops' test split
+    test = card.metrics["test"]
+    assert (
+        test["data"] == judge
+        and test["n"] == card.export["stacker"]["judge_rows"]
+        and test["balanced_accuracy"] == pytest.approx(judged["stacked"]["all"]["balanced_accuracy"], abs=0.03)
+    )
+    assert card.metrics["before_stacker"]["test"] == {"balanced_accuracy": 0.5}
 
 
-def test_bad_stacker_options_exit_2_naming_them(tmp_path, capsys):
+def test_bad_stacker_options_exit_2_naming_them(base, tmp_path, capsys):
     from training.__main__ import main
 
     argv = [
         "stacker",
         "--model-dir",
-        BUNDLE,
+        str(base),
         "--fit",
         str(tmp_path),
         "--judge",
@@ -121,6 +149,9 @@ def test_bad_stacker_options_exit_2_naming_them(tmp_path, capsys):
     ]
     assert main([*argv, "--per-object", "0"]) == 2
     assert "--per-object" in capsys.readouterr().err
+    assert main([*argv, "--test", str(tmp_path / "nowhere")]) == 2
+    assert "nowhere: not a crop dataset" in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()
 
 
 def test_family_balance_weighs_each_familys_classes_alike():

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 from vgq.cli_config import add_options, build
 
@@ -122,6 +123,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="loss weights: each family's positives and negatives alike (default), or all positives against all negatives",
     )
     st.add_argument("--seed", type=int, default=0)
+    st.add_argument(
+        "--test",
+        help="crop dataset whose test split the stacked graphs are measured on, as the card's metrics.test "
+        "(the unstacked model's move to metrics.before_stacker), e.g. the recipe's crops",
+    )
+    st.add_argument("--test-clean", help="the same grasps without the sensor model: the card's metrics.test_clean")
+    st.add_argument("--test-max-n", type=int, default=50_000, help="test rows drawn at random (default 50000)")
 
     d = sub.add_parser(
         "placement-drift", help="how far the sensor model moves the placement rows (clean vs sensor crops)"
@@ -252,12 +260,24 @@ def main(argv: list[str] | None = None) -> int:
 
                 atomic.write_json(args.json, rec)
         elif args.command == "stacker":
-            from .stacker import run
+            from .stacker import measure, run
             from .stacker import table as stacker_table
 
             opts = ("split", "per_object", "hidden", "epochs", "seed", "balance")
+            if args.test_max_n < 1:
+                raise ValueError(f"--test-max-n must be >= 1, got {args.test_max_n}")
+            for c in (args.test, args.test_clean):
+                if c is not None and not (Path(c) / "manifest.json").is_file():
+                    raise ValueError(f"{c}: not a crop dataset (no manifest.json)")
             rec = run(args.model_dir, args.fit, args.judge, args.out, **{k: getattr(args, k) for k in opts})
             print(stacker_table(rec))
+            for key, c in (("test", args.test), ("test_clean", args.test_clean)):
+                if c is not None:
+                    m = measure(args.out, c, key, args.test_max_n)
+                    print(
+                        f"{key} ({c}, {m['n']} rows, stacked graphs): balanced accuracy "
+                        f"{100 * m['balanced_accuracy']:.1f}%, TPR {100 * m['tpr']:.1f}%, TNR {100 * m['tnr']:.1f}%"
+                    )
             print(f"-> {args.out}")
         elif args.command == "placement-drift":
             from .placement_drift import compare

@@ -246,6 +246,29 @@ def run(
     return record
 
 
+def measure(model_dir: str | Path, crops: str | Path, key: str, max_n: int = 50_000, seed: int = 0) -> dict:
+    """Score the folder's fp32 graphs (a stacked folder: with each crop's placement row) on ``max_n``
+    random test rows of ``crops`` (the rows ``training evaluate --max-n`` and ``export.evaluate``
+    draw) and record the result as the card's ``metrics[key]``, in the shape the export writes
+    (the overall numbers, ``by_family``, the 95% interval over objects) with where it was measured."""
+    from export.evaluate import crop_rows, evaluate, raw_scores, record_in_card
+
+    rows = crop_rows(crops, "test", max_n, seed)
+    scores = raw_scores(model_dir, rows["images"], rows["poses"], placement=rows["placement"])
+    r = evaluate(rows["labels"], scores, rows["family"], rows["object_id"])
+    value = {
+        **r["all"],
+        "by_family": r["by_family"],
+        "data": str(crops),
+        "split": "test",
+        "max_n": max_n,
+        "seed": seed,
+        "measured_by": "training.stacker.measure: the folder's fp32 graphs (export.evaluate)",
+    }
+    record_in_card(model_dir, key, value)
+    return value
+
+
 def table(record: dict) -> str:
     """The judged balanced accuracies, model against stacked, as a Markdown table."""
     model, stacked = record["judged"]["model"], record["judged"]["stacked"]
