@@ -6,7 +6,8 @@ before and computes ``sigmoid(logit + known * mlp(logit, placement))`` with the 
 standardisation folded into its first layer. Every other graph and file of the folder is copied
 as it is; the card gains ``placement_columns`` (so the service analyses each upload and appends
 the rows), a new ``model_version`` and, under ``export.stacker``, what the stacker was fitted and
-judged on.
+judged on. What was measured or fitted on the unstacked scores (the card's test results, the
+planner's calibration and ranker) is set aside, not passed off as the stacked model's.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ import numpy as np
 import onnx
 from onnx import helper, numpy_helper
 
+from planning import calibration as planner_calibration
+from planning import ranker as planner_ranker
 from training.stacker import Stacker
 from vgq import atomic
 from vgq.model_card import CARD_NAME, HEAD_INPUTS, HEAD_OUTPUT, ModelCard
@@ -30,6 +33,9 @@ HEAD_ROLES = ("head", "head_int8")
 #: the card's metrics measured through the head graphs: once stacked they are the unstacked model's, kept
 #: under ``metrics.before_stacker`` (``training.stacker.measure`` measures the stacked graphs' again)
 GRAPH_METRICS = ("test", "test_clean", "test_more_objects")
+#: files fitted on the unstacked scores that no longer fit: not copied (``planning.calibration`` and
+#: ``planning.ranker`` fit them again on a pool of the stacked model's candidates)
+UNSTACKED_FILES = (planner_calibration.FILE, planner_ranker.FILE)
 
 
 def stack_graph(model: onnx.ModelProto, stacker: Stacker, n_pose: int) -> onnx.ModelProto:
@@ -99,7 +105,8 @@ def write_stacked(
     graph stacked and the card updated; ``record`` (what the stacker was fitted and judged on) is
     kept in the card's ``export.stacker``; ``calibration`` (``export.calibrate``'s record, refitted
     on the stacked scores) replaces the card's, which would no longer fit (None: dropped); the card's
-    ``GRAPH_METRICS`` move under ``metrics.before_stacker``. ValueError for a folder whose head already reads placement rows, or an ``out`` that exists and
+    ``GRAPH_METRICS`` move under ``metrics.before_stacker`` and the planner's ``UNSTACKED_FILES`` are
+    left out. ValueError for a folder whose head already reads placement rows, or an ``out`` that exists and
     is not a model folder (it would be replaced)."""
     model_dir, out = Path(model_dir), Path(out)
     card = ModelCard.load(model_dir)
@@ -110,6 +117,8 @@ def write_stacked(
     tmp = out.with_name(out.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(model_dir, tmp)
+    for name in UNSTACKED_FILES:
+        (tmp / name).unlink(missing_ok=True)
     n_pose = len(card.normalization.pose_columns)
     for role in HEAD_ROLES:
         if role in card.files:

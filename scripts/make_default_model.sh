@@ -10,6 +10,8 @@
 #                                                    # fine-tuned on top (runs/fast-v2-jaw, docs/training.md);
 #                                                    # plus its clean-test and leave-family-out runs
 #   JAW_SAMPLES=0 ./scripts/make_default_model.sh   # the v2 bundled until 2026-12-05: stage one only
+#   STACKER=1 ./scripts/make_default_model.sh        # v2 plus a placement stacker on the exported network
+#                                                    # (training stacker; not the bundle: docs/training.md)
 #   VERSION=v1 ./scripts/make_default_model.sh       # model v1 (bundled until 2026-11-30)
 #   SAMPLES=4000000 ./scripts/make_default_model.sh  # a longer first stage (a finished run resumes into it;
 #                                                    # 3.6 M did not pay, docs/training.md)
@@ -43,6 +45,12 @@ main() {
   TRAIN_OPTS+=("${NET[@]}")
   JAW_SAMPLES=${JAW_SAMPLES:-2400000}  # the jaw-grid stage (v2): stage one's best checkpoint, the new head
   [ "$VERSION" = v2 ] || JAW_SAMPLES=0  # starting at zero, a quarter of the learning rate; 0: no jaw stage
+  # STACKER=1 (v2): a placement stacker on the exported network's scores (training stacker, docs/training.md),
+  # fitted on the recipe's stacker objects and judged on its 16-new-objects test; the network is exported to
+  # RUN-jaw/model, the stacked model written to OUT
+  STACKER=${STACKER:-0}
+  [ "$VERSION" = v2 ] || STACKER=0
+  EXPORTED=$OUT
   EXPORT_OPTS=(--int8-head)
   EVAL_OPTS=()
   if [ "$VERSION" = v2 ]; then
@@ -62,6 +70,7 @@ main() {
   }
   final() { if [ "$JAW_SAMPLES" != 0 ]; then echo "$1-jaw"; else echo "$1"; fi; }
   FINAL=$(final "$RUN")
+  [ "$STACKER" = 0 ] || EXPORTED="$FINAL/model"
   train_stages "$DATA/crops" "$RUN" "$SAMPLES"
   $PY -m training evaluate --run "$FINAL" --data "$DATA/crops" "${EVAL_OPTS[@]}"
   if [ -d "$DATA/crops_clean_test" ]; then  # the same test grasps without the sensor model
@@ -69,17 +78,28 @@ main() {
   fi
   $PY -m training baseline --data "$DATA/crops" --model mlp --out "$BASE"
   export_model() {
-    $PY -m export --run "$FINAL" --data "$DATA/crops" --out "$OUT" "$@" \
+    $PY -m export --run "$FINAL" --data "$DATA/crops" --out "$EXPORTED" "$@" \
       --recipe "python -m datagen recipe --version $VERSION --out $DATA" --baseline "$BASE/baseline_mlp.json" \
       "${EXPORT_OPTS[@]}"
   }
   export_model
-  $PY -m datagen recipe --version "$VERSION" --out "$DATA"  # the rest of the recipe: the leave-family-out split
+  MORE=()
+  [ "$STACKER" = 0 ] || MORE=(--more-test 16 --stacker)  # the stacker's fit objects and its judge (new objects)
+  # the rest of the recipe: the leave-family-out split (and the stacker's data)
+  $PY -m datagen recipe --version "$VERSION" --out "$DATA" "${MORE[@]}"
   if [ -d "$DATA/crops_lfo" ]; then  # leave-family-out: the same stages, never seeing the held-out families
     train_stages "$DATA/crops_lfo" "$RUN-lfo" "${SAMPLES_LFO:-3000000}"
     LFO=$(final "$RUN-lfo")
     $PY -m training evaluate --run "$LFO" --data "$DATA/crops_lfo" "${EVAL_OPTS[@]}"
-    $PY -m export.leave_family_out --model-dir "$OUT" "$LFO/eval/metrics_test.json"  # into the card, no re-export
+    $PY -m export.leave_family_out --model-dir "$EXPORTED" "$LFO/eval/metrics_test.json"  # into the card, no re-export
+  fi
+  if [ "$STACKER" = 1 ]; then  # ~15 min: fit (800 rows per object), judge, the card's test results re-measured
+    if ! { [ "$OUT/model_card.json" -nt "$EXPORTED/model_card.json" ] && grep -q '"stacker"' "$OUT/model_card.json"; }; then
+      $PY -m training stacker --model-dir "$EXPORTED" --fit "$DATA/crops_stacker" --judge "$DATA/crops_more" \
+        --out "$OUT" --per-object 800 --test "$DATA/crops" --test-clean "$DATA/crops_clean_test" --test-max-n 50000
+      $PY -m export.evaluate --model-dir "$OUT" --data "$DATA/crops_more" --split test --max-n 200000 \
+        --card-key test_more_objects  # per family on 16 new objects each (the stacker's judge set)
+    fi
   fi
   cp "$FINAL/eval/heatmap_test.png" "$FINAL/eval/curves.png" "$OUT/"
   if [ "$VERSION" = v2 ]; then  # planned grasps' p_hold (the score mapped to how often planner candidates

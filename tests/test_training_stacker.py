@@ -52,6 +52,7 @@ def base(int8_model, tmp_path_factory):
     d["calibration"] = {"method": "platt", "target_positivity": 0.2, "target_positivity_source": "tests"}
     path.write_text(json.dumps(d))
     record_in_card(out, "test", {"balanced_accuracy": 0.5})
+    shutil.copy("models/fast-vgqcnn-default/planner_ranker.json", out)  # as if fitted on the unstacked scores
     return out
 
 
@@ -89,6 +90,7 @@ def test_the_stacked_card_asks_for_placement_rows_under_a_new_version(base, stac
     assert card.calibration == {}  # the calibration fits the unstacked scores: dropped unless refitted
     # the test result was the unstacked graphs': kept as theirs, not as the stacked model's
     assert "test" not in card.metrics and card.metrics["before_stacker"]["test"] == before.metrics["test"]
+    assert (base / "planner_ranker.json").is_file() and not (out / "planner_ranker.json").exists()
 
 
 def test_a_folder_whose_head_reads_placement_rows_is_not_stacked_again(stacked, tmp_path):
