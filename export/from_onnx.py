@@ -58,7 +58,9 @@ def _unfold(net: GraspQualityNet, layer: torch.nn.Linear, head: dict, head_path:
 
 def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, ModelCard]:
     """The Fast-VGQ-CNN of an exported folder (encoder.onnx + head.onnx + model card), in eval mode.
-    Weights are found by their torch names (``net.conv1_1.weight``, ``head.fc5.bias``, ...)."""
+    Weights are found by their torch names (``net.conv1_1.weight``, ``head.fc5.bias``, ...). A
+    stacked folder (``export.stack_head``) gives the network under its stacker, the stacker left out
+    (so ``training train --init`` fine-tunes the network, as from the folder it was stacked on)."""
     model_dir = Path(model_dir)
     card = ModelCard.load(model_dir)
     if card.architecture != "fast_vgqcnn":
@@ -67,7 +69,8 @@ def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, Mod
     (enc, enc_nodes), (head, head_nodes) = _load(enc_path), _load(head_path)
     channels = int(_get(enc, "net.conv2_1.weight", enc_path).shape[0])  # the paper's 64, or wider
     options = net_options({"config": card.training.get("config", {})})
-    options["placement"] = bool(card.placement_columns)  # the card says what the head reads
+    # the card says what the head reads; a stacked folder's placement rows are its stacker's (export.stack_head)
+    options["placement"] = bool(card.placement_columns) and "stacker" not in card.export
     net = GraspQualityNet("fast_vgqcnn", image_size=card.geometry.out, conv2_channels=channels, **options).eval()
     norm = card.normalization
     net.set_normalization(norm)

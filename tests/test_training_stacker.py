@@ -93,6 +93,18 @@ def test_the_stacked_card_asks_for_placement_rows_under_a_new_version(base, stac
     assert (base / "planner_ranker.json").is_file() and not (out / "planner_ranker.json").exists()
 
 
+def test_a_stacked_folder_gives_the_network_it_was_stacked_on(base, stacked):
+    import torch
+
+    from export.from_onnx import fast_net_from_model_dir
+
+    net, _ = fast_net_from_model_dir(base)
+    under, card = fast_net_from_model_dir(stacked[1])
+    assert card.placement_columns and under.n_place == 0  # the stacker's rows, not the network's
+    a, b = net.state_dict(), under.state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_a_folder_whose_head_reads_placement_rows_is_not_stacked_again(stacked, tmp_path):
     stacker, out = stacked
     with pytest.raises(ValueError, match="already reads placement rows"):
