@@ -53,14 +53,18 @@ def native_rows(grasps_dir: str | Path, max_psi: float = np.pi / 2):
 
 
 def score_native(model, data: dict, object_ids, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Raw probabilities and labels of up to ``n`` random rows of ``object_ids``."""
+    """Raw probabilities and labels of up to ``n`` random rows of ``object_ids``. A placement head
+    (the card's ``placement_columns``) also reads each grasp's placement row, from its image as the
+    crop stage and the service compute it (``planning.placement``, one analysis per image)."""
     from datagen.crops import fast_window_origins, turned_crops
+    from planning.placement import ImagePlacement
     from service.preprocess import window_input
 
     index = [(o, i) for o in object_ids for i in range(len(data[o][1]))]
     pick = rng.choice(len(index), min(n, len(index)), replace=False)
     p, y = np.empty(len(pick)), np.empty(len(pick), np.int64)
     geom, intr = model.geometry, model.card.intrinsics
+    analyses = {}  # (object, image) -> ImagePlacement
     for j, k in enumerate(pick):
         o, i = index[k]
         depth, rows, labels, image_index = data[o]
@@ -68,12 +72,16 @@ def score_native(model, data: dict, object_ids, n: int, rng: np.random.Generator
         if geom.jaw_turns:  # the window of the image turned towards the jaw, as the crop stage cuts it
             img, puv, _, q = turned_crops(depth[image_index[i]], row[:, :2], row[:, 2], row[:, 3:7], geom, intr, rng)
             poses = np.concatenate([puv, row[:, 2:3], q], axis=1).astype(np.float32)
-            p[j] = float(model.score(model.encode(img), poses)[0])
         else:
             origin = fast_window_origins(row[:, :2], geom, rng)[0]
-            win = window_input(depth[image_index[i]], origin, geom, 1.0)
+            img = window_input(depth[image_index[i]], origin, geom, 1.0).image
             poses = pose_rows(row, window_center(origin, geom), geom, 1)
-            p[j] = float(model.score(model.encode(win.image), poses)[0])
+        if model.card.placement_columns:
+            key = (o, int(image_index[i]))
+            if key not in analyses:
+                analyses[key] = ImagePlacement.analyse(depth[image_index[i]], intr)
+            poses = np.c_[poses, analyses[key].rows(row[:, :3], row[:, 3:7])].astype(np.float32)
+        p[j] = float(model.score(model.encode(img), poses)[0])
         y[j] = labels[i]
     return p, y
 

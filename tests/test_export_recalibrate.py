@@ -61,3 +61,30 @@ def test_a_model_of_turned_windows_is_calibrated_on_turned_windows(tmp_path):
         )
         pose = np.concatenate([puv, r[:, 2:3], q], axis=1).astype(np.float32)
         assert p[j] == float(model.score(model.encode(img), pose)[0])
+
+
+def test_a_placement_head_is_scored_with_each_grasps_placement_row(tmp_path):
+    from export.recalibrate import native_rows, score_native
+    from export.stack_head import write_stacked
+    from planning.placement import placement_rows
+    from service.runtime import FastModel
+    from training.stacker import INPUTS, Stacker
+
+    rng = np.random.default_rng(0)
+    shapes = [(4, len(INPUTS)), (1, 4)]
+    layers = tuple((rng.normal(0, 1, s).astype(np.float32), np.ones(s[0], np.float32)) for s in shapes)
+    stacker = Stacker(np.zeros(len(INPUTS), np.float32), np.ones(len(INPUTS), np.float32), layers)
+    stacked = write_stacked(DEFAULT, stacker, tmp_path / "m", {})
+    fake_dataset(tmp_path / "g", n_objects=2, n_images=1, n_grasps=40, seed=5)
+    model, data = FastModel(stacked, head_precision="fp32"), native_rows(tmp_path / "g")
+    base = FastModel(DEFAULT, head_precision="fp32")
+    depth, rows, _, image_index = data[0]
+    n = len(rows)  # all of object 0's rows, in a random order
+    p, _ = score_native(model, data, [0], n, np.random.default_rng(1))  # a (k, 14) head: scored, not refused
+    p0, _ = score_native(base, data, [0], n, np.random.default_rng(1))
+    pick = np.random.default_rng(1).choice(n, n, replace=False)
+    place = placement_rows(depth[image_index[pick[0]]], model.card.intrinsics, rows[pick, :3], rows[pick, 3:7])
+    known = place[:, 0] > 0
+    # rows with a placement known move by the stacker; the others score as the unstacked head
+    np.testing.assert_allclose(p[~known], p0[~known], atol=1e-6)
+    assert known.any() and np.abs(p[known] - p0[known]).min() > 1e-4
