@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from planning.placement import ImagePlacement
+from planning.placement import placement_rows
 from vgq import atomic, inpaint
 from vgq import crop as vcrop
 from vgq import turns as vturns
@@ -196,7 +196,7 @@ def crop_object(
         depth = sensor.apply(im["depth"][img_i], sensor_model.image_rng(seed, sh.object_id, img_i), intr)
         q = g["q"][rows]
         # the grasps' places on their object, from the image as the sensor gives it (as the service does)
-        place = ImagePlacement.analyse(depth, intr).rows(np.stack([uv[:, 0], uv[:, 1], g["z"][rows]], 1), q)
+        place = placement_rows(depth, intr, np.stack([uv[:, 0], uv[:, 1], g["z"][rows]], 1), q)
         if geom.jaw_turns:  # windows of the image turned in steps towards each jaw axis
             crops, puv, miss, q = turned_crops(depth, uv, g["z"][rows], q, geom, intr, rng)
         else:

@@ -56,3 +56,24 @@ def test_a_grasp_far_from_every_object_is_unknown_and_a_near_one_takes_the_neare
 def test_the_analysis_is_the_same_for_the_same_image():
     a, b = ImagePlacement.analyse(box_scene(), INTR), ImagePlacement.analyse(box_scene(), INTR)
     assert np.array_equal(a.region, b.region) and np.array_equal(a.centres, b.centres)
+
+
+def test_the_map_made_only_near_the_grasps_gives_the_whole_maps_rows():
+    """datagen's crop stage (placement_rows) makes the region map only around its grasps: the rows
+    must be the whole map's, on an image whose table is speckled with tiny regions (as a sensor's
+    noise makes it) and for grasps on, beside and far off the objects."""
+    rng = np.random.default_rng(0)
+    depth = box_scene()
+    depth[200:230, 40:70] = BOX_TOP_Z  # a second object
+    specks = rng.integers(0, (INTR.height, INTR.width), (60, 2))
+    depth[specks[:, 0], specks[:, 1]] = TABLE_Z - 0.01  # 1 px regions 1 cm above the table
+    for k in (1, 5, 40):
+        uvz = np.c_[rng.uniform(-3, 303, (k, 2)), rng.uniform(0.6, 0.7, k)]
+        q = np.repeat(IDENTITY, k, 0)
+        whole = ImagePlacement.analyse(depth, INTR)
+        near = ImagePlacement.analyse(depth, INTR, near=uvz[:, :2])
+        if k == 1:
+            assert (near.region != 0).sum() < (whole.region != 0).sum() / 10  # a small part of the map made
+        assert np.array_equal(placement_rows(depth, INTR, uvz, q), whole.rows(uvz, q))
+        assert np.array_equal(near.rows(uvz, q), whole.rows(uvz, q))
+    assert whole.rows(uvz, q)[:, 0].any() and not whole.rows(uvz, q)[:, 0].all()  # both kinds of row
