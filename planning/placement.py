@@ -20,7 +20,7 @@ from vgq.placement import MAX_REGION_DISTANCE_PX, rows_from_geometry, unknown_ro
 from vgq.pose import matrix_from_quaternion
 
 from .cloud import backproject
-from .sampler import find_table, object_centres
+from .sampler import find_table, object_centres, region_max
 from .types import PlanParams
 
 
@@ -64,7 +64,7 @@ class ImagePlacement:
             return cls(intr, table.normal, float(table.offset), None, None, None)
         where = np.flatnonzero(objects)
         tops = np.zeros(n + 1)
-        tops[1:] = ndimage.maximum(h.ravel()[where], labels.ravel()[where], index=np.arange(1, n + 1))
+        tops[1:] = region_max(h.ravel()[where], labels.ravel()[where], n)
         # every pixel off the regions takes its nearest region pixel's label within reach: the distance
         # transform over the regions' bounding box grown by the reach (beyond it nothing is in reach)
         rows, cols = np.flatnonzero(objects.any(axis=1)), np.flatnonzero(objects.any(axis=0))

@@ -241,10 +241,23 @@ def object_centres(points: np.ndarray, objects: np.ndarray, table: TablePlane | 
         # point moved along the normal by half the region's top less its mean height
         h = table.height(p)
         top = np.zeros(n + 1)
-        top[1:] = h.max() if n == 1 else ndimage.maximum(h, lab, index=np.arange(1, n + 1))
+        top[1:] = h.max() if n == 1 else region_max(h, lab, n)
         mean_h = np.bincount(lab, weights=h, minlength=n + 1) / cnt
         centres += (0.5 * top - mean_h)[:, None] * table.normal
     return labels, centres
+
+
+def region_max(values: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
+    """(n,) the largest of ``values`` (m,) in each region 1..n of ``labels`` (m,) (every region has
+    a value; ``ndimage.maximum``'s result). The labels are sorted by a stable sort, a radix sort for
+    16-bit labels: a sensor image's noise specks make hundreds of regions, where ``ndimage.maximum``'s
+    comparison sort took ~0.4 ms per call."""
+    order = np.argsort(labels.astype(np.uint16) if n <= 0xFFFF else labels, kind="stable")
+    lab = labels[order]
+    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
+    out = np.empty(n)
+    out[lab[starts] - 1] = np.maximum.reduceat(values[order], starts)
+    return out
 
 
 def lookup_pixels(scene: Scene, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -105,3 +105,16 @@ def test_the_top_view_along_lines_reads_the_heights_it_reads_point_by_point(box)
     pointwise = scene.top.top(p[:, None, :] + ts[None, :, None] * axes[:, None, :])
     assert np.isfinite(along).mean() > 0.3  # the lines cross the box's footprint and leave it
     assert np.array_equal(along, pointwise)
+
+
+@pytest.mark.parametrize("n", [1, 3, 900, 70_000])
+def test_region_max_is_ndimage_maximum(n):
+    from scipy import ndimage
+
+    from planning.sampler import region_max
+
+    rng = np.random.default_rng(n)
+    labels = np.r_[np.arange(1, n + 1), rng.integers(1, n + 1, 20_000)][rng.permutation(n + 20_000)]
+    values = rng.normal(size=len(labels)).astype(np.float32)
+    want = ndimage.maximum(values, labels, index=np.arange(1, n + 1))
+    assert np.array_equal(region_max(values, labels, n), np.asarray(want, np.float64))
