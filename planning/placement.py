@@ -27,8 +27,9 @@ from .types import PlanParams
 @dataclass(frozen=True)
 class ImagePlacement:
     """What one depth image says about placement: the table plane (None: none found), each pixel's
-    object region (H, W) int32 (0: none; or the nearest region within reach), the regions'
-    centre-of-mass guesses (n + 1, 3) and tops (n + 1,) (metres above the table)."""
+    object region (H, W) int32 (0: none; or the nearest region within reach; an analysis made
+    ``near`` some pixels: only around them), the regions' centre-of-mass guesses (n + 1, 3) and
+    tops (n + 1,) (metres above the table)."""
 
     intr: Intrinsics
     normal: np.ndarray | None
