@@ -65,6 +65,14 @@ def _holdout(families: list[str]) -> str:
     return shlex.quote("sampling.holdout_families=" + json.dumps(families, separators=(",", ":")))
 
 
+def _family_list(counts: str) -> list[str]:
+    """The family names of a ``--families`` value (``mug=5,box=2``; ``all=N``: every family)."""
+    from .families import family_names
+
+    names = [f.split("=")[0] for f in counts.split(",")]
+    return family_names() if names == ["all"] else names
+
+
 def recipe_steps(
     version: str,
     out: Path,
@@ -82,8 +90,6 @@ def recipe_steps(
     when its file is there; ``leave_out``: the leave-family-out copy; ``more_test``: N new objects
     of each procedural family (run seed + 1), all in test; ``stacker``: the placement stacker's fit
     set (run seed + 2). ValueError naming what the recipe lacks."""
-    from .families import family_names
-
     recipe = RECIPES[version]
     seed, cameras = recipe["seed"], recipe["cameras"]
     sets, samp = _sets(recipe["set"]), _sets(recipe["sampling"], "sampling.")
@@ -131,7 +137,7 @@ def recipe_steps(
             raise ValueError(f"--more-test: recipe {version} has no procedural families")
         names = [f.split("=")[0] for f in recipe["families"].split(",")]
         more = f"all={more_test}" if names == ["all"] else ",".join(f"{n}={more_test}" for n in names)
-        names = family_names() if names == ["all"] else names
+        names = _family_list(recipe["families"])
         steps += [
             (  # another run seed: shapes the recipe never drew (same names, new parameters)
                 f"python -m datagen generate --out {out / 'grasps_more'} --objects 0 --families {more} "
@@ -153,8 +159,7 @@ def recipe_steps(
         if not recipe.get("stacker"):
             raise ValueError(f"--stacker: recipe {version} has no stacker fit set")
         st = recipe["stacker"]
-        names = [f.split("=")[0] for f in st["families"].split(",")]
-        names = family_names() if names == ["all"] else names
+        names = _family_list(st["families"])
         steps += [
             (
                 f"python -m datagen generate --out {out / 'grasps_stacker'} --objects {st['objects']} "

@@ -30,6 +30,13 @@ from vgq.model_card import ModelCard
 from vgq.schema import SPLITS
 
 
+def object_families(data: str | Path, default: str = "") -> dict[int, str]:
+    """Object id -> family name of a crop dataset's objects (from its source manifest), ``default``
+    for an object recorded without one."""
+    m = json.loads((Path(data) / storage.MANIFEST).read_text())
+    return {int(o["object_id"]): o.get("family") or default for o in m.get("source", {}).get("objects", [])}
+
+
 def crop_rows(data: str | Path, split: str, max_n: int, seed: int = 0) -> dict[str, np.ndarray]:
     """``images``, ``poses``, ``labels``, ``family``, ``object_id`` and ``beta`` (radians, the
     approach to the downward table normal; None when the dataset has none) of at most ``max_n``
@@ -39,8 +46,7 @@ def crop_rows(data: str | Path, split: str, max_n: int, seed: int = 0) -> dict[s
     if n == 0:
         raise ValueError(f"{data}: split {split!r} has no crops")
     idx = M.sample_rows(n, max_n, seed)  # the rows training evaluate --max-n scores
-    m = json.loads((Path(data) / storage.MANIFEST).read_text())
-    fam = {int(o["object_id"]): o.get("family") or "" for o in m.get("source", {}).get("objects", [])}
+    fam = object_families(data)
     oid = np.asarray(arrays["object_id"][idx])
     return {
         "images": np.asarray(arrays["images"][idx], np.float32),

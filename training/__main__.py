@@ -105,6 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--json", help="also write the result here")
 
+    from .stacker import BALANCES
+
     st = sub.add_parser(
         "stacker", help="fit a placement stacker on a model's scores and write the stacked model folder"
     )
@@ -119,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument(
         "--balance",
         default="family",
-        choices=("family", "class"),
+        choices=BALANCES,
         help="loss weights: each family's positives and negatives alike (default), or all positives against all negatives",
     )
     st.add_argument("--seed", type=int, default=0)
@@ -260,6 +262,8 @@ def main(argv: list[str] | None = None) -> int:
 
                 atomic.write_json(args.json, rec)
         elif args.command == "stacker":
+            from datagen import storage
+
             from .stacker import measure, run
             from .stacker import table as stacker_table
 
@@ -267,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.test_max_n < 1:
                 raise ValueError(f"--test-max-n must be >= 1, got {args.test_max_n}")
             for c in (args.test, args.test_clean):
-                if c is not None and not (Path(c) / "manifest.json").is_file():
+                if c is not None and not (Path(c) / storage.MANIFEST).is_file():
                     raise ValueError(f"{c}: not a crop dataset (no manifest.json)")
             rec = run(args.model_dir, args.fit, args.judge, args.out, **{k: getattr(args, k) for k in opts})
             print(stacker_table(rec))

@@ -23,7 +23,6 @@ upload once and appends each grasp's row).
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -80,7 +79,7 @@ def stack_rows(model_dir: str | Path, crops: list[str | Path], split: str, per_o
     ``placement`` (n, 7), ``labels`` (n,) bool, ``object`` (n,) str (dataset folder name:object id)
     and ``family`` (n,) str. ValueError naming crops without placement rows."""
     from datagen import storage
-    from export.evaluate import raw_scores
+    from export.evaluate import object_families, raw_scores
 
     rng = np.random.default_rng(seed)
     parts = []
@@ -88,9 +87,7 @@ def stack_rows(model_dir: str | Path, crops: list[str | Path], split: str, per_o
         arr = storage.open_crops(c, split)
         if "placement" not in arr:
             raise ValueError(f"{c}: its {split} crops have no placement rows (cut them again with datagen crops)")
-        m = json.loads((c / storage.MANIFEST).read_text())
-        objects = m.get("source", {}).get("objects", [])
-        fam = {int(o["object_id"]): o.get("family") or "random_urdfs" for o in objects}
+        fam = object_families(c, default="random_urdfs")
         oid = np.asarray(arr["object_id"])
         take = np.sort(
             np.concatenate(
