@@ -34,7 +34,14 @@ from vgq import crop as vcrop
 from vgq import turns as vturns
 from vgq.camera import DEFAULT_INTRINSICS, Intrinsics
 from vgq.pose import canonical_quaternion, roll_quaternions
-from vgq.schema import CROP_EXTRA_FIELDS, SPLITS, WRITTEN_CROP_FIELDS, crop_counts, write_crop_manifest
+from vgq.schema import (
+    CROP_EXTRA_FIELDS,
+    PLACEMENT_GRASP_DEPTH,
+    SPLITS,
+    WRITTEN_CROP_FIELDS,
+    crop_counts,
+    write_crop_manifest,
+)
 
 from . import sensor as sensor_model
 from . import storage
@@ -193,10 +200,13 @@ def crop_object(
     for rows in np.split(order, bounds) if len(order) else []:
         img_i = int(g["image_index"][rows[0]])
         uv = np.stack([g["u"][rows], g["v"][rows]], axis=1)
-        depth = sensor.apply(im["depth"][img_i], sensor_model.image_rng(seed, sh.object_id, img_i), intr)
+        depth, scale = sensor.read(im["depth"][img_i], sensor_model.image_rng(seed, sh.object_id, img_i), intr)
         q = g["q"][rows]
-        # the grasps' places on their object, from the image as the sensor gives it (as the service does)
-        place = placement_rows(depth, intr, np.stack([uv[:, 0], uv[:, 1], g["z"][rows]], 1), q)
+        # the grasps' places on their object, from the image as the sensor gives it, each grasp at the
+        # depth this image shows it (the sensor's scale error applied), as a client reads its grasps off
+        # the image it uploads: with the true depth against a scaled image the rows lose most of what
+        # they carry (docs/training.md, "The placement rows' skew")
+        place = placement_rows(depth, intr, np.stack([uv[:, 0], uv[:, 1], scale * g["z"][rows]], 1), q)
         if geom.jaw_turns:  # windows of the image turned in steps towards each jaw axis
             crops, puv, miss, q = turned_crops(depth, uv, g["z"][rows], q, geom, intr, rng)
         else:
@@ -405,6 +415,7 @@ def make_crops(
         sensor={"name": sensor_name, "params": sensor.to_dict()},
         inpaint={"method": "nearest valid pixel (OpenCV distance transform, 5x5 mask)", "margin_px": inpaint.MARGIN_PX},
         context_scale=context_scale,
+        placement_grasp_depth=PLACEMENT_GRASP_DEPTH,
         versions=storage.library_versions(),
     )
     for f in (DONE_FILE, JOB_FILE):  # complete: nothing left to resume

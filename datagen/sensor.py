@@ -138,13 +138,22 @@ class SensorModel:
         """The sensor's reading (H, W) float32 metres of the clean depth image ``depth``
         (H, W) metres (0 = no surface), 0 where the sensor returns no reading. ``intr``:
         the camera's intrinsics (fx for the shadow disparity)."""
+        return self.read(depth, rng, intr)[0]
+
+    def read(
+        self, depth: np.ndarray, rng: np.random.Generator, intr: Intrinsics = DEFAULT_INTRINSICS
+    ) -> tuple[np.ndarray, float]:
+        """:meth:`apply`'s reading (the same, for the same ``rng`` state) and the depth scale it
+        multiplied the image by (1.0 without ``gamma_shape``): a point at depth z in the clean image
+        reads near ``scale * z``, as the image shows it."""
         z = np.asarray(depth, dtype=np.float64)
         if z.ndim != 2:
             raise ValueError(f"depth must be 2-D (H, W), got shape {z.shape}")
         valid = np.isfinite(z) & (z > 0)
         z = np.where(valid, z, 0.0)
+        scale = 1.0
         if self.is_clean:
-            return z.astype(np.float32)
+            return z.astype(np.float32), scale
         drop = ~valid
         if self.baseline_m != 0:
             drop |= shadow_mask(z, self.baseline_m, intr.fx)
@@ -155,7 +164,8 @@ class SensorModel:
             drop |= blob_mask(z.shape, self.blob_rate, self.blob_radius_px, rng)
         out = z
         if self.gamma_shape > 0:
-            out = out * rng.gamma(self.gamma_shape, 1.0 / self.gamma_shape)
+            scale = float(rng.gamma(self.gamma_shape, 1.0 / self.gamma_shape))
+            out = out * scale
         if self.gp_sigma_m > 0 and rng.random() < self.gp_rate:
             out = out + correlated_noise(z.shape, self.gp_sigma_m, self.gp_cell_px, rng)
         if self.noise_base_m > 0 or self.noise_quad_m > 0:
@@ -163,7 +173,7 @@ class SensorModel:
         if self.quantum_m > 0:
             out = np.round(out / self.quantum_m) * self.quantum_m
         out = np.where(drop | ~(out > 0), 0.0, out)
-        return out.astype(np.float32)
+        return out.astype(np.float32), scale
 
 
 CLEAN = SensorModel()

@@ -27,7 +27,7 @@ import numpy as np
 from datagen import storage
 from training import metrics as M
 from vgq.model_card import ModelCard
-from vgq.schema import SPLITS
+from vgq.schema import SPLITS, check_placement_rows
 
 
 def object_families(data: str | Path, default: str = "") -> dict[int, str]:
@@ -48,6 +48,11 @@ def crop_rows(data: str | Path, split: str, max_n: int, seed: int = 0) -> dict[s
     idx = M.sample_rows(n, max_n, seed)  # the rows training evaluate --max-n scores
     fam = object_families(data)
     oid = np.asarray(arrays["object_id"][idx])
+    try:
+        check_placement_rows(json.loads((Path(data) / storage.MANIFEST).read_text()), str(data))
+        rows_ok = True
+    except ValueError:
+        rows_ok = False
     return {
         "images": np.asarray(arrays["images"][idx], np.float32),
         "poses": np.asarray(arrays["poses"][idx], np.float32),
@@ -55,7 +60,8 @@ def crop_rows(data: str | Path, split: str, max_n: int, seed: int = 0) -> dict[s
         "family": np.array([fam.get(int(i), "") for i in oid]),
         "object_id": oid,
         "beta": np.asarray(arrays["beta"][idx], np.float64) if "beta" in arrays else None,
-        "placement": np.asarray(arrays["placement"][idx], np.float32) if "placement" in arrays else None,
+        # rows as the service makes them, or none (a placement head then refuses the crops)
+        "placement": np.asarray(arrays["placement"][idx], np.float32) if "placement" in arrays and rows_ok else None,
     }
 
 
@@ -87,7 +93,10 @@ def raw_scores(
     model = FastModel(model_dir, threads=0, head_precision="fp32", encoder_precision="fp32")
     if model.card.placement_columns:
         if placement is None:
-            raise ValueError(f"{model_dir} reads placement rows; the crops have none (cut them again with datagen)")
+            raise ValueError(
+                f"{model_dir} reads placement rows; the crops have none made as the service makes them "
+                "(cut them again with this datagen)"
+            )
         poses = np.concatenate([poses, placement], axis=1).astype(np.float32)
     out = np.empty(len(images), np.float32)
     for s in range(0, len(images), batch):

@@ -279,6 +279,27 @@ def test_each_crop_carries_the_placement_row_the_service_computes_from_the_same_
     assert on_box.any() and (a["placement"][on_box, 0] == 1).all()
 
 
+def test_placement_rows_put_each_grasp_at_the_depth_the_sensor_image_shows_it(one_image_dataset, tmp_path):
+    # the sensor's scale error moves the whole image, and a client reads its grasps off that image
+    from datagen.sensor import PRESETS, image_rng
+    from planning.placement import placement_rows
+    from vgq.camera import DEFAULT_INTRINSICS
+    from vgq.schema import PLACEMENT_GRASP_DEPTH
+
+    m = make_crops(one_image_dataset, tmp_path, "fast_vgqcnn", log=lambda s: None, sensor="realistic")
+    depth, g = _first(one_image_dataset)
+    oid = int(next(iter(storage.open_dataset(one_image_dataset))).object_id)
+    seen, scale = PRESETS["realistic"].read(depth, image_rng(0, oid, 0), DEFAULT_INTRINSICS)
+    uvz = np.stack([g["u"], g["v"], g["z"]], axis=1)
+    rows = storage.open_crops(tmp_path, "train")["placement"]
+    as_seen = np.stack([g["u"], g["v"], scale * g["z"]], axis=1)
+    np.testing.assert_array_equal(rows, placement_rows(seen, DEFAULT_INTRINSICS, as_seen, g["q"]))
+    at_true_depth = placement_rows(seen, DEFAULT_INTRINSICS, uvz, g["q"])
+    known = rows[:, 0] == 1
+    assert known.any() and np.abs(rows[known, 5] - at_true_depth[known, 5]).min() > 1e-4  # the height moves
+    assert m["placement_grasp_depth"] == PLACEMENT_GRASP_DEPTH
+
+
 def test_context_views_are_wider_windows_of_the_same_centre(one_image_dataset, tmp_path):
     m = make_crops(one_image_dataset, tmp_path, "fast_vgqcnn", log=lambda s: None, sensor="clean", context_scale=3)
     depth, g = _first(one_image_dataset)

@@ -130,6 +130,16 @@ def test_gamma_scale_error_has_the_configured_spread():
     assert np.all(img == img[0, 0])  # one scale per image
 
 
+def test_read_gives_the_same_image_as_apply_and_the_scale_it_applied():
+    d = np.random.default_rng(5).uniform(0.5, 0.9, (40, 40)).astype(np.float32)
+    s = PRESETS["realistic"]
+    img, scale = s.read(d, np.random.default_rng(3))
+    assert np.array_equal(img, s.apply(d, np.random.default_rng(3))) and scale != 1.0
+    gamma_only, _ = SensorModel(gamma_shape=1000.0).read(d, np.random.default_rng(3))
+    assert np.allclose(gamma_only, (d * SensorModel(gamma_shape=1000.0).read(d, np.random.default_rng(3))[1]).astype(np.float32))
+    assert SensorModel().read(d, np.random.default_rng(3))[1] == 1.0  # clean: no scale
+
+
 def test_pixel_noise_grows_with_depth():
     d = np.full((200, 200), 0.5, np.float32)
     d[:, 100:] = 1.0

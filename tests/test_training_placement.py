@@ -105,6 +105,19 @@ def test_placement_training_refuses_crops_without_placement_rows(data, tmp_path)
         train(TrainConfig(samples=16, placement="image", **FAST), bare, tmp_path / "r", progress=False)
 
 
+def test_placement_training_refuses_rows_that_put_the_grasp_at_its_true_depth(data, tmp_path):
+    import json
+    import shutil
+
+    old = tmp_path / "old"
+    shutil.copytree(data, old)
+    m = json.loads((old / "manifest.json").read_text())
+    del m["placement_grasp_depth"]  # cut before the crop stage read grasps at the image's depth scale
+    (old / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(DatasetError, match="placement_grasp_depth"):
+        train(TrainConfig(samples=16, placement="image", **FAST), old, tmp_path / "r", progress=False)
+
+
 def test_placement_dropout_makes_the_drawn_rows_unknown_and_leaves_the_rest():
     cfg = TrainConfig(placement="image", placement_dropout=0.5, seed=3)
     pose = torch.ones(64, 14)

@@ -182,3 +182,17 @@ def test_family_balance_weighs_each_familys_classes_alike():
     assert w[labels].sum() == pytest.approx(w[~labels].sum()) and w.mean() == pytest.approx(1.0)
     with pytest.raises(ValueError, match="balance"):
         row_weights(labels, family, "objects")
+
+
+def test_crops_whose_rows_put_the_grasp_at_its_true_depth_are_refused(base, tmp_path, capsys):
+    # crops cut before placement_grasp_depth: their rows disagree with what the service computes
+    from training.__main__ import main
+    from training.synthetic import make_synthetic_crop_dataset
+
+    make_synthetic_crop_dataset(tmp_path / "old", 8, 8, 64, signal="placement", seed=1)
+    m = json.loads((tmp_path / "old" / "manifest.json").read_text())
+    del m["placement_grasp_depth"]
+    (tmp_path / "old" / "manifest.json").write_text(json.dumps(m))
+    argv = ["stacker", "--model-dir", str(base), "--fit", str(tmp_path / "old"), "--judge", str(tmp_path / "old")]
+    assert main([*argv, "--out", str(tmp_path / "m"), "--per-object", "8"]) == 2
+    assert "placement_grasp_depth" in capsys.readouterr().err and not (tmp_path / "m").exists()

@@ -23,6 +23,7 @@ upload once and appends each grasp's row).
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +31,7 @@ import numpy as np
 
 from vgq.calibration import logit, sigmoid
 from vgq.placement import PLACEMENT_COLUMNS
+from vgq.schema import check_placement_rows
 
 #: what the MLP reads: the model's logit, then the placement row without its ``known`` flag
 INPUTS = ("logit", *PLACEMENT_COLUMNS[1:])
@@ -87,6 +89,7 @@ def stack_rows(model_dir: str | Path, crops: list[str | Path], split: str, per_o
         arr = storage.open_crops(c, split)
         if "placement" not in arr:
             raise ValueError(f"{c}: its {split} crops have no placement rows (cut them again with datagen crops)")
+        check_placement_rows(json.loads((c / storage.MANIFEST).read_text()), str(c))
         fam = object_families(c, default="random_urdfs")
         oid = np.asarray(arr["object_id"])
         take = np.sort(

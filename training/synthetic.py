@@ -17,6 +17,7 @@ from vgq.pose import canonical_quaternion
 from vgq.schema import (
     CROP_EXTRA_FIELDS,
     CROP_FIELDS,
+    PLACEMENT_GRASP_DEPTH,
     check_extra_fields,
     check_fields,
     crop_counts,
@@ -64,6 +65,8 @@ def write_crop_dataset(
         intrinsics=intrinsics.to_dict(),
         recipe=recipe or {},
         context_scale=context_scale,
+        # drawn rows: no sensor scale to skew them, so they stand as rows the service makes
+        **({"placement_grasp_depth": PLACEMENT_GRASP_DEPTH} if any("placement" in a for a in splits.values()) else {}),
     )
 
 

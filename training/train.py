@@ -37,7 +37,7 @@ from vgq import atomic
 from vgq.crop import CropGeometry
 from vgq.normalization import Normalization
 from vgq.pose import POSE_COLUMNS, mirror_poses
-from vgq.schema import context_scale_of
+from vgq.schema import check_placement_rows, context_scale_of
 
 from . import metrics as M
 from .checkpoint import (
@@ -327,6 +327,10 @@ def _check_target(cfg: TrainConfig, data: CropDataset) -> None:
                 f"placement 'image' needs placement rows; {data.path} split {lacking[0]!r} has none "
                 "(cropped before them: run datagen crops again)"
             )
+        try:
+            check_placement_rows(data.manifest, str(data.path))
+        except ValueError as e:
+            raise DatasetError(str(e)) from None
 
 
 def _open_data(cfg: TrainConfig, data_dir, d: _Dist) -> tuple[CropDataset, CropSplit, CropSplit]:

@@ -118,6 +118,25 @@ CROP_EXTRA_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
         "context view: the window's centre seen `context_scale` times wider (vgq.crop.context_crops), metres",
     ),
 }
+#: How ``datagen crops`` places a grasp for its placement row (crop manifest key
+#: ``placement_grasp_depth``): at the depth its sensor-corrupted image shows it (its depth times the
+#: image's scale error), as a service's client reads a grasp off the image it uploads. Crops cut
+#: before this key existed placed it at its true depth against the scaled image: rows that disagree
+#: with what the service computes.
+PLACEMENT_GRASP_DEPTH = "as_seen"
+
+
+def check_placement_rows(manifest: dict, where: str) -> None:
+    """ValueError naming ``where`` unless the crop manifest's placement rows were made as the service
+    makes them (:data:`PLACEMENT_GRASP_DEPTH`)."""
+    got = manifest.get("placement_grasp_depth")
+    if got != PLACEMENT_GRASP_DEPTH:
+        raise ValueError(
+            f"{where}: its placement rows place each grasp at its true depth against the sensor-scaled image "
+            f"(placement_grasp_depth {got!r}, need {PLACEMENT_GRASP_DEPTH!r}): cut the crops again with this datagen"
+        )
+
+
 #: every field a crop run writes (``context`` only where asked for: ``datagen crops --context-scale``)
 WRITTEN_CROP_FIELDS = {**CROP_FIELDS, "placement": CROP_EXTRA_FIELDS["placement"]}
 
