@@ -214,7 +214,10 @@ def main(argv=None) -> dict:
         rows = crop_rows(a.data, a.split, a.max_n, a.seed)
         for d in a.model_dir:
             if ModelCard.load(d).placement_columns and rows["placement"] is None:
-                raise ValueError(f"{d} reads placement rows; {a.data} has none (crop it again with this datagen)")
+                raise ValueError(
+                    f"{d} reads placement rows; {a.data} has none made as the service makes them "
+                    "(placement_grasp_depth: crop it again with this datagen)"
+                )
     except (OSError, ValueError) as e:
         print(f"export.evaluate: {e}", file=sys.stderr)
         sys.exit(2)

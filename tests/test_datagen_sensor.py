@@ -136,7 +136,9 @@ def test_read_gives_the_same_image_as_apply_and_the_scale_it_applied():
     img, scale = s.read(d, np.random.default_rng(3))
     assert np.array_equal(img, s.apply(d, np.random.default_rng(3))) and scale != 1.0
     gamma_only, _ = SensorModel(gamma_shape=1000.0).read(d, np.random.default_rng(3))
-    assert np.allclose(gamma_only, (d * SensorModel(gamma_shape=1000.0).read(d, np.random.default_rng(3))[1]).astype(np.float32))
+    assert np.allclose(
+        gamma_only, (d * SensorModel(gamma_shape=1000.0).read(d, np.random.default_rng(3))[1]).astype(np.float32)
+    )
     assert SensorModel().read(d, np.random.default_rng(3))[1] == 1.0  # clean: no scale
 
 

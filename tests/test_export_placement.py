@@ -92,6 +92,22 @@ def test_evaluate_scores_a_placement_model_also_with_its_rows_blanked(exported, 
     assert r[str(out)]["all"]["auc"] != r[blank]["all"]["auc"]
 
 
+def test_evaluate_refuses_a_placement_model_rows_cut_at_the_true_grasp_depth(exported, tmp_path, capsys):
+    import json
+
+    from export.evaluate import main
+    from training.synthetic import make_synthetic_crop_dataset
+
+    _, out = exported
+    make_synthetic_crop_dataset(tmp_path / "crops", 8, 8, 64, signal="placement", seed=4)
+    m = json.loads((tmp_path / "crops" / "manifest.json").read_text())
+    del m["placement_grasp_depth"]  # cut before the crop stage read grasps at the image's depth scale
+    (tmp_path / "crops" / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(SystemExit) as e:
+        main(["--model-dir", str(out), "--data", str(tmp_path / "crops"), "--max-n", "64"])
+    assert e.value.code == 2 and "none made as the service makes them" in capsys.readouterr().err
+
+
 def test_a_placement_stream_serves_and_reads_back_as_trained(tmp_path):
     torch.manual_seed(1)
     net = GraspQualityNet("fast_vgqcnn", placement=True, placement_units=16).eval()
