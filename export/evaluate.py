@@ -27,7 +27,7 @@ import numpy as np
 from datagen import storage
 from training import metrics as M
 from vgq.model_card import ModelCard
-from vgq.schema import SPLITS, check_placement_rows
+from vgq.schema import SPLITS, placement_rows_as_seen
 
 
 def object_families(data: str | Path, default: str = "") -> dict[int, str]:
@@ -48,11 +48,7 @@ def crop_rows(data: str | Path, split: str, max_n: int, seed: int = 0) -> dict[s
     idx = M.sample_rows(n, max_n, seed)  # the rows training evaluate --max-n scores
     fam = object_families(data)
     oid = np.asarray(arrays["object_id"][idx])
-    try:
-        check_placement_rows(json.loads((Path(data) / storage.MANIFEST).read_text()), str(data))
-        rows_ok = True
-    except ValueError:
-        rows_ok = False
+    rows_ok = placement_rows_as_seen(json.loads((Path(data) / storage.MANIFEST).read_text()))
     return {
         "images": np.asarray(arrays["images"][idx], np.float32),
         "poses": np.asarray(arrays["poses"][idx], np.float32),

@@ -126,11 +126,15 @@ CROP_EXTRA_FIELDS: dict[str, tuple[str, tuple[int, ...], str]] = {
 PLACEMENT_GRASP_DEPTH = "as_seen"
 
 
+def placement_rows_as_seen(manifest: dict) -> bool:
+    """Whether a crop manifest's placement rows were made as the service makes them (:data:`PLACEMENT_GRASP_DEPTH`)."""
+    return manifest.get("placement_grasp_depth") == PLACEMENT_GRASP_DEPTH
+
+
 def check_placement_rows(manifest: dict, where: str) -> None:
-    """ValueError naming ``where`` unless the crop manifest's placement rows were made as the service
-    makes them (:data:`PLACEMENT_GRASP_DEPTH`)."""
-    got = manifest.get("placement_grasp_depth")
-    if got != PLACEMENT_GRASP_DEPTH:
+    """ValueError naming ``where`` unless :func:`placement_rows_as_seen`."""
+    if not placement_rows_as_seen(manifest):
+        got = manifest.get("placement_grasp_depth")
         raise ValueError(
             f"{where}: its placement rows place each grasp at its true depth against the sensor-scaled image "
             f"(placement_grasp_depth {got!r}, need {PLACEMENT_GRASP_DEPTH!r}): cut the crops again with this datagen"
