@@ -4,6 +4,10 @@ encoder and fp32 head run directly in onnxruntime.
 
     python examples/golden.py   # rewrite golden_scores.json and golden_heldout.json (with the model)
 
+A model whose head reads placement rows (``vgq.placement``: where each grasp sits on its object) gets
+them from the project's one analysis of the image (``planning.placement``, as datagen and the service
+compute them): only they are not written out by hand.
+
 ``scripts/make_default_model.sh`` reruns this after exporting the model; the golden file is
 never regenerated on its own (``tests/test_golden_scores.py`` and ``tests/test_default_model.py``
 compare the running service, this computation and the stored numbers). ``golden_heldout.json``
@@ -70,6 +74,30 @@ class HandScorer:
     def __init__(self, model_dir: Path = MODEL, head: str = "head.onnx"):
         self.encoder = ort.InferenceSession(str(model_dir / "encoder.onnx"), providers=["CPUExecutionProvider"])
         self.head = ort.InferenceSession(str(model_dir / head), providers=["CPUExecutionProvider"])
+        #: the head's pose width: 7, or 14 for a placement head (each pose row, then its placement row)
+        self.pose_width = int(self.head.get_inputs()[1].shape[1])
+
+    def placement_rows(self, depth: np.ndarray, grasps: np.ndarray, image_index: np.ndarray) -> np.ndarray | None:
+        """None for a head without placement; else the (m, 7) placement rows of ``grasps`` (m, 7), each
+        on its image ``depth[image_index]`` ((n, 300, 300) metres, the default camera)."""
+        if self.pose_width == 7:
+            return None
+        sys.path.insert(0, str(ROOT))
+        from planning.placement import ImagePlacement
+        from vgq.camera import DEFAULT_INTRINSICS
+
+        g, out = np.asarray(grasps, np.float64), np.zeros((len(grasps), 7), np.float32)
+        for i in np.unique(image_index):
+            on = image_index == i
+            out[on] = ImagePlacement.analyse(np.asarray(depth[i], np.float32), DEFAULT_INTRINSICS).rows(
+                g[on, :3], g[on, 3:7]
+            )
+        return out
+
+    @staticmethod
+    def with_rows(poses: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
+        """A placement head's input: each pose row followed by its placement row (``rows`` None: none)."""
+        return poses if rows is None else np.column_stack([poses, rows]).astype(np.float32)
 
     @staticmethod
     def small_window(depth: np.ndarray, centre=(CENTRE, CENTRE)) -> np.ndarray:
@@ -105,11 +133,21 @@ class HandScorer:
         return self.head.run(None, {"image_term": term, "poses": poses})[0]
 
 
-def hand_scores(depth: np.ndarray, grasps: np.ndarray, model_dir: Path = MODEL, head: str = "head.onnx") -> np.ndarray:
-    """Success probabilities (k,) of ``grasps`` on the 300 x 300 ``depth`` (metres), default window."""
+def hand_scores(
+    depth: np.ndarray,
+    grasps: np.ndarray,
+    model_dir: Path = MODEL,
+    head: str = "head.onnx",
+    placement_from: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """Success probabilities (k,) of ``grasps`` on the 300 x 300 ``depth`` (metres), default window.
+    A placement head's rows are read off ``placement_from`` (an image and the same grasps in its
+    pixels, e.g. the image before a shift by hand) or else off ``depth`` and ``grasps``."""
     assert depth.shape == (300, 300), depth.shape
     s = HandScorer(model_dir, head)
-    return s.scores(s.terms(s.small_window(depth)[None]), s.poses(grasps))
+    on, at = placement_from if placement_from is not None else (depth, grasps)
+    rows = s.placement_rows(np.asarray(on)[None], at, np.zeros(len(grasps), int))
+    return s.scores(s.terms(s.small_window(depth)[None]), s.with_rows(s.poses(grasps), rows))
 
 
 def heldout_scores(
@@ -118,7 +156,7 @@ def heldout_scores(
     """fp32 success probabilities (m,) of held-out grasps, each in the window at its ``center``."""
     s = HandScorer(model_dir)
     terms = s.terms(np.stack([s.small_window(depth[i], c) for i, c in zip(image_index, center)]))
-    return s.scores(terms, s.poses_each(grasps, center))
+    return s.scores(terms, s.with_rows(s.poses_each(grasps, center), s.placement_rows(depth, grasps, image_index)))
 
 
 def balanced_accuracy(labels: np.ndarray, p: np.ndarray) -> float:

@@ -5,11 +5,14 @@
 # Every step resumes: rerun the script after an interruption. Uses .venv from ./scripts/test.sh.
 #
 #   ./scripts/make_default_model.sh                  # the bundled model's recipe (v2): families, sensor
-#                                                    # model, physics label; two stages: the image and pose
-#                                                    # streams (runs/fast-v2), then the jaw-grid head
-#                                                    # fine-tuned on top (runs/fast-v2-jaw, docs/training.md);
-#                                                    # plus its clean-test and leave-family-out runs
-#   JAW_SAMPLES=0 ./scripts/make_default_model.sh   # the v2 bundled until 2026-12-05: stage one only
+#                                                    # model, physics label; three stages: the image and pose
+#                                                    # streams (runs/fast-v2), the jaw-grid head fine-tuned on
+#                                                    # top (runs/fast-v2-jaw), then that head again with a
+#                                                    # placement stream, encoder frozen (runs/fast-v2-place,
+#                                                    # docs/training.md); plus its clean-test and
+#                                                    # leave-family-out runs
+#   PLACE_SAMPLES=0 ./scripts/make_default_model.sh # the v2 bundled until 2026-12-07: stages one and two
+#   JAW_SAMPLES=0 PLACE_SAMPLES=0 ./scripts/make_default_model.sh  # the v2 bundled until 2026-12-05
 #   STACKER=1 ./scripts/make_default_model.sh        # v2 plus a placement stacker on the exported network
 #                                                    # (training stacker; not the bundle: docs/training.md)
 #   VERSION=v1 ./scripts/make_default_model.sh       # model v1 (bundled until 2026-11-30)
@@ -25,8 +28,10 @@
 # v2's dataset ~40 min (1,040 objects; their physics trials replayed from datagen/recipes/v2_physics_trials.npz,
 # ~3 h when simulated), training ~30-50 min per 1M samples with bf16 steps (CPUs with AVX-512 BF16 or
 # AMX; ~2.5 h without): stage one SAMPLES (2.6 M), the jaw-grid stage
-# JAW_SAMPLES (2.4 M; the bundle is its best checkpoint, 2.28 M), the leave-family-out runs SAMPLES_LFO
-# (3 M: 79.4% on the never-seen families for stage one; 71.7% at 1 M) and JAW_SAMPLES again.
+# JAW_SAMPLES (2.4 M; its best checkpoint, 2.28 M, was the bundle until 2026-12-07), the placement stage
+# PLACE_SAMPLES (1.2 M, ~750 samples/s with the encoder frozen; the bundle is its best checkpoint),
+# the leave-family-out runs SAMPLES_LFO (3 M: 79.4% on the never-seen families for stage one; 71.7% at
+# 1 M), JAW_SAMPLES and PLACE_SAMPLES again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # the whole script is read before it runs (a function), so editing this file cannot break a running build
@@ -45,6 +50,10 @@ main() {
   TRAIN_OPTS+=("${NET[@]}")
   JAW_SAMPLES=${JAW_SAMPLES:-2400000}  # the jaw-grid stage (v2): stage one's best checkpoint, the new head
   [ "$VERSION" = v2 ] || JAW_SAMPLES=0  # starting at zero, a quarter of the learning rate; 0: no jaw stage
+  # the placement stage (v2, after the jaw stage): the jaw stage's exported model, its encoder frozen, its
+  # head fine-tuned reading each grasp's placement row (vgq.placement) beside its pose; 0: no placement stage
+  PLACE_SAMPLES=${PLACE_SAMPLES:-1200000}
+  [ "$JAW_SAMPLES" != 0 ] || PLACE_SAMPLES=0
   # STACKER=1 (v2): a placement stacker on the exported network's scores (training stacker, docs/training.md),
   # fitted on the recipe's stacker objects and judged on its 16-new-objects test; the network is exported to
   # RUN-jaw/model, the stacked model written to OUT
@@ -60,15 +69,24 @@ main() {
   fi
 
   $PY -m datagen recipe --version "$VERSION" --out "$DATA" --no-leave-out  # the leave-family-out split comes later
-  # train_stages DATA RUN SAMPLES: stage one into RUN, then (JAW_SAMPLES > 0) the jaw-grid stage into RUN-jaw
+  # train_stages DATA RUN SAMPLES: stage one into RUN, then (JAW_SAMPLES > 0) the jaw-grid stage into RUN-jaw,
+  # then (PLACE_SAMPLES > 0) the placement stage into RUN-place, starting from RUN-jaw exported to RUN-jaw/model
   train_stages() {
     $PY -m training train --data "$1" --out "$2" --samples "$3" "${TRAIN_OPTS[@]}"
     if [ "$JAW_SAMPLES" != 0 ]; then
       $PY -m training train --data "$1" --out "$2-jaw" --samples "$JAW_SAMPLES" "${TRAIN_OPTS[@]}" \
         --init "$2" --roi-head jaw --base-lr 0.00005
     fi
+    if [ "$PLACE_SAMPLES" != 0 ]; then
+      [ -f "$2-jaw/model/model_card.json" ] || $PY -m export --run "$2-jaw" --data "$1" --out "$2-jaw/model" --no-calibration
+      $PY -m training train --data "$1" --out "$2-place" --samples "$PLACE_SAMPLES" "${TRAIN_OPTS[@]}" \
+        --init "$2-jaw/model" --roi-head jaw --freeze-encoder --base-lr 0.0001 --val-every-samples 50000 \
+        --placement image --placement-units 64 --placement-lr-scale 30 --placement-dropout 0.1
+    fi
   }
-  final() { if [ "$JAW_SAMPLES" != 0 ]; then echo "$1-jaw"; else echo "$1"; fi; }
+  final() {
+    if [ "$PLACE_SAMPLES" != 0 ]; then echo "$1-place"; elif [ "$JAW_SAMPLES" != 0 ]; then echo "$1-jaw"; else echo "$1"; fi
+  }
   FINAL=$(final "$RUN")
   [ "$STACKER" = 0 ] || EXPORTED="$FINAL/model"
   train_stages "$DATA/crops" "$RUN" "$SAMPLES"

@@ -112,10 +112,11 @@ def test_broken_serving_paths_fall_below_the_bound(heldout):
     h, s = heldout, HandScorer()
     terms = s.terms(np.stack([s.small_window(h.depth[i], c) for i, c in zip(h.image_index, h.center)]))
     g = h.grasps.astype(np.float64)
+    rows = s.placement_rows(h.depth, g, h.image_index)  # a placement head's: read off the client's grasps
 
     def ba(transform):
         moved = np.concatenate([transform(g[j : j + 1], h.center[j]) for j in range(len(g))])
-        return balanced_accuracy(h.labels, s.scores(terms, s.poses_each(moved, h.center)))
+        return balanced_accuracy(h.labels, s.scores(terms, s.with_rows(s.poses_each(moved, h.center), rows)))
 
     def swap(x, c):
         x = x.copy()

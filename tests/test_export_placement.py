@@ -71,8 +71,8 @@ def test_export_refuses_verification_poses_without_the_placement_row(exported, t
         export_model(net, tmp_path / "bad", imgs, poses[:, :7], GEOM, DEFAULT_INTRINSICS)
 
 
-def test_a_card_without_placement_reads_and_writes_as_before():
-    card = ModelCard.load("models/fast-vgqcnn-default")
+def test_a_card_without_placement_reads_and_writes_as_before(model_dir):
+    card = ModelCard.load(model_dir)
     assert card.placement_columns == () and "placement_columns" not in card.to_dict()
 
 

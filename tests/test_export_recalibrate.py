@@ -38,14 +38,14 @@ def test_one_object_is_a_clear_error(tmp_path, capsys):
     assert "at least 2 objects" in capsys.readouterr().err
 
 
-def test_a_model_of_turned_windows_is_calibrated_on_turned_windows(tmp_path):
+def test_a_model_of_turned_windows_is_calibrated_on_turned_windows(tmp_path, model_dir):
     from datagen.crops import turned_crops
     from export.recalibrate import native_rows, score_native
     from service.runtime import FastModel
 
     fake_dataset(tmp_path / "g", n_objects=2, n_images=1, n_grasps=40, seed=5)
     turned = tmp_path / "m"
-    shutil.copytree(DEFAULT, turned)
+    shutil.copytree(model_dir, turned)  # a model without placement rows (the bundle's head reads them)
     card = json.loads((turned / "model_card.json").read_text())
     card["geometry"]["jaw_turns"] = 4
     (turned / "model_card.json").write_text(json.dumps(card))
@@ -63,7 +63,7 @@ def test_a_model_of_turned_windows_is_calibrated_on_turned_windows(tmp_path):
         assert p[j] == float(model.score(model.encode(img), pose)[0])
 
 
-def test_a_placement_head_is_scored_with_each_grasps_placement_row(tmp_path):
+def test_a_placement_head_is_scored_with_each_grasps_placement_row(tmp_path, model_dir):
     from export.recalibrate import native_rows, score_native
     from export.stack_head import write_stacked
     from planning.placement import placement_rows
@@ -74,10 +74,10 @@ def test_a_placement_head_is_scored_with_each_grasps_placement_row(tmp_path):
     shapes = [(4, len(INPUTS)), (1, 4)]
     layers = tuple((rng.normal(0, 1, s).astype(np.float32), np.ones(s[0], np.float32)) for s in shapes)
     stacker = Stacker(np.zeros(len(INPUTS), np.float32), np.ones(len(INPUTS), np.float32), layers)
-    stacked = write_stacked(DEFAULT, stacker, tmp_path / "m", {})
+    stacked = write_stacked(model_dir, stacker, tmp_path / "m", {})  # a head without placement, stacked
     fake_dataset(tmp_path / "g", n_objects=2, n_images=1, n_grasps=40, seed=5)
     model, data = FastModel(stacked, head_precision="fp32"), native_rows(tmp_path / "g")
-    base = FastModel(DEFAULT, head_precision="fp32")
+    base = FastModel(model_dir, head_precision="fp32")
     depth, rows, _, image_index = data[0]
     n = len(rows)  # all of object 0's rows, in a random order
     p, _ = score_native(model, data, [0], n, np.random.default_rng(1))  # a (k, 14) head: scored, not refused

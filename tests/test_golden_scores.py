@@ -87,10 +87,10 @@ def test_service_one_shot_npz_with_off_centre_window_equals_hand_computation(fp3
     shifted = np.pad(depth, ((15, 0), (0, 21)), mode="edge")[:300, 21:]  # shifted[v, u] = depth[v + dv, u + du]
     assert shifted[150, 100] == depth[135, 121]
     g = golden.golden_grasps()
-    ref = golden.hand_scores(shifted, g)
     moved = g.copy()
     moved[:, 0] += du
     moved[:, 1] += dv
+    ref = golden.hand_scores(shifted, g, placement_from=(depth, moved))  # a placement head's rows: as uploaded
     b = io.BytesIO()
     with zipfile.ZipFile(b, "w") as z:
         z.writestr("depth.npy", _npy(depth))

@@ -350,21 +350,14 @@ def test_breakdown_times_every_step_in_each_tree_and_compares_their_answers(mode
     assert "| Service.place |" in capsys.readouterr().out
 
 
-def test_overhead_rows_run_a_placement_head_with_its_rows(tmp_path):
-    """A model whose head reads placement rows (here the bundle with a stacker appended) gets
-    them in the in-process model rows, as the service appends them."""
-    import numpy as np
-
-    from export.stack_head import write_stacked
+def test_overhead_rows_run_a_placement_head_with_its_rows():
+    """A model whose head reads placement rows (the bundle, since 2026-12-07) gets them in the
+    in-process model rows, as the service appends them."""
     from tools.loadtest.overhead import in_process_calls
-    from training.stacker import INPUTS, Stacker
+    from vgq.model_card import ModelCard
 
-    rng = np.random.default_rng(0)
-    layers = tuple((rng.normal(0, 0.3, s).astype(np.float32), np.zeros(s[0], np.float32)) for s in ((4, 7), (1, 4)))
-    out = write_stacked(
-        "models/fast-vgqcnn-default", Stacker(np.zeros(len(INPUTS)), np.ones(len(INPUTS)), layers), tmp_path / "m", {}
-    )
-    tasks = in_process_calls(str(out), 1, 16)
+    assert ModelCard.load("models/fast-vgqcnn-default").head_pose_width == 14
+    tasks = in_process_calls("models/fast-vgqcnn-default", 1, 16)
     for name in ("model encoder + head", "model head", "steps one-shot", "steps cached score"):
         t = tasks[name]
         t.fn(t.prepare()) if t.prepare else t.fn()

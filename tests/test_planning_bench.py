@@ -222,7 +222,7 @@ def test_noisy_scores_average_the_planners_own_scores():
     from datagen.physics import PhysicsParams
     from planning.bench.common import MODEL_DIR, load_model
     from planning.bench.trials import noisy_scores
-    from planning.policy import WindowScorer, grasp_rows, plan
+    from planning.policy import grasp_rows, plan, window_scorer
     from planning.types import PlanParams
     from tests.planning_scenes import boxes_scene
     from vgq.camera import DEFAULT_INTRINSICS as intr
@@ -231,7 +231,7 @@ def test_noisy_scores_average_the_planners_own_scores():
     model = load_model(MODEL_DIR, 1)
     res = plan(depth, intr, model, k=5, seed=0)
     frames = res.candidates["frames"][:8]
-    own, _ = WindowScorer(model, depth, PlanParams().windows).score(grasp_rows(frames, intr))
+    own, _ = window_scorer(model, depth, intr, PlanParams().windows).score(grasp_rows(frames, intr))
     quiet = dataclasses.replace(PhysicsParams(), sigma_translation=0.0, sigma_rotation=0.0)
     with mock.patch("datagen.physics.PhysicsParams", return_value=quiet):
         avg = noisy_scores(model, depth, intr, frames, 4, PlanParams(), 0)

@@ -185,7 +185,8 @@ def test_cem_adds_collision_free_rotations_and_never_lowers_the_best_score(model
 
 
 def test_every_candidate_keeps_the_head_pose_it_was_scored_with(model, two_boxes):
-    """candidates["poses"]: what a pose-only ranking (planning.bench --baseline) reads. CEM grasps too."""
+    """candidates["poses"]: what a pose-only ranking (planning.bench --baseline) reads (its first 7
+    columns; a placement head's rows go on with each candidate's placement row). CEM grasps too."""
     import dataclasses
 
     from planning.policy import grasp_rows
@@ -193,9 +194,9 @@ def test_every_candidate_keeps_the_head_pose_it_was_scored_with(model, two_boxes
     depth, _, _ = two_boxes
     res = plan(depth, DEFAULT_INTRINSICS, model, k=1, seed=3, params=dataclasses.replace(FAST, cem_iterations=2))
     c = res.candidates
-    assert c["poses"].shape == (len(c["scores"]), 7) == (len(c["frames"]), 7)
+    assert c["poses"].shape == (len(c["scores"]), model.n_pose) == (len(c["frames"]), model.n_pose)
     rows = grasp_rows(c["frames"], DEFAULT_INTRINSICS)
-    assert np.allclose(c["poses"][:, 2:], rows[:, 2:], atol=1e-6)  # z, quaternion as given
+    assert np.allclose(c["poses"][:, 2:7], rows[:, 2:], atol=1e-6)  # z, quaternion as given
     kappa = model.geometry.kappa_px
     assert np.abs(c["poses"][:, :2]).max() <= kappa / model.geometry.scale + 1e-3  # crop px from the window centre
     # planning.features reads the rest: each candidate's width and seen flag, and the scene estimate

@@ -57,7 +57,9 @@ def test_a_rolled_camera_with_its_up_scores_as_the_level_camera(client, heldout)
         level = client.score_details(client.upload(depth), grasps)["raw_score"]
         d, g, intr = rolled(depth, grasps)
         with_up = client.score_details(client.upload(d, intrinsics=intr, up=UP), g)["raw_score"]
-        np.testing.assert_allclose(with_up, level, atol=1e-6)
+        # the placement rows come from the image as uploaded: the same table and objects, their pixels in
+        # another order for the table's seeded RANSAC, whose plane moves a little (measured |dp| <= 2.1e-4)
+        np.testing.assert_allclose(with_up, level, atol=1e-3)
         without = client.score_details(client.upload(d, intrinsics=intr), g)["raw_score"]
         moved.append(np.abs(without - level))
     assert np.concatenate(moved).mean() > 0.05  # not given, the roll changes what the model sees

@@ -29,7 +29,6 @@ from vgq.placement import PLACEMENT_COLUMNS
 
 NPY, OCTET, NPZ = "application/x-npy", "application/octet-stream", "application/x-npz"
 CAMERA = Intrinsics(600.0, 600.0, 160.0, 140.0, 300, 300)  # not the model's: the upload is resampled
-DEFAULT_MODEL = "models/fast-vgqcnn-default"
 
 
 def _npy(a) -> bytes:
@@ -227,14 +226,14 @@ def test_the_redis_entry_keeps_the_placement_analysis():
     assert unpack_entry(pack_entry(CachedImage(depth, CAMERA, CAMERA))).placement is None
 
 
-def test_a_model_without_placement_runs_no_analysis_and_answers_as_before(monkeypatch):
+def test_a_model_without_placement_runs_no_analysis_and_answers_as_before(monkeypatch, model_dir):
     def refuse(*args, **kwargs):
         raise AssertionError("a model without placement analysed an image")
 
     monkeypatch.setattr(ImagePlacement, "analyse", refuse)
     depth = box_scene()
     g = grasps(depth)
-    with _client(DEFAULT_MODEL) as c:
+    with _client(model_dir) as c:
         up = _upload(c, depth)
         scored = _score(c, up["image_id"], g)
         once = c.post("/v1/score", content=_npz(depth=depth, grasps=g), headers={"content-type": NPZ})
