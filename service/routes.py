@@ -9,6 +9,7 @@ the routes below stay for the OpenAPI document and any request the fast path pas
 
 from __future__ import annotations
 
+import dataclasses
 import hmac
 from typing import Annotated
 
@@ -400,12 +401,16 @@ def score_one_shot(svc: Service, body, header: str, accept: str | None, strict: 
     key = image_id(shot.depth_body, shot.cache_params(), svc.model.version)
     entry = svc.cache.get(key)
     cached = entry is not None
-    placed = None
+    placed, encoded = None, 0
     if entry is None:
         depth = shot.decode(s.max_image_side)
         entry = svc.prepare_image(depth, shot.numbers)
         placed = svc.place(entry, shot.grasps)  # a bad batch costs no inference and fills no cache
-        svc.analyse_placement(entry, depth)  # a placement model's only: the image as uploaded
+        # a placement model's only: the image as uploaded, analysed while the batch's windows are
+        # encoded (a strict batch is checked before any inference: then one after the other)
+        encoded = svc.analyse_placement(entry, depth, key, None if strict else placed)
         svc.put(key, entry)
     result = svc.score(key, entry, shot.grasps, strict, placed)
+    if encoded:  # encoded beside the analysis, for this request all the same
+        result = dataclasses.replace(result, windows_encoded=result.windows_encoded + encoded)
     return _scores_response(accept, svc, key, cached, entry, result)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import gc
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -112,6 +113,8 @@ class Service:
         self.tilt_range = DEFAULT_TILT_RANGE
         #: the head reads a placement row after each grasp's pose columns (``service.placement``)
         self.placement = False
+        #: a placement model's: the one-shot route's image analysis, beside the encoder (started at load)
+        self._analyser: ThreadPoolExecutor | None = None
         # bounds the plans computed at once (service/plan_routes.py); a waiting plan holds no thread
         self.plan_slots = anyio.CapacityLimiter(settings.max_concurrent_plans)
 
@@ -129,6 +132,8 @@ class Service:
             self.z_range, self.z_range_source = self.model.card.z_range()
             self.tilt_range = self.model.card.tilt_range()
             self.placement = bool(self.model.card.placement_columns)
+            if self.placement and self._analyser is None:
+                self._analyser = ThreadPoolExecutor(1, thread_name_prefix="vgq-placement")
             self.model.warm_up()
             gc.collect()
             gc.freeze()  # start-up objects out of the collector's way: no GC pauses on them later
@@ -182,12 +187,29 @@ class Service:
             new = self._encode({(int(o[0]), int(o[1])): None}, entry, {})
             entry.windows.update(new)
 
-    def analyse_placement(self, entry: CachedImage, depth: np.ndarray) -> None:
+    def analyse_placement(
+        self, entry: CachedImage, depth: np.ndarray, key: str | None = None, placed: tuple | None = None
+    ) -> int:
         """For a model whose head reads placement rows: analyse ``depth``, the upload of ``entry`` as
         decoded (metres, client pixels, before resampling or inpainting), with the upload's own
-        intrinsics, and keep the analysis with the entry. Nothing for any other model."""
-        if self.placement and entry.placement is None:
+        intrinsics, and keep the analysis with the entry. Nothing for any other model.
+
+        ``key`` and ``placed`` (a one-shot's grasps, :meth:`place`): the analysis runs in a helper
+        thread while their windows of ``entry`` are encoded here (onnxruntime lets go of the GIL), so
+        the call costs about the longer of the two rather than their sum; the scoring that follows
+        finds the windows encoded (a 422 for a mostly missing window comes from here). Returns the
+        number of windows encoded here."""
+        if not self.placement or entry.placement is not None:
+            return 0
+        if placed is None or self._analyser is None or self.model.geometry.jaw_turns:
             entry.placement = image_placement.analyse(depth, entry.camera)
+            return 0
+        job = self._analyser.submit(image_placement.analyse, depth, entry.camera)
+        try:
+            where = window_groups(placed[1])[0]
+            return len(self._encode_new(key, entry, where, [o for o in where if o not in entry.windows]))
+        finally:
+            entry.placement = job.result()
 
     def put(self, key: str, entry: CachedImage) -> None:
         self.cache.put(key, entry)
@@ -371,14 +393,20 @@ class Service:
         )
         return where, new, frac, mask
 
+    def _encode_new(self, key: str, entry: CachedImage, where: dict, new: list) -> dict:
+        """Encode the windows ``new`` of ``entry`` (cached as ``key``) in one encoder call and keep
+        them with it (``where``: origin -> grasp indices, named in a 422); the windows encoded."""
+        encoded = self._encode(dict.fromkeys(new), entry, where) if new else {}
+        if encoded:
+            self.cache.add_windows(key, entry, encoded)
+        return encoded
+
     def _infer(self, key: str, entry: CachedImage, rows: np.ndarray, looked: tuple) -> tuple[np.ndarray, int]:
         """Encode the new windows of ``looked`` (:meth:`_windows_and_flags`), then run the head on
         the pose ``rows`` (k, 7; k, 14 for a placement head: :func:`_with_placement`): (raw scores
         (k,) float32, windows encoded)."""
         where, new = looked[0], looked[1]
-        encoded = self._encode(dict.fromkeys(new), entry, where) if new else {}
-        if encoded:
-            self.cache.add_windows(key, entry, encoded)
+        encoded = self._encode_new(key, entry, where, new)
         if len(where) == 1:  # one window: its rows as they are, no gather and scatter
             raw = np.asarray(self.model.score(entry.windows[next(iter(where))].term, rows), np.float32).reshape(-1)
             self.metrics.head.observe(self.model.score_seconds)

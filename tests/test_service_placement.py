@@ -179,6 +179,52 @@ def test_the_one_shot_route_scores_as_upload_then_score(client):
     assert binary.headers["x-placement-known"] == str(sum(two["placement"]["known"]))
 
 
+def test_a_one_shot_encodes_its_windows_while_its_image_is_analysed(client, monkeypatch):
+    """The one-shot route analyses the upload in a helper thread while its own thread encodes the
+    batch's windows (onnxruntime lets go of the GIL): the encoder starts before the analysis ends,
+    the answer still counts the windows it encoded, and the scores are the sequential ones."""
+    import threading
+    import time
+
+    from service import placement as service_placement
+
+    events, analyse, svc = [], service_placement.analyse, client.app.state.service
+    encode = svc.model.encode
+
+    def slow_analysis(depth, camera):
+        events.append(("analysis", threading.current_thread().name))
+        time.sleep(0.2)
+        out = analyse(depth, camera)
+        events.append(("analysed", threading.current_thread().name))
+        return out
+
+    def encoder(crops):
+        events.append(("encode", threading.current_thread().name))
+        return encode(crops)
+
+    monkeypatch.setattr(service_placement, "analyse", slow_analysis)
+    monkeypatch.setattr(svc.model, "encode", encoder)
+    depth = box_scene(0.05)
+    g = grasps(depth, seed=5)
+    camera = np.array([CAMERA.fx, CAMERA.fy, CAMERA.cx, CAMERA.cy])
+    once = client.post(
+        "/v1/score", content=_npz(depth=depth, grasps=g, intrinsics=camera), headers={"content-type": NPZ}
+    )
+    assert once.status_code == 200, once.text
+    names = [e[0] for e in events]
+    assert names.index("encode") < names.index("analysed")  # the encoder ran while the analysis went on
+    helper = events[names.index("analysis")][1]
+    assert helper.startswith("vgq-placement") and events[names.index("encode")][1] != helper
+    assert once.json()["windows_encoded"] == once.json()["windows"] >= 1
+    events.clear()
+    strict = client.post(
+        "/v1/score?strict=true", content=_npz(depth=depth + 0.01, grasps=g), headers={"content-type": NPZ}
+    )
+    assert strict.status_code == 200 and [e[0] for e in events][:2] == ["analysis", "analysed"]  # strict: in turn
+    two = _score(client, _upload(client, depth)["image_id"], g)
+    assert once.json()["raw_score"] == two["raw_score"]
+
+
 def test_a_turned_upload_reads_the_rows_of_the_image_as_sent(client, reference):
     depth = box_scene()
     g = grasps(depth, seed=4)
