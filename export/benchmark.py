@@ -259,9 +259,19 @@ def run_benchmark(
         peak_call = matmul_call(threads)
         peaks = []
         rows = {}
+        # a placement head (card.placement_columns) reads each grasp's placement row after its pose: the
+        # rows of the image as the service computes them, its analysis timed as preprocessing (once per image)
+        placed = fast.n_pose != 7
+        if placed:
+            from service import placement
+
+            camera = fast.card.intrinsics
+            analysis = placement.analyse(np.asarray(depth, np.float32), camera)
         for k in ks:
             grasps = np.ascontiguousarray(all_grasps[:k])
             crop1, poses = fast_preprocess(depth, grasps, geom, center)
+            if placed:
+                poses = np.column_stack([poses, placement.rows(analysis, grasps)]).astype(np.float32)
             term = fast.encode(crop1[0, 0])
             # a model of windows turned towards the jaw encodes one window per turn its grasps need
             windows = turns_needed(grasps, geom, fast.card.intrinsics)
@@ -280,6 +290,11 @@ def run_benchmark(
                     "encoder": (lambda: fast.encode(crop1[0, 0]), runs),
                     "vgq": (lambda: vgq.run([VGQ_OUTPUT], vfeed), n_vgq),
                     "fast_pre": (lambda: fast_preprocess(depth, grasps, geom, center), runs),
+                    **(
+                        {"placement": (lambda: placement.rows(placement.analyse(depth, camera), grasps), runs)}
+                        if placed
+                        else {}
+                    ),
                     "vgq_pre": (lambda: vgq_preprocess(depth, grasps, geom_vgq, geom, center), n_vpre),
                     "peak": (peak_call, max(5, min(50, runs // 20))),
                     **({"head_fp32": (lambda: fast32.score(term, poses), runs)} if fast32 else {}),
@@ -301,7 +316,8 @@ def run_benchmark(
             rows[k] = {
                 **st,
                 "speedup_prediction": vm / fm,
-                "speedup_total": (vm + st["vgq_pre"]["median_ms"]) / (fm + st["fast_pre"]["median_ms"]),
+                "speedup_total": (vm + st["vgq_pre"]["median_ms"])
+                / (fm + st["fast_pre"]["median_ms"] + st.get("placement", {}).get("median_ms", 0.0)),
                 "matmul_peak_gflops": peak,
                 "windows": windows,
                 "fast_mflop": (windows * enc_flops + head_flops) / 1e6,
@@ -431,6 +447,11 @@ def markdown(report: dict) -> str:
         line("Fast-VGQ-CNN encoder only, ms", ms("encoder")),
         line("VGQ-CNN preprocessing (k crops), ms", ms("vgq_pre")),
         line("Fast-VGQ-CNN preprocessing (1 crop), ms", ms("fast_pre")),
+        *(
+            [line("placement head: the image's analysis and the k placement rows, ms", ms("placement"))]
+            if "placement" in rows[ks[0]]
+            else []
+        ),
         line("speed-up VGQ / Fast, prediction", lambda r: f"{r['speedup_prediction']:.1f}x"),
         line("speed-up VGQ / Fast, preprocessing + prediction", lambda r: f"{r['speedup_total']:.1f}x"),
         line("Fast FLOPs (encoder + head), MFLOP", lambda r: f"{r['fast_mflop']:.0f}"),

@@ -82,6 +82,17 @@ def test_benchmark_table_has_a_column_per_k_and_every_row(model_dir):
     assert r["fast_mflop"] == (2 * ENCODER_MACS + 2 * 16 * HEAD_MACS_PER_GRASP) / 1e6
 
 
+def test_a_placement_head_is_timed_with_its_placement_rows_and_their_analysis():
+    """The bundle's head reads placement rows (since 2026-12-07): scored with the service's rows of
+    the image, the analysis timed as a preprocessing row of its own."""
+    report = run_benchmark(
+        "models/fast-vgqcnn-default", ks=(8,), runs=3, threads=1, vgq_budget_s=0.01, log=lambda s: None
+    )
+    r = report["rows"]["8"]
+    assert r["placement"]["runs"] == 3 and r["fast"]["median_ms"] > 0
+    assert "| placement head: the image's analysis and the k placement rows, ms |" in markdown(report)
+
+
 def test_a_model_of_turned_windows_is_timed_encoding_a_window_per_turn_its_grasps_need(model_dir, tmp_path):
     import json
     import shutil
