@@ -83,15 +83,13 @@ class HandScorer:
         if self.pose_width == 7:
             return None
         sys.path.insert(0, str(ROOT))
-        from planning.placement import ImagePlacement
+        from planning.placement import placement_rows
         from vgq.camera import DEFAULT_INTRINSICS
 
         g, out = np.asarray(grasps, np.float64), np.zeros((len(grasps), 7), np.float32)
         for i in np.unique(image_index):
             on = image_index == i
-            out[on] = ImagePlacement.analyse(np.asarray(depth[i], np.float32), DEFAULT_INTRINSICS).rows(
-                g[on, :3], g[on, 3:7]
-            )
+            out[on] = placement_rows(np.asarray(depth[i], np.float32), DEFAULT_INTRINSICS, g[on, :3], g[on, 3:7])
         return out
 
     @staticmethod

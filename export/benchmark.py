@@ -265,8 +265,8 @@ def run_benchmark(
         if placed:
             from service import placement
 
-            camera = fast.card.intrinsics
-            analysis = placement.analyse(np.asarray(depth, np.float32), camera)
+            camera, depth32 = fast.card.intrinsics, np.asarray(depth, np.float32)  # the upload as the service reads it
+            analysis = placement.analyse(depth32, camera)
         for k in ks:
             grasps = np.ascontiguousarray(all_grasps[:k])
             crop1, poses = fast_preprocess(depth, grasps, geom, center)
@@ -291,7 +291,7 @@ def run_benchmark(
                     "vgq": (lambda: vgq.run([VGQ_OUTPUT], vfeed), n_vgq),
                     "fast_pre": (lambda: fast_preprocess(depth, grasps, geom, center), runs),
                     **(
-                        {"placement": (lambda: placement.rows(placement.analyse(depth, camera), grasps), runs)}
+                        {"placement": (lambda: placement.rows(placement.analyse(depth32, camera), grasps), runs)}
                         if placed
                         else {}
                     ),
