@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from vgq.camera import Intrinsics, deproject
 from vgq.placement import MAX_REGION_DISTANCE_PX, rows_from_geometry, unknown_rows
@@ -26,10 +25,10 @@ from .types import PlanParams
 
 @dataclass(frozen=True)
 class ImagePlacement:
-    """What one depth image says about placement: the table plane (None: none found), each pixel's
-    object region (H, W) int32 (0: none; or the nearest region within reach; an analysis made
-    ``near`` some pixels: only around them), the regions' centre-of-mass guesses (n + 1, 3) and
-    tops (n + 1,) (metres above the table)."""
+    """What one depth image says about placement: the table plane (None: none found), the object
+    regions (H, W) int (0: none; region i is label i; connected regions above the table, as seen),
+    the regions' centre-of-mass guesses (n + 1, 3) and tops (n + 1,) (metres above the table). A
+    pixel off every region reads the nearest region within reach (:func:`region_at`)."""
 
     intr: Intrinsics
     normal: np.ndarray | None
@@ -39,19 +38,8 @@ class ImagePlacement:
     tops: np.ndarray | None
 
     @classmethod
-    def analyse(
-        cls,
-        depth: np.ndarray,
-        intr: Intrinsics,
-        seed: int = 0,
-        params: PlanParams | None = None,
-        near: np.ndarray | None = None,
-    ):
-        """Analyse ``depth`` (H, W) metres (0 or non-finite: no reading) seen with ``intr``. ``near``
-        (k, 2) image pixels (u, v): the region map is made only around them (exact at their pixels,
-        as :meth:`rows` reads them; a sensor image's noise specks on the table are regions too, and
-        the whole map costs ~3 ms of distance transform); None: the whole map (the service's, read
-        later at any pixel)."""
+    def analyse(cls, depth: np.ndarray, intr: Intrinsics, seed: int = 0, params: PlanParams | None = None):
+        """Analyse ``depth`` (H, W) metres (0 or non-finite: no reading) seen with ``intr``."""
         params = params or PlanParams()
         pts, valid = backproject(depth, intr)
         table = find_table(pts, valid, params, np.random.default_rng(seed))
@@ -66,40 +54,56 @@ class ImagePlacement:
         where = np.flatnonzero(objects)
         tops = np.zeros(n + 1)
         tops[1:] = region_max(h.ravel()[where], labels.ravel()[where], n)
-        # every pixel off the regions takes its nearest region pixel's label within reach: the distance
-        # transform over the regions' bounding box grown by the reach (beyond it nothing is in reach)
-        rows, cols = np.flatnonzero(objects.any(axis=1)), np.flatnonzero(objects.any(axis=0))
-        r = MAX_REGION_DISTANCE_PX
-        r0, r1 = max(rows[0] - r, 0), min(rows[-1] + r + 1, objects.shape[0])
-        c0, c1 = max(cols[0] - r, 0), min(cols[-1] + r + 1, objects.shape[1])
-        if near is not None:  # only around the pixels asked for: every region pixel in their reach is inside
-            u, v = _pixels(np.asarray(near, np.float64).reshape(-1, 2), objects.shape)
-            if len(u):
-                r0, r1 = max(r0, v.min() - r), min(r1, v.max() + r + 1)
-                c0, c1 = max(c0, u.min() - r), min(c1, u.max() + r + 1)
-        region = np.zeros(labels.shape, np.int32)
-        box = labels[r0:r1, c0:c1]
-        if (box != 0).any():  # else no region within reach of any pixel of the box
-            dist, (iy, ix) = ndimage.distance_transform_edt(box == 0, return_indices=True)
-            region[r0:r1, c0:c1] = np.where(dist <= r, box[iy, ix], 0)
-        return cls(intr, table.normal, float(table.offset), region, centres, tops)
+        return cls(intr, table.normal, float(table.offset), labels, centres, tops)
 
     def rows(self, uvz: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Placement rows (k, 7) float32 of grasps at image pixels and depths ``uvz`` (k, 3) (px, px,
         metres) with orientations ``q`` (k, 4) (w, x, y, z, camera frame); ``known`` 0 rows where the
-        image shows no table or no object region at the grasp."""
+        image shows no table or no object region at or within reach of the grasp's pixel."""
         uvz = np.asarray(uvz, np.float64).reshape(-1, 3)
         out = unknown_rows(len(uvz))
         if self.region is None or len(uvz) == 0:
             return out
         u, v = _pixels(uvz[:, :2], self.region.shape)
-        lab = self.region[v, u]
+        lab = region_at(self.region, u, v)
         ok = lab > 0
         if ok.any():
             g = deproject(uvz[ok], self.intr)
             R = matrix_from_quaternion(np.asarray(q, np.float64).reshape(-1, 4)[ok])
             out[ok] = rows_from_geometry(self.centres[lab[ok]], self.tops[lab[ok]], g, R, self.normal, self.offset)
         return out
+
+
+def _reach_offsets(r: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel offsets (rows, columns) (m,) each within ``r`` px (Euclidean), nearest first (ties: the
+    smaller row offset, then the smaller column offset)."""
+    dy, dx = np.mgrid[-r : r + 1, -r : r + 1]
+    d2 = dy**2 + dx**2
+    keep = d2 <= r * r
+    dy, dx, d2 = dy[keep], dx[keep], d2[keep]
+    order = np.lexsort((dx, dy, d2))
+    return dy[order], dx[order]
+
+
+_REACH_DY, _REACH_DX = _reach_offsets(MAX_REGION_DISTANCE_PX)
+
+
+def region_at(region: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The object region (k,) int64 of pixels (columns ``u``, rows ``v``) (k,) inside ``region``
+    (H, W): the region under the pixel, else the nearest region pixel's within
+    ``vgq.placement.MAX_REGION_DISTANCE_PX`` (ties as :func:`_reach_offsets` orders them), else 0.
+    Only the pixels asked for are searched: a sensor image's noise specks make hundreds of tiny
+    regions, and a whole-image nearest-region map cost ~3-6 ms of distance transform per upload."""
+    lab = region[v, u].astype(np.int64)
+    off = np.flatnonzero(lab == 0)
+    if len(off):
+        h, w = region.shape
+        y = v[off, None] + _REACH_DY
+        x = u[off, None] + _REACH_DX
+        inside = (y >= 0) & (y < h) & (x >= 0) & (x < w)
+        near = np.where(inside, region[np.clip(y, 0, h - 1), np.clip(x, 0, w - 1)], 0)
+        lab[off] = near[np.arange(len(off)), np.argmax(near != 0, axis=1)]  # 0 where none is in reach
+    return lab
 
 
 def _pixels(uv: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -111,7 +115,5 @@ def _pixels(uv: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndar
 
 
 def placement_rows(depth: np.ndarray, intr: Intrinsics, uvz: np.ndarray, q: np.ndarray, seed: int = 0) -> np.ndarray:
-    """:meth:`ImagePlacement.rows` of one image's grasps in one call (datagen's crop stage): the
-    region map made only around them, the same rows as from the whole map."""
-    uvz = np.asarray(uvz, np.float64).reshape(-1, 3)
-    return ImagePlacement.analyse(depth, intr, seed, near=uvz[:, :2]).rows(uvz, q)
+    """:meth:`ImagePlacement.rows` of one image's grasps in one call (datagen's crop stage)."""
+    return ImagePlacement.analyse(depth, intr, seed).rows(uvz, q)
