@@ -427,3 +427,38 @@ def test_freeze_encoder_trains_only_the_head_and_resumes_so(data, run, tmp_path)
     assert not torch.equal(own["fc5.weight"], before["fc5.weight"])  # the head did
     with pytest.raises(ValueError, match="freeze_encoder need init"):
         TrainConfig(freeze_encoder=True)
+
+
+def _with_families(data: Path, dest: Path, family) -> Path:
+    """A copy of crop dataset ``data`` whose manifest gives object i the family ``family(i)``."""
+    import shutil
+
+    shutil.copytree(data, dest)
+    m = json.loads((dest / "manifest.json").read_text())
+    m["source"] = {"objects": [{"object_id": i, "family": family(i)} for i in range(30)]}
+    (dest / "manifest.json").write_text(json.dumps(m))
+    return dest
+
+
+def test_family_sampling_draws_every_family_and_label_alike(data, tmp_path):
+    from training.train import _family_cells, _family_order
+
+    fam_data = _with_families(data, tmp_path / "families", lambda i: "mug" if i == 3 else "box")  # mugs: 1 object
+    ds = open_crop_dataset(fam_data)
+    sp = ds.split("train")
+    ids, y = np.asarray(sp.arrays["object_id"]), np.asarray(sp.labels)
+    mug = ids == 3
+    assert 0 < mug.sum() < len(ids) / 4  # a minority family
+    order = _family_order(TrainConfig(seed=3), _family_cells(sp, ds.object_families()), 0, 0, 40_000)
+    for fam in (mug, ~mug):
+        for label in (0, 1):
+            if ((fam) & (y == label)).any():  # each (family, label) cell present: a quarter of the draws
+                share = np.isin(order, np.flatnonzero(fam & (y == label))).mean()
+                assert share == pytest.approx(1 / 4, abs=0.02)
+    again = _family_order(TrainConfig(seed=3), _family_cells(sp, ds.object_families()), 0, 0, 40_000)
+    assert np.array_equal(order, again)  # a resumed run draws the same epoch
+
+
+def test_family_sampling_needs_a_dataset_that_records_families(data, tmp_path):
+    with pytest.raises(DatasetError, match="families"):
+        train(TrainConfig(samples=32, sampling="family", **FAST), data, tmp_path / "run", progress=False)

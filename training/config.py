@@ -15,6 +15,7 @@ from vgq.normalization import IMAGE_REFERENCES
 from vgq.pose import POSE_COLUMNS, POSE_FEATURES
 
 CLASS_BALANCE = ("none", "loss_weights")
+SAMPLING = ("uniform", "family")
 OPTIMIZERS = ("sgd", "adamw")
 PRECISIONS = ("fp32", "bf16", "auto")
 SELECT_ON = ("data", "mix", "mean")
@@ -131,6 +132,17 @@ class TrainConfig:
     checkpoint_every_samples: int = 100_000  # last.pt at least this often (and at each validation)
     log_every_steps: int = 50  # train-loss lines in metrics.jsonl (mean over the interval)
     eval_batch_size: int = 64  # validation rows per forward pass (small batches are faster on CPUs)
+    sampling: str = field(
+        default="uniform",
+        metadata={
+            "choices": SAMPLING,
+            "help": "'uniform': each epoch is a permutation of the train split | 'family': its rows are drawn "
+            "(with replacement, seeded per epoch) so that every (object family, label) cell of the train split is "
+            "equally likely: a family of 4%% of the rows (bottles) weighs as much as one of 58%% (random_urdfs), "
+            "and each family's classes weigh alike, as its balanced accuracy counts them; the batches then hold "
+            "both classes equally, so --class-balance loss_weights is not needed",
+        },
+    )
     class_balance: str = field(
         default="none",
         metadata={"choices": CLASS_BALANCE, "help": "'loss_weights': cross-entropy weights n / (2 n_class) from train"},
@@ -243,6 +255,8 @@ class TrainConfig:
             raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
+        if self.sampling not in SAMPLING:
+            raise ValueError(f"sampling must be one of {SAMPLING}, got {self.sampling!r}")
         if self.class_balance not in CLASS_BALANCE:
             raise ValueError(f"class_balance must be one of {CLASS_BALANCE}, got {self.class_balance!r}")
         if self.roi_head not in ROI_HEADS:

@@ -216,6 +216,31 @@ def _class_weights(split: CropSplit, mix: CropSplit | None = None, mix_share: fl
     return torch.tensor([1.0 / (2.0 * (1.0 - pos)), 1.0 / (2.0 * pos)], dtype=torch.float32)
 
 
+def _family_cells(split: CropSplit, families: dict[int, str]) -> np.ndarray:
+    """Draw probabilities (n,) float64 of the train rows under ``sampling`` "family": every (object
+    family, label) cell of ``split`` equally likely, the rows within a cell alike. Raises
+    DatasetError when the dataset records no families."""
+    if not families:
+        raise DatasetError("sampling 'family' needs a crop dataset whose manifest records object families")
+    obj = np.asarray(split.arrays["object_id"], dtype=np.int64)
+    names = sorted(set(families.values()))
+    code = {f: i for i, f in enumerate(names)}
+    ids = np.array(sorted(families), dtype=np.int64)
+    fam_of = np.array([code[families[int(i)]] for i in ids], dtype=np.int64)
+    at = np.clip(np.searchsorted(ids, obj), 0, len(ids) - 1)
+    fam = np.where(ids[at] == obj, fam_of[at], len(names))  # an object without a family: a cell of its own
+    cell = fam * 2 + (np.asarray(split.labels) > 0)
+    counts = np.bincount(cell, minlength=2 * len(names) + 2).astype(np.float64)
+    p = 1.0 / counts[cell]
+    return p / p.sum()
+
+
+def _family_order(cfg: TrainConfig, probs: np.ndarray, epoch: int, rank: int, n: int) -> np.ndarray:
+    """An epoch's ``n`` rows for process ``rank`` drawn by ``probs`` (with replacement) from a
+    stream of (seed, epoch, rank) alone, so a resumed run draws the same rows."""
+    return np.random.default_rng((cfg.seed, 0x66616D, epoch, rank)).choice(len(probs), size=n, p=probs)
+
+
 def _mix_index(cfg: TrainConfig, step: int, rank: int, n_rows: int, k: int) -> np.ndarray:
     """Rows of the mix dataset's train split for optimizer step ``step`` on process ``rank``:
     drawn from a stream of (seed, step, rank) alone, so a resumed run draws the same rows."""
@@ -616,6 +641,7 @@ def train(
     state.world_size = d.world
     model = DistributedDataParallel(net) if d.world > 1 else net
     weights = _class_weights(train_split, mix_train, cfg.mix_share) if cfg.class_balance == "loss_weights" else None
+    cells = _family_cells(train_split, data.object_families()) if cfg.sampling == "family" else None
     data_info = data.info()  # counts read once
     if mix is not None:
         data_info["mix"] = mix.info()
@@ -675,6 +701,8 @@ def train(
         while state.step < total_steps:
             sampler.set_epoch(state.epoch)
             order = np.fromiter(iter(sampler), dtype=np.int64, count=len(sampler))
+            if cells is not None:
+                order = _family_order(cfg, cells, state.epoch, d.rank, len(order))
             n_batches = len(order) // local_main  # BatchSampler(sampler, local_main, drop_last=True)
             ahead = (
                 pool.submit(load, order, state.batch_in_epoch, state.step) if state.batch_in_epoch < n_batches else None
