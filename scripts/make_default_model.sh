@@ -5,13 +5,15 @@
 # Every step resumes: rerun the script after an interruption. Uses .venv from ./scripts/test.sh.
 #
 #   ./scripts/make_default_model.sh                  # the bundled model's recipe (v2): families, sensor
-#                                                    # model, physics label; three stages: the image and pose
+#                                                    # model, physics label; four stages: the image and pose
 #                                                    # streams (runs/fast-v2), the jaw-grid head fine-tuned on
 #                                                    # top (runs/fast-v2-jaw), then that head again with a
-#                                                    # placement stream, encoder frozen (runs/fast-v2-place,
-#                                                    # docs/training.md); plus its clean-test and
-#                                                    # leave-family-out runs
-#   PLACE_SAMPLES=0 ./scripts/make_default_model.sh # the v2 bundled until 2026-12-07: stages one and two
+#                                                    # placement stream, encoder frozen (runs/fast-v2-place),
+#                                                    # then the same with every (family, label) drawn alike
+#                                                    # (runs/fast-v2-family, docs/training.md); plus its
+#                                                    # clean-test and leave-family-out runs
+#   FAMILY_SAMPLES=0 ./scripts/make_default_model.sh # the v2 bundled on 2026-12-07 (stages one to three)
+#   PLACE_SAMPLES=0 ./scripts/make_default_model.sh # the v2 bundled 2026-12-05 to 2026-12-07: stages one and two
 #   JAW_SAMPLES=0 PLACE_SAMPLES=0 ./scripts/make_default_model.sh  # the v2 bundled until 2026-12-05
 #   STACKER=1 ./scripts/make_default_model.sh        # v2 plus a placement stacker on the exported network
 #                                                    # (training stacker; not the bundle: docs/training.md)
@@ -29,9 +31,9 @@
 # ~3 h when simulated), training ~30-50 min per 1M samples with bf16 steps (CPUs with AVX-512 BF16 or
 # AMX; ~2.5 h without): stage one SAMPLES (2.6 M), the jaw-grid stage
 # JAW_SAMPLES (2.4 M; its best checkpoint, 2.28 M, was the bundle until 2026-12-07), the placement stage
-# PLACE_SAMPLES (1.2 M, ~750 samples/s with the encoder frozen; the bundle is its best checkpoint),
-# the leave-family-out runs SAMPLES_LFO (3 M: 79.4% on the never-seen families for stage one; 71.7% at
-# 1 M), JAW_SAMPLES and PLACE_SAMPLES again.
+# PLACE_SAMPLES (1.2 M, ~750 samples/s with the encoder frozen), the family stage FAMILY_SAMPLES (600 k,
+# ~13 min; the bundle is its best checkpoint), the leave-family-out runs SAMPLES_LFO (3 M: 79.4% on the
+# never-seen families for stage one; 71.7% at 1 M), JAW_SAMPLES, PLACE_SAMPLES and FAMILY_SAMPLES again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # the whole script is read before it runs (a function), so editing this file cannot break a running build
@@ -54,6 +56,9 @@ main() {
   # head fine-tuned reading each grasp's placement row (vgq.placement) beside its pose; 0: no placement stage
   PLACE_SAMPLES=${PLACE_SAMPLES:-1200000}
   [ "$JAW_SAMPLES" != 0 ] || PLACE_SAMPLES=0
+  # the family stage (v2, after the placement stage): its best checkpoint fine-tuned on, each epoch drawn so
+  # that every (object family, label) cell weighs alike (training --sampling family; 0: no family stage)
+  FAMILY_SAMPLES=${FAMILY_SAMPLES:-600000}
   # STACKER=1 (v2): a placement stacker on the exported network's scores (training stacker, docs/training.md),
   # fitted on the recipe's stacker objects and judged on its 16-new-objects test; the network is exported to
   # RUN-jaw/model, the stacked model written to OUT
@@ -83,9 +88,16 @@ main() {
         --init "$2-jaw/model" --roi-head jaw --freeze-encoder --base-lr 0.0001 --val-every-samples 50000 \
         --placement image --placement-units 64 --placement-lr-scale 30 --placement-dropout 0.1
     fi
+    if [ "$PLACE_SAMPLES" != 0 ] && [ "$FAMILY_SAMPLES" != 0 ]; then  # the same head, every (family, label) drawn alike
+      $PY -m training train --data "$1" --out "$2-family" --samples "$FAMILY_SAMPLES" "${TRAIN_OPTS[@]}" \
+        --init "$2-place/checkpoints/best.pt" --roi-head jaw --freeze-encoder --base-lr 0.0001 --val-every-samples 50000 \
+        --placement image --placement-units 64 --placement-lr-scale 30 --placement-dropout 0.1 \
+        --sampling family --class-balance none
+    fi
   }
   final() {
-    if [ "$PLACE_SAMPLES" != 0 ]; then echo "$1-place"; elif [ "$JAW_SAMPLES" != 0 ]; then echo "$1-jaw"; else echo "$1"; fi
+    if [ "$PLACE_SAMPLES" != 0 ] && [ "$FAMILY_SAMPLES" != 0 ]; then echo "$1-family"
+    elif [ "$PLACE_SAMPLES" != 0 ]; then echo "$1-place"; elif [ "$JAW_SAMPLES" != 0 ]; then echo "$1-jaw"; else echo "$1"; fi
   }
   FINAL=$(final "$RUN")
   [ "$STACKER" = 0 ] || EXPORTED="$FINAL/model"
