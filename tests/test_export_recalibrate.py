@@ -14,10 +14,36 @@ from vgq.model_card import ModelCard
 DEFAULT = Path(__file__).resolve().parent.parent / "models" / "fast-vgqcnn-default"
 
 
-def test_recalibrate_rewrites_only_the_calibration(tmp_path):
+def _ranked_by(model_dir: Path, native_rows):
+    """``native_rows`` whose labels are the model's own ranking (a row is positive when the model
+    scores it above its object's median): a fake dataset's random labels leave the Platt slope's
+    sign to chance, and a fit that cannot rank is refused (exit 2)."""
+    from export.recalibrate import score_native
+    from service.runtime import FastModel
+
+    model = FastModel(model_dir, head_precision="fp32")
+
+    def relabelled(grasps_dir, *args, **kw):
+        data = native_rows(grasps_dir, *args, **kw)
+        for o, (depth, rows, _labels, image_index) in data.items():
+            n = len(rows)
+            pick = np.random.default_rng(o).choice(n, n, replace=False)  # score_native's first draw
+            p, _ = score_native(model, data, [o], n, np.random.default_rng(o))
+            score = np.empty(n)
+            score[pick] = p
+            data[o] = (depth, rows, (score > np.median(score)).astype(np.int64), image_index)
+        return data
+
+    return relabelled
+
+
+def test_recalibrate_rewrites_only_the_calibration(tmp_path, monkeypatch):
+    import export.recalibrate as recalibrate
+
     fake_dataset(tmp_path / "g", n_objects=8, n_images=2, n_grasps=40)
     model = tmp_path / "m"
     shutil.copytree(DEFAULT, model)
+    monkeypatch.setattr(recalibrate, "native_rows", _ranked_by(model, recalibrate.native_rows))
     before = json.loads((model / "model_card.json").read_text())
     assert main(["--model-dir", str(model), "--grasps", str(tmp_path / "g"), "--per-split", "100"]) == 0
     after = json.loads((model / "model_card.json").read_text())
