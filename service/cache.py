@@ -178,6 +178,10 @@ class MemoryCache:
     def __len__(self) -> int:
         return len(self._d)
 
+    def __contains__(self, key: str) -> bool:
+        with self._lock:
+            return key in self._d
+
     def stats(self) -> dict:
         with self._lock:
             windows = sum(len(e.windows) for e in self._d.values())

@@ -279,8 +279,12 @@ class RedisCache:
                 self.local.windows_fetched += len(found)
 
     def add_windows(self, key: str, entry: CachedImage, new: dict) -> None:
+        """As :meth:`MemoryCache.add_windows`; shared through Redis for an entry this cache holds. An
+        entry not put yet (a one-shot's, its windows encoded beside its analysis) is written with its
+        windows by :meth:`put`: each window once."""
         self.local.add_windows(key, entry, new)
-        self._put_windows(key, new)
+        if key in self.local:
+            self._put_windows(key, new)
 
     def _put_windows(self, key: str, windows: dict) -> None:
         pipe = self.redis.pipeline(transaction=False)

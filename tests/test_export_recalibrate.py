@@ -27,10 +27,12 @@ def _ranked_by(model_dir: Path, native_rows):
         data = native_rows(grasps_dir, *args, **kw)
         for o, (depth, rows, _labels, image_index) in data.items():
             n = len(rows)
-            pick = np.random.default_rng(o).choice(n, n, replace=False)  # score_native's first draw
-            p, _ = score_native(model, data, [o], n, np.random.default_rng(o))
+            # every row scored once, each "label" its own index: which score is whose
+            p, row = score_native(
+                model, {o: (depth, rows, np.arange(n), image_index)}, [o], n, np.random.default_rng(o)
+            )
             score = np.empty(n)
-            score[pick] = p
+            score[row] = p
             data[o] = (depth, rows, (score > np.median(score)).astype(np.int64), image_index)
         return data
 

@@ -247,6 +247,27 @@ def test_two_replicas_share_entries_and_count_hits(rurl):
     assert len(b) == 1  # the hit is now held in b's local LRU
 
 
+def test_windows_reach_redis_once_each_whether_encoded_before_or_after_the_put(rurl):
+    import redis
+
+    from service.redis_cache import RedisCache, window_key
+
+    c, r = RedisCache(rurl[0], 8, 1 << 20), redis.Redis.from_url(rurl[0])
+    e = entry()
+    first = {(-24, -28): e.windows.pop((-24, -28))}
+    writes = []
+    put_windows = c._put_windows
+    c._put_windows = lambda key, windows: (writes.append(sorted(windows)), put_windows(key, windows))
+    c.add_windows("k", e, first)  # encoded before the entry is put (a one-shot's, beside its analysis)
+    assert writes == [] and not r.exists(window_key(c.prefix, "k", (-24, -28)))
+    c.put("k", e)  # the entry with its windows
+    later = {(0, 0): EncodedWindow(np.ones((1, 1024), np.float32), 0.0)}
+    c.add_windows("k", e, later)  # encoded for an entry the cache holds: shared at once
+    assert writes == [[(-24, -28)], [(0, 0)]]
+    assert r.exists(window_key(c.prefix, "k", (-24, -28))) and r.exists(window_key(c.prefix, "k", (0, 0)))
+    assert c.stats()["windows_encoded"] == 2
+
+
 def test_local_lru_is_bounded_but_redis_still_serves(rurl):
     from service.redis_cache import RedisCache
 

@@ -222,15 +222,11 @@ def _family_cells(split: CropSplit, families: dict[int, str]) -> np.ndarray:
     DatasetError when the dataset records no families."""
     if not families:
         raise DatasetError("sampling 'family' needs a crop dataset whose manifest records object families")
-    obj = np.asarray(split.arrays["object_id"], dtype=np.int64)
-    names = sorted(set(families.values()))
-    code = {f: i for i, f in enumerate(names)}
-    ids = np.array(sorted(families), dtype=np.int64)
-    fam_of = np.array([code[families[int(i)]] for i in ids], dtype=np.int64)
-    at = np.clip(np.searchsorted(ids, obj), 0, len(ids) - 1)
-    fam = np.where(ids[at] == obj, fam_of[at], len(names))  # an object without a family: a cell of its own
-    cell = fam * 2 + (np.asarray(split.labels) > 0)
-    counts = np.bincount(cell, minlength=2 * len(names) + 2).astype(np.float64)
+    ids, row_object = np.unique(np.asarray(split.arrays["object_id"]), return_inverse=True)
+    # each object's family name ("": an object without one, a cell of its own), as training.evaluate names them
+    _, family = np.unique(np.array([families.get(int(i), "") for i in ids]), return_inverse=True)
+    cell = family[row_object] * 2 + (np.asarray(split.labels) > 0)
+    counts = np.bincount(cell).astype(np.float64)
     p = 1.0 / counts[cell]
     return p / p.sum()
 
