@@ -91,20 +91,33 @@ def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, Mod
     if net.placement_units:  # the placement stream: place_fc1 folded as pc1, place_fc2 (no bias) a MatMul
         _unfold(net, net.place_fc1, head, head_path, "place_fc1", place=True)
         mm = head_nodes.get("/head/place_fc2/MatMul")
-        if mm is None or len(mm) != 2:
+        if mm is not None and len(mm) == 2:
+            _set(net.place_fc2.weight, _get(head, mm[1], head_path).T, "place_fc2")
+        elif net.roi_head == "none":
             raise ValueError(f"{head_path}: node '/head/place_fc2/MatMul' not found; the card says placement_units")
-        _set(net.place_fc2.weight, _get(head, mm[1], head_path).T, "place_fc2")
     for layer in ("fc4_pose", "fc5"):
         for what in ("weight", "bias"):
             _set(getattr(getattr(net, layer), what), _get(head, f"head.{layer}.{what}", head_path), layer)
     if net.roi_head != "none":  # the jaw-grid head: roi_fc1 by name, roi_fc2 (no bias) as its MatMul's W^T
-        _set(net.roi_fc1.weight, _get(head, "head.roi.roi_fc1.weight", head_path), "roi_fc1")
-        _set(net.roi_fc1.bias, _get(head, "head.roi.roi_fc1.bias", head_path), "roi_fc1")
+        if "head.roi_fc1.weight" in head:  # read point-major (export.graphs): back to channel-major
+            w = _get(head, "head.roi_fc1.weight", head_path)
+            c, points = net.conv2_channels, net.jaw_grid.shape[0] * net.jaw_grid.shape[1]
+            cells = w[:, : c * points].reshape(len(w), points, c).transpose(0, 2, 1).reshape(len(w), -1)
+            _set(net.roi_fc1.weight, np.concatenate([cells, w[:, c * points :]], axis=1), "roi_fc1")
+            _set(net.roi_fc1.bias, _get(head, "head.roi_fc1.bias", head_path), "roi_fc1")
+        else:  # a graph exported before 2026-12-08: the network's channel-major order
+            _set(net.roi_fc1.weight, _get(head, "head.roi.roi_fc1.weight", head_path), "roi_fc1")
+            _set(net.roi_fc1.bias, _get(head, "head.roi.roi_fc1.bias", head_path), "roi_fc1")
         _set(net.roi_focal_px, _get(head, "head.roi.roi_focal_px", head_path), "roi_focal_px")
         mm = head_nodes.get("/head/roi_fc2/MatMul")
         if mm is None or len(mm) != 2:
             raise ValueError(f"{head_path}: node '/head/roi_fc2/MatMul' not found; the card says roi_head jaw")
-        _set(net.roi_fc2.weight, _get(head, mm[1], head_path).T, "roi_fc2")
+        w = _get(head, mm[1], head_path).T
+        roi_units = net.roi_fc2.weight.shape[1]
+        if net.placement_units and "/head/place_fc2/MatMul" not in head_nodes:  # place_fc2's columns follow
+            _set(net.place_fc2.weight, w[:, roi_units:], "place_fc2")
+            w = w[:, :roi_units]
+        _set(net.roi_fc2.weight, w, "roi_fc2")
     w, b = _get(head, "head.out.weight", head_path), _get(head, "head.out.bias", head_path)
     _set(net.fc6.weight, np.concatenate([np.zeros_like(w), w]), "fc6")
     _set(net.fc6.bias, np.concatenate([np.zeros_like(b), b]), "fc6")

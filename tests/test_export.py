@@ -12,7 +12,7 @@ import pytest
 import torch
 from conftest import synthetic_crops
 
-from export.graphs import ExportLRN, HeadGraph
+from export.graphs import ExportLRN, HeadGraph, bilinear_point_major
 from export.onnx_export import ExportError, export_model
 from training.networks import GraspQualityNet, LocalResponseNorm
 from vgq.camera import DEFAULT_INTRINSICS
@@ -469,9 +469,20 @@ def test_jaw_depth_head_exports_and_serves(tmp_path):
     np.testing.assert_allclose(served.score(term, poses[:16]), ref, atol=1e-5)
 
 
+@pytest.mark.parametrize("windows", [1, 6])
+def test_the_head_graphs_bilinear_reads_are_the_networks_point_major(windows):
+    """export's four-Gather reads equal the network's (``_bilinear_rows``, grid_sample's border
+    reads) flattened point by point, for one window shared by every grasp or a window each."""
+    torch.manual_seed(0)
+    rows = torch.randn(windows, 256, 64)
+    grid = torch.rand(6, 8, 3, 2) * 2.4 - 1.2  # some points off the map: border reads
+    want = GraspQualityNet._bilinear_rows(rows, 16, grid).reshape(6, -1)
+    torch.testing.assert_close(bilinear_point_major(rows, 16, grid), want, rtol=1e-5, atol=1e-6)
+
+
 def test_jaw_grid_head_exports_and_serves(tmp_path):
     """A net whose head reads the encoder's feature map on a grid turned to the jaw: the encoder
-    graph's output carries the map, the head graph (GridSample) reproduces torch against one
+    graph's output carries the map, the head graph (row Gathers) reproduces torch against one
     shared window, the service's runtime scores with it, and the folder reads back into torch."""
     from export.from_onnx import fast_net_from_model_dir, vgq_net_like
     from service.runtime import FastModel

@@ -2,6 +2,7 @@
 columns, the card names its columns, and the folder reads back into the same torch network."""
 
 import numpy as np
+import onnx
 import pytest
 import torch
 
@@ -62,6 +63,24 @@ def test_the_folder_reads_back_into_the_same_network(exported):
         a = torch.softmax(net(x, torch.from_numpy(poses)), 1)[:, 1]
         b = torch.softmax(back(x, torch.from_numpy(poses)), 1)[:, 1]
     assert back.n_place == 7 and torch.allclose(a, b, atol=1e-5)
+
+
+def test_the_jaw_grid_head_graph_has_one_product_for_the_grid_and_placement_terms(tmp_path):
+    """A placement stream beside the jaw grid: the head graph reads the grid with Gathers,
+    point-major (no Transpose, no batched MatMul), and place_fc2's columns ride in roi_fc2's
+    product; the folder reads back into the same layers."""
+    torch.manual_seed(0)
+    net = GraspQualityNet("fast_vgqcnn", roi_head="jaw", placement=True, placement_units=16).eval()
+    imgs, poses = rows(16, np.random.default_rng(4))
+    out = tmp_path / "m"
+    config = {"roi_head": "jaw", "placement_units": 16}
+    export_model(net, out, imgs, poses, GEOM, DEFAULT_INTRINSICS, training={"config": config})
+    nodes = onnx.load(str(out / "head.onnx")).graph.node
+    assert "Transpose" not in {n.op_type for n in nodes}
+    assert [n.name for n in nodes if n.op_type == "MatMul"] == ["/head/roi_fc2/MatMul"]
+    back, _ = fast_net_from_model_dir(out)
+    for layer in ("roi_fc1", "roi_fc2", "place_fc2"):
+        torch.testing.assert_close(getattr(back, layer).weight, getattr(net, layer).weight, msg=layer)
 
 
 def test_export_refuses_verification_poses_without_the_placement_row(exported, tmp_path):
