@@ -12,6 +12,7 @@
 #                                                    # then the same with every (family, label) drawn alike
 #                                                    # (runs/fast-v2-family, docs/training.md); plus its
 #                                                    # clean-test and leave-family-out runs
+#   FAMILY_SAMPLES=600000 ./scripts/make_default_model.sh  # the v2 bundled 2026-12-07 22:30 UTC to 2026-12-08
 #   FAMILY_SAMPLES=0 ./scripts/make_default_model.sh # the v2 bundled on 2026-12-07 (stages one to three)
 #   PLACE_SAMPLES=0 ./scripts/make_default_model.sh # the v2 bundled 2026-12-05 to 2026-12-07: stages one and two
 #   JAW_SAMPLES=0 PLACE_SAMPLES=0 ./scripts/make_default_model.sh  # the v2 bundled until 2026-12-05
@@ -31,8 +32,8 @@
 # ~3 h when simulated), training ~30-50 min per 1M samples with bf16 steps (CPUs with AVX-512 BF16 or
 # AMX; ~2.5 h without): stage one SAMPLES (2.6 M), the jaw-grid stage
 # JAW_SAMPLES (2.4 M; its best checkpoint, 2.28 M, was the bundle until 2026-12-07), the placement stage
-# PLACE_SAMPLES (1.2 M, ~750 samples/s with the encoder frozen), the family stage FAMILY_SAMPLES (600 k,
-# ~13 min; the bundle is its best checkpoint), the leave-family-out runs SAMPLES_LFO (3 M: 79.4% on the
+# PLACE_SAMPLES (1.2 M, ~750 samples/s with the encoder frozen), the family stage FAMILY_SAMPLES (1.2 M,
+# ~25 min; the bundle is its best checkpoint), the leave-family-out runs SAMPLES_LFO (3 M: 79.4% on the
 # never-seen families for stage one; 71.7% at 1 M), JAW_SAMPLES, PLACE_SAMPLES and FAMILY_SAMPLES again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -58,7 +59,7 @@ main() {
   [ "$JAW_SAMPLES" != 0 ] || PLACE_SAMPLES=0
   # the family stage (v2, after the placement stage): its best checkpoint fine-tuned on, each epoch drawn so
   # that every (object family, label) cell weighs alike (training --sampling family; 0: no family stage)
-  FAMILY_SAMPLES=${FAMILY_SAMPLES:-600000}
+  FAMILY_SAMPLES=${FAMILY_SAMPLES:-1200000}
   # STACKER=1 (v2): a placement stacker on the exported network's scores (training stacker, docs/training.md),
   # fitted on the recipe's stacker objects and judged on its 16-new-objects test; the network is exported to
   # RUN-jaw/model, the stacked model written to OUT
