@@ -7,8 +7,9 @@ Each folder is opened as the service opens it (``service.runtime.FastModel``: he
 (one image term, k grasps of the held-out crops) are timed, the folders taking turns every
 ``--calls`` calls (load from other processes hits both alike). Agreement: the held-out crops
 (examples/heldout_test_crops.npz) through each folder's own encoder and head, each grasp scored
-alone: max |dp| and decisions changed. Used to measure rebuilt graphs (``export.prune_head``,
-``export.prune_encoder``) against the ones they replace.
+alone: max |dp| and decisions changed (a placement head's rows "not known": the crops carry
+none). Used to measure rebuilt graphs (``export.prune_head``, ``export.prune_encoder``, a new
+``export.graphs`` layout) against the ones they replace.
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from vgq.placement import unknown_rows
 
 HELDOUT = Path(__file__).resolve().parent.parent / "examples" / "heldout_test_crops.npz"
 
@@ -31,16 +34,19 @@ def compare(
     models = {n: FastModel(d, threads=1, encoder_precision=encoder_precision) for n, d in (("a", a_dir), ("b", b_dir))}
     with np.load(heldout) as z:
         crops, poses = z["images"][:, 0], z["poses"].astype(np.float32)
+    # a placement head reads a placement row after the pose columns: the held-out crops carry none, so
+    # each grasp gets "not known" (all 0, vgq.placement.unknown_rows), what the service sends without a table
+    rows = {n: np.c_[poses, unknown_rows(len(poses))[:, : m.n_pose - poses.shape[1]]] for n, m in models.items()}
     p = {}
     for n, m in models.items():
         terms = m.encode(crops)
-        p[n] = np.concatenate([m.score(terms[i : i + 1], poses[i : i + 1]) for i in range(len(poses))])
-    grasps = np.resize(poses, (k, poses.shape[1]))  # k grasps: the held-out poses, repeated if fewer
+        p[n] = np.concatenate([m.score(terms[i : i + 1], rows[n][i : i + 1]) for i in range(len(poses))])
+    grasps = {n: np.resize(r, (k, r.shape[1])) for n, r in rows.items()}  # k grasps: repeated if fewer
     times = {(n, part): [] for n in models for part in ("encoder", "head")}
     for _ in range(rounds):
         for n, m in models.items():
             term = m.encode(crops[0])
-            for part, fn, args in (("encoder", m.encode, (crops[0],)), ("head", m.score, (term, grasps))):
+            for part, fn, args in (("encoder", m.encode, (crops[0],)), ("head", m.score, (term, grasps[n]))):
                 for _ in range(calls):
                     t = time.perf_counter()
                     fn(*args)

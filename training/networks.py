@@ -317,24 +317,35 @@ class GraspQualityNet(nn.Module):
         return torch.stack([pu / half, pv / half], dim=-1)
 
     @staticmethod
-    def _bilinear_rows(rows: torch.Tensor, side: int, grid: torch.Tensor) -> torch.Tensor:
-        """Bilinear reads of a map stored as rows of channels (n, side * side, C), n = 1 (one
-        window, k grasps) or k (a window each), at grid_sample coordinates (k, Ga, Gb, 2) -> (k, Ga,
-        Gb, C): ``F.grid_sample``'s bilinear, border, align_corners False (a test holds them equal),
-        done as one row gather and a batched (1 x 4) @ (4 x C) MatMul: onnxruntime's GridSample
-        took 4.2 ms for 128 grasps, this ~0.5 ms (a Mul and ReduceSum in place of the MatMul ~1 ms)."""
+    def bilinear_corners(
+        side: int, grid: torch.Tensor, n: int
+    ) -> tuple[tuple[torch.Tensor, ...], tuple[torch.Tensor, ...]]:
+        """Bilinear reads (``F.grid_sample``'s bilinear, border, align_corners False) of a map stored
+        as rows (n * side * side, C), n = 1 (one window, k grasps) or k (a window each), at grid_sample
+        coordinates (k, Ga, Gb, 2): the rows of the four corners (y0 x0, y0 x1, y1 x0, y1 x1), each
+        (k, Ga, Gb) int64, and their weights, each (k, Ga, Gb)."""
         k = grid.shape[0]
-        n, hw, c = rows.shape
         xy = (((grid + 1) * side - 1) / 2).clamp(0, side - 1)  # map cells, pixel centres on integers
         lo = xy.floor()
         w = xy - lo  # (k, Ga, Gb, 2)
         x0, y0 = lo[..., 0].long(), lo[..., 1].long()
         x1, y1 = (x0 + 1).clamp(max=side - 1), (y0 + 1).clamp(max=side - 1)
-        first = (torch.arange(k, device=grid.device) // (k // n) * hw)[:, None, None]  # each grasp's window
-        idx = torch.stack([y0 * side + x0, y0 * side + x1, y1 * side + x0, y1 * side + x1], dim=-1) + first[..., None]
+        first = (torch.arange(k, device=grid.device) // (k // n) * side * side)[:, None, None]  # each grasp's window
+        y0, y1 = y0 * side + first, y1 * side + first
         wx, wy = w[..., 0], w[..., 1]
-        wts = torch.stack([(1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy], dim=-1)
-        return (wts[..., None, :].to(rows.dtype) @ rows.reshape(n * hw, c)[idx]).squeeze(-2)
+        return (y0 + x0, y0 + x1, y1 + x0, y1 + x1), ((1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy)
+
+    @staticmethod
+    def _bilinear_rows(rows: torch.Tensor, side: int, grid: torch.Tensor) -> torch.Tensor:
+        """Bilinear reads (``bilinear_corners``) of a map stored as rows of channels (n, side * side,
+        C), n = 1 or k, at grid_sample coordinates (k, Ga, Gb, 2) -> (k, Ga, Gb, C) (a test holds them
+        equal to ``F.grid_sample``'s), done as one row gather and a batched (1 x 4) @ (4 x C) MatMul:
+        onnxruntime's GridSample took 4.2 ms for 128 grasps, this ~0.5 ms (export.graphs reads the
+        corners with four Gathers instead, faster still)."""
+        n, hw, c = rows.shape
+        idx, wts = GraspQualityNet.bilinear_corners(side, grid, n)
+        wts = torch.stack(wts, dim=-1)[..., None, :].to(rows.dtype)
+        return (wts @ rows.reshape(n * hw, c)[torch.stack(idx, dim=-1)]).squeeze(-2)
 
     def roi_term(self, cells: torch.Tensor, poses: torch.Tensor, crop: torch.Tensor | None = None) -> torch.Tensor:
         """fc4's jaw-grid term (k, 1024): ``cells`` the conv2 feature map as rows of channels
