@@ -20,6 +20,8 @@ from training.checkpoint import net_options
 from training.networks import GraspQualityNet
 from vgq.model_card import ModelCard
 
+from .graphs import roi_fc1_point_major_columns
+
 
 def _load(path: Path) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
     """Initializers by name, and node name -> input names, of an ONNX graph."""
@@ -101,9 +103,12 @@ def fast_net_from_model_dir(model_dir: str | Path) -> tuple[GraspQualityNet, Mod
     if net.roi_head != "none":  # the jaw-grid head: roi_fc1 by name, roi_fc2 (no bias) as its MatMul's W^T
         if "head.roi_fc1.weight" in head:  # read point-major (export.graphs): back to channel-major
             w = _get(head, "head.roi_fc1.weight", head_path)
-            c, points = net.conv2_channels, net.jaw_grid.shape[0] * net.jaw_grid.shape[1]
-            cells = w[:, : c * points].reshape(len(w), points, c).transpose(0, 2, 1).reshape(len(w), -1)
-            _set(net.roi_fc1.weight, np.concatenate([cells, w[:, c * points :]], axis=1), "roi_fc1")
+            order = roi_fc1_point_major_columns(net)
+            if w.shape[1] != len(order):
+                raise ValueError(f"roi_fc1: ONNX weight has {w.shape[1]} inputs, the network expects {len(order)}")
+            channel_major = np.empty_like(w)
+            channel_major[:, order] = w
+            _set(net.roi_fc1.weight, channel_major, "roi_fc1")
             _set(net.roi_fc1.bias, _get(head, "head.roi_fc1.bias", head_path), "roi_fc1")
         else:  # a graph exported before 2026-12-08: the network's channel-major order
             _set(net.roi_fc1.weight, _get(head, "head.roi.roi_fc1.weight", head_path), "roi_fc1")

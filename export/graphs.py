@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import copy
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -89,15 +90,20 @@ def bilinear_point_major(rows: torch.Tensor, side: int, grid: torch.Tensor) -> t
     return out.reshape(grid.shape[0], -1)
 
 
-def _point_major_roi_fc1(net: GraspQualityNet) -> nn.Linear:
-    """``net.roi_fc1`` reading the jaw grid's features point-major (``bilinear_point_major``)
-    instead of the network's channel-major order: its weight columns permuted ("jaw_depth": the
-    grid's depths stay last). The same function."""
+def roi_fc1_point_major_columns(net: GraspQualityNet) -> np.ndarray:
+    """The order of ``net.roi_fc1``'s input columns in the head graph: the graph reads the jaw grid
+    point-major (``bilinear_point_major``: point p, channel ch at p * C + ch), the network
+    channel-major (ch * P + p); "jaw_depth": the grid's depths stay last. Graph column j is the
+    network's column ``order[j]`` (``export.from_onnx`` inverts it)."""
     c, points = net.conv2_channels, net.jaw_grid.shape[0] * net.jaw_grid.shape[1]
-    w = net.roi_fc1.weight
-    cells = w[:, : c * points].reshape(-1, c, points).transpose(1, 2).reshape(-1, c * points)
-    out = nn.Linear(w.shape[1], w.shape[0])
-    out.weight.copy_(torch.cat([cells, w[:, c * points :]], dim=1))
+    cells = np.arange(c * points).reshape(c, points).T.reshape(-1)
+    return np.concatenate([cells, np.arange(c * points, net.roi_fc1.in_features)])
+
+
+def _point_major_roi_fc1(net: GraspQualityNet) -> nn.Linear:
+    """``net.roi_fc1`` with its weight columns in the graph's point-major order (the same function)."""
+    out = nn.Linear(net.roi_fc1.in_features, net.roi_fc1.out_features)
+    out.weight.copy_(net.roi_fc1.weight[:, torch.from_numpy(roi_fc1_point_major_columns(net))])
     out.bias.copy_(net.roi_fc1.bias)
     return out
 
